@@ -1,1 +1,15 @@
-"""render package."""
+"""Gaussian rasterization: EWA projection, tile binning, front-to-back blending, any channel count.
+
+Public API::
+
+    rasterize(means, rotations, log_scales, opacity_logits, camera, *, colors=None, features=None,
+              background=None, feature_background=None, outputs=("rgb",), options=None, backend="auto")
+    render_frame(frame, camera, outputs=("rgb",), features=None, **kw)
+
+See :func:`rasterize` for shapes. ``reference`` holds the straightforward dense implementation used as
+the speed/accuracy baseline.
+"""
+from .api import rasterize, render_frame
+from .options import OUTPUT_NAMES, BlendWeights, RasterOptions
+
+__all__ = ["rasterize", "render_frame", "RasterOptions", "BlendWeights", "OUTPUT_NAMES"]

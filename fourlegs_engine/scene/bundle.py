@@ -23,7 +23,7 @@ import numpy as np
 from ..errors import InputError, OutputExistsError
 from ..fileio import load_npy, read_json, save_npy_atomic, write_json_atomic
 from .camera import CameraRig
-from .gaussians import GaussianSequence, normalize_quaternions
+from .gaussians import GaussianSequence, normalize_quaternions_chunked, quaternions_need_normalizing
 from .scene import Scene
 
 FORMAT_NAME = "fourlegs-bundle"
@@ -143,10 +143,10 @@ def load_bundle(path: str | Path) -> Scene:
         if lead is not None and tuple(lead) != (T, N):
             raise InputError(f"has leading shape {tuple(lead)}, but scene.json says T={T}, N={N}",
                              file=path / arrays[name], field=name)
-    rot = np.asarray(loaded["rotations"])
-    norms = np.linalg.norm(rot.astype(np.float64), axis=-1)
-    if rot.size and (np.any(norms <= 1e-12) or np.abs(norms - 1).max() > 1e-3):
-        loaded["rotations"] = normalize_quaternions(rot, file=str(path / arrays["rotations"]))
+    rot = loaded["rotations"]
+    if rot.ndim == 3 and rot.shape[-1] == 4 and quaternions_need_normalizing(rot):
+        loaded["rotations"] = normalize_quaternions_chunked(rot, file=str(path / arrays["rotations"]),
+                                                            field="rotations")
     g = GaussianSequence(source=str(path), **{k: v for k, v in loaded.items()})
     rig = CameraRig.from_dict(meta["cameras"], file=str(meta_file))
     if rig.num_timesteps not in (0, T):

@@ -196,7 +196,10 @@ class GaussianSequence:
         def tens(a: Any) -> Optional[torch.Tensor]:
             if a is None:
                 return None
-            return torch.as_tensor(np.ascontiguousarray(a), dtype=dtype, device=device)
+            arr = np.ascontiguousarray(a)
+            if not arr.flags.writeable:  # read-only memory map: torch must not alias it
+                arr = arr.copy()
+            return torch.as_tensor(arr, dtype=dtype, device=device)
 
         def pick(a: Any, static_ndim: int) -> Any:
             if a is None:
@@ -212,7 +215,7 @@ class GaussianSequence:
             sh=tens(pick(self.sh, 3)),
             latents=tens(self.latents[t]) if (with_latents and self.latents is not None) else None,
             foreground=None if self.foreground is None else torch.as_tensor(
-                np.asarray(self.foreground, dtype=bool), device=device),
+                np.array(self.foreground, dtype=bool), device=device),
         )
 
     def rgb(self, t: int) -> np.ndarray:
@@ -246,9 +249,53 @@ class GaussianSequence:
         return out
 
 
+def quaternions_need_normalizing(q: Any, tol: float = 1e-3) -> bool:
+    """True if any quaternion of (…,4) ``q`` is off unit length by more than ``tol`` (or zero).
+
+    Checks one leading slice at a time in float64, so a memory-mapped (T,N,4) array is never copied
+    whole."""
+    if q.ndim < 2:
+        q = q.reshape(1, -1)
+    for i in range(q.shape[0]):
+        norms = np.linalg.norm(np.asarray(q[i], dtype=np.float64).reshape(-1, 4), axis=-1)
+        if norms.size and (np.abs(norms - 1.0).max() > tol or not np.isfinite(norms).all()):
+            return True
+    return False
+
+
 def _all_finite(arr: np.ndarray, chunk: int = 1 << 22) -> bool:
     flat = arr.reshape(-1)
     for s in range(0, flat.shape[0], chunk):
         if not np.isfinite(flat[s:s + chunk]).all():
             return False
     return True
+
+
+def normalize_quaternions_chunked(q: Any, *, file: str | None = None, field: str = "rotations",
+                                  chunk: int = 1 << 20) -> np.ndarray:
+    """Like :func:`normalize_quaternions` for large (…,4) arrays (e.g. memory-mapped (T,N,4)).
+
+    Works on ``chunk`` rows at a time in float64 (peak memory ~ the float32 result), raises
+    :class:`InputError` on a zero-length quaternion naming its full index, and warns once if any
+    quaternion was not unit length. Returns float32 (…,4).
+    """
+    shape = tuple(q.shape)
+    if len(shape) < 1 or shape[-1] != 4:
+        raise InputError(f"has shape {shape}, expected (...,4)", file=file, field=field)
+    flat = q.reshape(-1, 4)
+    out = np.empty(flat.shape, np.float32)
+    unnormalized = False
+    for s in range(0, flat.shape[0], chunk):
+        block = np.asarray(flat[s:s + chunk], dtype=np.float64)
+        norms = np.linalg.norm(block, axis=1, keepdims=True)
+        zero = norms[:, 0] <= QUAT_ZERO_TOL
+        if zero.any():
+            idx = [int(i) for i in np.unravel_index(s + int(np.argmax(zero)), shape[:-1])]
+            raise InputError(f"zero-length quaternion at index {idx}; the rotation is undefined",
+                             file=file, field=field)
+        unnormalized |= bool(np.abs(norms - 1.0).max() > 1e-3)
+        out[s:s + chunk] = block / norms
+    if unnormalized:
+        warnings.warn(f"{file + ': ' if file else ''}{field}: quaternions were not unit length; normalized",
+                      stacklevel=2)
+    return out.reshape(shape)

@@ -1,0 +1,195 @@
+"""Build the Blender extension zip (no bpy needed): the add-on + a bundled copy of the engine + wheels.
+
+Layout of the zip (Blender >= 4.2 extension format)::
+
+    blender_manifest.toml      (the repository's manifest + the ``wheels`` list)
+    __init__.py ... build.py   (this add-on package)
+    fourlegs_engine/           (the engine, imported relatively as ``<addon>.fourlegs_engine``,
+                                with the presets in ``highlights/presets/``)
+    wheels/*.whl               (Python dependencies Blender installs on enable)
+
+Dependency choice (Blender 4.2 - 5.0 run Python 3.11 and ship numpy 1.x, so cp311 wheels only):
+
+- bundled: ``scipy`` (kNN, morphology in query/highlights; ~35-40 MB per platform, pinned to 1.13.1,
+  the newest release whose wheels accept Blender's numpy 1.2x), ``tqdm`` and ``safetensors`` (small),
+  for windows-x64, linux-x64, macos-arm64 and macos-x64.
+- not bundled: ``torch``. A CPU build is 70-250 MB per platform and the PyPI Linux wheel depends on
+  ~15 NVIDIA wheels (> 2 GB) that Blender's wheel installer does not resolve. The add-on checks for
+  torch on use and tells the user the one command that installs it into Blender's Python; a
+  platform-specific build can bundle a torch wheel the user provides with ``--extra-wheel``.
+- not needed inside Blender: numpy (Blender ships it), matplotlib (the panel draws the s_t curve
+  itself), OpenEXR (Blender writes EXR).
+
+Validation and packing use Blender's own tool (``blender_ext.py validate`` / ``build``), found in the
+bpy wheel or a Blender install, run under the current Python.
+"""
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Iterable, Optional, Sequence
+
+ADDON_DIR = Path(__file__).resolve().parent
+REPO_ROOT = ADDON_DIR.parent
+MANIFEST_NAME = "blender_manifest.toml"
+PYTHON_VERSION = "3.11"
+
+#: Blender platform -> pip ``--platform`` tags (newest first; pip takes any matching wheel)
+PLATFORM_TAGS = {
+    "windows-x64": ["win_amd64"],
+    "linux-x64": ["manylinux_2_17_x86_64", "manylinux2014_x86_64"],
+    "macos-arm64": ["macosx_12_0_arm64", "macosx_11_0_arm64"],
+    "macos-x64": ["macosx_10_12_x86_64", "macosx_10_9_x86_64"],
+}
+#: bundled dependencies (requirement specifiers)
+DEPENDENCIES = ("scipy==1.13.1", "tqdm>=4.60", "safetensors>=0.4")
+IGNORE = shutil.ignore_patterns("__pycache__", "*.pyc", "*.pyo", ".*", "*.part*")
+
+
+class BuildError(RuntimeError):
+    """The extension could not be built (message says why)."""
+
+
+def find_blender_ext() -> Path:
+    """Blender's extension tool ``blender_ext.py`` (from the bpy module, else ``$BLENDER_EXT``)."""
+    env = os.environ.get("BLENDER_EXT")
+    if env and Path(env).is_file():
+        return Path(env)
+    import importlib.util
+
+    spec = importlib.util.find_spec("bpy")
+    roots = [Path(p) for p in (spec.submodule_search_locations or [])] if spec else []
+    for root in roots:
+        for cand in sorted(root.glob("*/scripts/addons_core/bl_pkg/cli/blender_ext.py"), reverse=True):
+            return cand
+    raise BuildError("Blender's blender_ext.py was not found: install the bpy module (pip install bpy) or "
+                     "set BLENDER_EXT to <blender>/<version>/scripts/addons_core/bl_pkg/cli/blender_ext.py")
+
+
+def run_blender_ext(args: Sequence[str]) -> str:
+    """Run ``blender_ext.py ARGS`` under this Python; raise :class:`BuildError` with its output on failure."""
+    proc = subprocess.run([sys.executable, str(find_blender_ext()), *args], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise BuildError(f"blender_ext {args[0]} failed:\n{proc.stdout}{proc.stderr}".rstrip())
+    return proc.stdout
+
+
+def validate(source_dir: str | Path) -> str:
+    """Validate an extension directory (manifest + files) with Blender's validator."""
+    return run_blender_ext(["validate", str(source_dir)])
+
+
+def fetch_wheels(dest: str | Path, platforms: Iterable[str] = tuple(PLATFORM_TAGS),
+                 requirements: Iterable[str] = DEPENDENCIES) -> list[Path]:
+    """Download cp311 binary wheels of ``requirements`` for each Blender platform with pip (PyPI)."""
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    for platform in platforms:
+        tags = PLATFORM_TAGS[platform]
+        cmd = [sys.executable, "-m", "pip", "download", "--quiet", "--only-binary=:all:", "--no-deps",
+               "--python-version", PYTHON_VERSION, "--implementation", "cp", "-d", str(dest)]
+        for tag in tags:
+            cmd += ["--platform", tag]
+        proc = subprocess.run(cmd + list(requirements), capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise BuildError(f"pip could not download wheels for {platform}:\n{proc.stderr.strip()}")
+    return sorted(dest.glob("*.whl"))
+
+
+def manifest_with_wheels(text: str, wheel_names: Sequence[str]) -> str:
+    """Insert ``wheels = [...]`` among the manifest's top-level keys (before its first table)."""
+    if re.search(r"^wheels\s*=", text, flags=re.M):
+        raise BuildError(f"{MANIFEST_NAME} already lists wheels; they are added by the build")
+    if not wheel_names:
+        return text
+    block = "wheels = [\n" + "".join(f'  "./wheels/{name}",\n' for name in wheel_names) + "]\n\n"
+    match = re.search(r"^\[", text, flags=re.M)
+    at = match.start() if match else len(text)
+    return text[:at] + block + text[at:]
+
+
+def stage(dest: str | Path, wheels: Iterable[str | Path] = (), manifest: Optional[Path] = None) -> Path:
+    """Assemble the extension's source directory at ``dest`` (must not exist)."""
+    import fourlegs_engine  # the installed engine (pure Python), bundled as a sub-package
+
+    dest = Path(dest)
+    manifest = manifest or REPO_ROOT / MANIFEST_NAME
+    if not manifest.is_file():
+        raise BuildError(f"{manifest}: missing; build the extension from a source checkout of the project")
+    shutil.copytree(ADDON_DIR, dest, ignore=IGNORE)
+    shutil.copytree(Path(fourlegs_engine.__file__).resolve().parent, dest / "fourlegs_engine", ignore=IGNORE)
+    presets = REPO_ROOT / "presets"
+    if presets.is_dir():  # the planner's packaged-presets directory inside the bundled engine
+        target = dest / "fourlegs_engine" / "highlights" / "presets"
+        target.mkdir(parents=True, exist_ok=True)
+        for preset in sorted(presets.glob("*.toml")):
+            shutil.copy2(preset, target / preset.name)
+    names = []
+    wheel_paths = sorted({Path(w).resolve() for w in wheels}, key=lambda p: p.name)
+    if wheel_paths:
+        (dest / "wheels").mkdir()
+        for wheel in wheel_paths:
+            if wheel.suffix != ".whl" or not wheel.is_file():
+                raise BuildError(f"{wheel}: not a wheel file")
+            shutil.copy2(wheel, dest / "wheels" / wheel.name)
+            names.append(wheel.name)
+    (dest / MANIFEST_NAME).write_text(manifest_with_wheels(manifest.read_text(encoding="utf-8"), names),
+                                      encoding="utf-8")
+    return dest
+
+
+def build(output_dir: str | Path, *, wheels_dir: Optional[str | Path] = None, fetch: bool = False,
+          extra_wheels: Iterable[str | Path] = (), with_wheels: bool = True, split_platforms: bool = False,
+          overwrite: bool = False) -> list[Path]:
+    """Build the extension zip(s) into ``output_dir``; returns their paths.
+
+    Args:
+        wheels_dir: where dependency wheels are looked for (and downloaded to with ``fetch``); default
+            ``<cache>/extension-wheels``.
+        fetch: download missing dependency wheels from PyPI first.
+        extra_wheels: additional wheels to bundle (e.g. a platform's torch CPU wheel).
+        with_wheels: False builds without dependency wheels (the user's Blender Python must provide
+            them), e.g. for offline tests.
+        split_platforms: one zip per platform, each with only its own wheels.
+    """
+    from fourlegs_engine.paths import cache_dir
+
+    output_dir = Path(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    wheels: list[Path] = []
+    if with_wheels:
+        wdir = Path(wheels_dir) if wheels_dir else cache_dir() / "extension-wheels"
+        if fetch:
+            fetch_wheels(wdir)
+        wheels = sorted(wdir.glob("*.whl")) if wdir.is_dir() else []
+        wanted = [re.split(r"[=<>!~ ]", r)[0].lower().replace("-", "_") for r in DEPENDENCIES]
+        wheels = [w for w in wheels if w.name.split("-")[0].lower() in wanted]
+        missing = [n for n in wanted if not any(w.name.lower().startswith(n + "-") for w in wheels)]
+        if missing:
+            raise BuildError(f"dependency wheels missing in {wdir}: {', '.join(missing)} (pass --fetch-wheels "
+                             "to download them from PyPI, or --no-wheels to build without them)")
+    wheels += [Path(w) for w in extra_wheels]
+    with tempfile.TemporaryDirectory(prefix="fourlegs-ext-") as tmp:
+        src = stage(Path(tmp) / "src", wheels)
+        validate(src)
+        out_tmp = Path(tmp) / "out"
+        out_tmp.mkdir()
+        args = ["build", "--source-dir", str(src), "--output-dir", str(out_tmp)]
+        if split_platforms:
+            args.append("--split-platforms")
+        run_blender_ext(args)
+        results = []
+        for zip_path in sorted(out_tmp.glob("*.zip")):
+            target = output_dir / zip_path.name
+            if target.exists() and not overwrite:
+                raise BuildError(f"{target}: already exists (pass --overwrite to replace it)")
+            shutil.move(str(zip_path), target)
+            results.append(target)
+    if not results:
+        raise BuildError("blender_ext build produced no zip")
+    return results

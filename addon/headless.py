@@ -1,0 +1,337 @@
+"""The main job, headless through the bpy module: scene -> language field -> query -> plan -> video.
+
+    python -m fourlegs_addon.headless --demo "a ball flying in the air" --preset broadcast -o out/
+
+(``fourlegs highlight ...`` runs exactly this in a subprocess, so the engine's process never imports
+bpy.) Stages:
+
+1. scene: ``--demo`` generates/reuses the synthetic demo bundle; otherwise SCENE is a bundle,
+   params.npz directory, PLY file or PLY directory (non-bundles are converted to a bundle in the
+   cache, because the language stages store their results inside the bundle);
+2. language field (only if the bundle has none): extract features -> train the autoencoder -> distil
+   by lifting (the fast, learning-free mode); every stage resumes where it stopped;
+3. query + plan: the engine's QueryEngine localizes only what the preset needs, the planner writes
+   the plan;
+4. Blender: import the point cloud and cameras, Generate Highlight, render every frame with the
+   "4-LEGS Splats" engine (Relevancy only on frames the plan lists) through the compositor to
+   H.264 MP4, save the .blend.
+
+``out/`` receives highlight.mp4, highlight.blend, plan.json, report.json (timings, localization,
+render statistics) and scores.png (the s_t curve). Existing files are refused unless --overwrite;
+each is written to a temporary name and renamed when complete.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+OUTPUT_NAMES = {"video": "highlight.mp4", "blend": "highlight.blend", "plan": "plan.json",
+                "report": "report.json", "plot": "scores.png"}
+
+
+def build_parser(parser: Optional[argparse.ArgumentParser] = None) -> argparse.ArgumentParser:
+    """The options of the main job (shared with ``fourlegs highlight``)."""
+    from ._engine import engine_module
+
+    p = parser or argparse.ArgumentParser(prog="fourlegs highlight", description=__doc__.splitlines()[0])
+    p.add_argument("scene", nargs="?", default=None,
+                   help="scene: bundle dir, params.npz dir, .ply file or dir of .ply files (or --demo)")
+    p.add_argument("query", help="what to find, e.g. \"a ball flying in the air\"")
+    p.add_argument("--demo", action="store_true", help="use the synthetic demo scene (generated on first use)")
+    p.add_argument("--preset", default="broadcast", help="highlight preset name or .toml file (default broadcast)")
+    p.add_argument("-o", "--output", required=True, help="output directory")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.add_argument("--resolution", default=None,
+                   help="output WIDTHxHEIGHT (default: 640x360 for --demo, else the preset's)")
+    p.add_argument("--fps", type=float, default=None, help="output frame rate (default: the preset's)")
+    p.add_argument("--format", default="MP4", choices=("MP4", "PNG", "EXR"), help="video or image sequence")
+    p.add_argument("--no-effect", action="append", default=[], metavar="EFFECT",
+                   help="leave out the preset's shots with this effect (repeatable)")
+    p.add_argument("--query-path", default="exact", choices=("exact", "codebook"),
+                   help="per-Gaussian relevancy path of the query engine (default exact)")
+    engine_module("language.encoders").add_encoder_arguments(p, default="auto")
+    return p
+
+
+def parse_resolution(text: Optional[str], demo: bool) -> Optional[tuple[int, int]]:
+    from ._engine import engine_module
+
+    if text is None:
+        return (640, 360) if demo else None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise engine_module("errors").InputError(f"expected WIDTHxHEIGHT, got {text!r}", field="--resolution") from None
+    if w <= 0 or h <= 0 or w % 2 or h % 2:
+        raise engine_module("errors").InputError(f"needs positive even sizes (H.264), got {w}x{h}",
+                                                 field="--resolution")
+    return w, h
+
+
+class Timer:
+    def __init__(self) -> None:
+        self.timings: dict[str, float] = {}
+
+    def __call__(self, name: str):
+        timer = self
+
+        class _Stage:
+            def __enter__(self):
+                self.t0 = time.perf_counter()
+                print(f"[fourlegs] {name} ...", flush=True)
+
+            def __exit__(self, *exc):
+                timer.timings[name] = round(time.perf_counter() - self.t0, 3)
+                if exc[0] is None:
+                    print(f"[fourlegs] {name}: {timer.timings[name]:.1f} s", flush=True)
+
+        return _Stage()
+
+
+# ----------------------------------------------------------------------------- engine stages (no bpy)
+def resolve_scene(args: argparse.Namespace):
+    """Load the scene; convert a non-bundle into a cached bundle (language stages write into bundles)."""
+    from ._engine import engine_module
+
+    errors = engine_module("errors")
+    scene_pkg = engine_module("scene")
+    if args.demo:
+        if args.scene is not None:
+            raise errors.InputError("give either --demo or a scene path, not both", field="scene")
+        path = engine_module("eval.synthetic").ensure_demo_bundle("demo")
+    elif args.scene is None:
+        raise errors.InputError("no scene given (a path, or --demo)", field="scene")
+    else:
+        path = Path(args.scene)
+    loaders = engine_module("scene.loaders")
+    scene = loaders.load_scene(path)
+    if scene.root is None or not scene_pkg.is_bundle(scene.root):
+        import hashlib
+
+        digest = hashlib.sha256(str(Path(path).resolve()).encode()).hexdigest()[:12]
+        target = engine_module("paths").cache_dir() / "bundles" / f"{scene.name}-{digest}"
+        if not scene_pkg.is_bundle(target):
+            scene_pkg.write_bundle(scene, target)
+        scene = loaders.load_scene(target)
+    return scene
+
+
+def text_encoder(args: argparse.Namespace, scene: Any):
+    from ._engine import engine_module
+
+    encoders = engine_module("language.encoders")
+    name = args.encoder
+    if name == "auto":
+        name = (scene.language or {}).get("encoder") or (
+            "simulated" if (scene.metadata or {}).get("labels") else "viclip")
+    ns = argparse.Namespace(**{**vars(args), "encoder": name})
+    extra = {"scene": scene} if name == "simulated" else {}
+    return encoders.load_encoder_from_args(ns, **extra)
+
+
+def ensure_language_field(args: argparse.Namespace, scene: Any, timer: Timer):
+    """Extract -> train-ae -> distil (lift) unless the bundle already has a field; returns the reloaded scene."""
+    from ._engine import engine_module
+
+    if scene.language:
+        return scene
+    encoder = text_encoder(args, scene)
+    with timer("extract features"):
+        engine_module("language.extract").extract_features(scene, encoder, progress=True)
+    with timer("train autoencoder"):
+        engine_module("language.autoencoder").train_autoencoder(scene, progress=True)
+    with timer("distil (lift)"):
+        engine_module("language.distill").distill_scene(scene, mode="lift", progress=True)
+    return engine_module("scene.loaders").load_scene(scene.root)
+
+
+def open_query_engine(args: argparse.Namespace, scene: Any):
+    from ._engine import engine_module
+
+    field = engine_module("language.field").LanguageField.open(scene.root)
+    return engine_module("query.engine").QueryEngine(scene, field, text_encoder(args, scene), path=args.query_path)
+
+
+def write_scores_plot(path: Path, scores: Sequence[float], positive: Sequence[bool], segment, peak,
+                      query: str) -> None:
+    """s_t per timestep (bars; positive ones highlighted), the threshold 1/T, segment and peak."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ._engine import engine_module
+
+    s = list(scores)
+    T = len(s)
+    fig, ax = plt.subplots(figsize=(8, 3), dpi=100)
+    colours = ["tab:orange" if p else "tab:gray" for p in positive]
+    ax.bar(range(T), s, color=colours, width=0.9)
+    if T:
+        ax.axhline(1.0 / T, color="black", lw=0.8, ls="--", label="k = 1/T")
+    if segment is not None:
+        ax.axvspan(segment[0] - 0.5, segment[1] + 0.5, color="tab:blue", alpha=0.15, label="segment")
+    if peak is not None:
+        ax.axvline(peak, color="tab:red", lw=1.2, label="peak")
+    ax.set_xlabel("timestep t")
+    ax.set_ylabel("s_t")
+    ax.set_title(f"temporal relevancy: {query!r}")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    with engine_module("fileio").atomic_path(path) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------- Blender stage
+def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str, Path], fmt: str,
+                  timer: Timer) -> dict[str, Any]:
+    """Import, Generate Highlight, render through the splat engine + compositor, save the .blend."""
+    import bpy
+    from tqdm import tqdm
+
+    from . import importer, operators, registration, render_engine, video
+    from ._engine import engine_module
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    try:
+        registration.register()
+    except ValueError:  # already registered in this process
+        pass
+    bl_scene = bpy.context.scene
+    with timer("blender import"):
+        obj = importer.import_scene(bl_scene, scene, source=str(scene.root))
+    rel_provider = (lambda t: engine.gaussian_relevancy(query, int(t)).numpy()) if engine is not None else None
+    if rel_provider is not None:
+        importer.set_relevancy_provider(obj, rel_provider)
+    with timer("generate highlight"):
+        operators.generate_highlight(bl_scene, plan)
+    render_engine.reset_stats()
+    total = bl_scene.frame_end - bl_scene.frame_start + 1
+    with timer("render"):
+        with tqdm(total=total, desc="render", unit="frame") as bar:
+            video.render_animation(bl_scene, out["video"], fmt=fmt, overwrite=True,
+                                   on_frame=lambda d, n: bar.update(1))
+    stats = dict(render_engine.stats)
+    if stats.get("last_error"):
+        raise RuntimeError(f"the 4-LEGS Splats engine failed: {stats['last_error']}")
+    # the viewport shows the query's relevancy at the peak
+    peak = (plan.get("localization") or {}).get("peak")
+    if rel_provider is not None and peak is not None:
+        importer.set_relevancy(obj, rel_provider(int(peak)), show=False)
+    bl_scene.frame_set(bl_scene.frame_start)
+    with timer("save .blend"):
+        with engine_module("fileio").atomic_path(out["blend"]) as tmp:
+            bpy.ops.wm.save_as_mainfile(filepath=str(tmp), copy=True, compress=True)
+    return {"frames_rendered": stats["frames"], "relevancy_frames": stats["relevancy_frames"],
+            "splat_render_seconds": round(stats["seconds"], 3),
+            "seconds_per_frame": round(stats["seconds"] / max(stats["frames"], 1), 3)}
+
+
+# ----------------------------------------------------------------------------- main
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    from ._engine import engine_module
+
+    errors = engine_module("errors")
+    fileio = engine_module("fileio")
+    started = time.perf_counter()
+    timer = Timer()
+    out_dir = Path(args.output)
+    suffix = {"MP4": ".mp4", "PNG": "", "EXR": ""}[args.format]
+    out = {k: out_dir / v for k, v in OUTPUT_NAMES.items()}
+    out["video"] = out_dir / ("highlight" + suffix if suffix else "frames")
+    existing = [str(p) for p in out.values() if p.exists()]
+    if existing and not args.overwrite:
+        raise errors.OutputExistsError(", ".join(existing))
+    resolution = parse_resolution(args.resolution, args.demo)
+
+    with timer("scene"):
+        scene = resolve_scene(args)
+    planner = engine_module("highlights.planner")
+    preset = engine_module("highlights.presets").load_preset(args.preset)
+    if args.no_effect:
+        preset = preset.with_shots([s.effect for s in preset.shots if s.effect not in set(args.no_effect)])
+    needs = planner.plan_needs(preset)
+    engine = None
+    if needs or preset_needs_relevancy(preset):
+        scene = ensure_language_field(args, scene, timer)
+        with timer("open query engine"):
+            engine = open_query_engine(args, scene)
+    with timer("localize + plan"):
+        plan_obj = planner.plan_highlight(scene, engine, args.query, preset, resolution=resolution, fps=args.fps)
+        plan = plan_obj.to_dict()
+    fileio.write_json_atomic(out["plan"], plan, overwrite=True)
+    loc = plan.get("localization") or {}
+    if loc.get("scores"):
+        write_scores_plot(out["plot"], loc["scores"], loc.get("positive") or
+                          [s > 1.0 / len(loc["scores"]) for s in loc["scores"]],
+                          loc.get("segment"), loc.get("peak"), args.query)
+    for msg in plan.get("messages", []):
+        print(f"[fourlegs] note: {msg}", flush=True)
+
+    render_info = blender_stage(scene, plan, engine, args.query, out, args.format, timer)
+    report = {
+        "format": "fourlegs-highlight-report", "version": 1,
+        "query": args.query, "scene": {"name": scene.name, "path": str(scene.root),
+                                       "num_timesteps": scene.num_timesteps, "num_gaussians": scene.num_gaussians},
+        "preset": preset.name, "resolution": plan["resolution"], "fps": plan["fps"],
+        "frames": [plan["frame_start"], plan["frame_end"]],
+        "shots": [{"name": s["name"], "effect": s["effect"], "frames": [s["frame_start"], s["frame_end"]]}
+                  for s in plan["shots"]],
+        "localization": loc, "passes": plan.get("passes"), "messages": plan.get("messages", []),
+        "query_stats": dict(engine.stats) if engine is not None else {},
+        "render": render_info, "timings_s": timer.timings,
+        "total_seconds": round(time.perf_counter() - started, 3),
+        "outputs": {k: str(v) for k, v in out.items() if v.exists() or k == "report"},
+        "versions": versions(),
+    }
+    fileio.write_json_atomic(out["report"], report, overwrite=True)
+    return report
+
+
+def preset_needs_relevancy(preset: Any) -> bool:
+    return any(s.effect == "desaturate_background" for s in preset.shots)
+
+
+def versions() -> dict[str, str]:
+    import platform
+
+    import numpy
+    import torch
+
+    out = {"python": platform.python_version(), "numpy": numpy.__version__, "torch": torch.__version__}
+    try:
+        import bpy
+
+        out["blender"] = bpy.app.version_string
+    except ImportError:
+        pass
+    return out
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    from ._engine import engine_module
+
+    errors = engine_module("errors")
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        report = run(args)
+    except errors.FourlegsError as exc:
+        print(f"fourlegs: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("fourlegs: cancelled; run the same command again to resume", file=sys.stderr)
+        return 130
+    print(f"[fourlegs] done in {report['total_seconds']:.1f} s: {report['outputs'].get('video')}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    sys.exit(main())

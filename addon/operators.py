@@ -1,0 +1,329 @@
+"""Operators of the 4-LEGS panel: import, run query (non-blocking), generate highlight, render video.
+
+Run Query works in a background thread (the engine is pure Python + torch, no bpy) while a modal
+operator polls it on a timer, shows progress in the panel and the status bar, and stops on Esc or
+the Cancel button. Blender data is only touched on the main thread, when the result is collected.
+Errors are reported in one line (``self.report``); Generate Highlight and Import support undo.
+"""
+from __future__ import annotations
+
+import json
+import threading
+import traceback
+from pathlib import Path
+from typing import Any, Optional
+
+import bpy
+import numpy as np
+from bpy.props import BoolProperty, StringProperty
+from bpy_extras.io_utils import ImportHelper
+
+from . import compositor, importer, keyframes, planning, plots, querying, render_engine, video
+from ._engine import engine_module
+
+ALL_NEEDS = {"temporal", "best_view", "action_centre"}
+
+
+def _err(exc: BaseException) -> str:
+    return str(exc) if isinstance(exc, (ValueError, FileExistsError, RuntimeError)) else f"{type(exc).__name__}: {exc}"
+
+
+def _splat_object(context) -> Optional[bpy.types.Object]:
+    obj = context.scene.fourlegs.splat_object
+    return obj if obj is not None and importer.source_key(obj) else None
+
+
+# ----------------------------------------------------------------------------- import
+class FOURLEGS_OT_import_scene(bpy.types.Operator, ImportHelper):
+    """Import a 4D Gaussian scene (bundle directory, params.npz directory, PLY file or PLY directory)"""
+
+    bl_idname = "fourlegs.import_scene"
+    bl_label = "Import 4D Scene"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filter_glob: StringProperty(default="*.json;*.npz;*.ply", options={"HIDDEN"})
+    with_cameras: BoolProperty(name="Cameras", default=True, description="Also import the scene's cameras")
+
+    def execute(self, context):
+        path = Path(bpy.path.abspath(self.filepath))
+        if path.is_file() and path.name in ("scene.json", "params.npz"):
+            path = path.parent  # a bundle / params.npz directory was picked through one of its files
+        try:
+            scene = importer.load_engine_scene(path)
+            importer.import_scene(context.scene, scene, source=str(path), with_cameras=self.with_cameras)
+        except Exception as exc:
+            self.report({"ERROR"}, f"4-LEGS import: {_err(exc)}")
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"imported {scene.name}: {scene.num_gaussians} Gaussians x {scene.num_timesteps} timesteps")
+        return {"FINISHED"}
+
+
+# ----------------------------------------------------------------------------- query
+class _QueryJob:
+    """State shared between the worker thread and the modal operator."""
+
+    def __init__(self, scene: Any, query: str):
+        self.scene, self.query = scene, query
+        self.progress, self.stage = 0.0, "starting"
+        self.cancelled = False
+        self.done = False
+        self.error: Optional[str] = None
+        self.engine = self.localization = None
+        self.peak_relevancy: Optional[np.ndarray] = None
+
+    def run(self) -> None:
+        try:
+            self.stage, self.progress = "opening the language field", 0.05
+            self.engine = querying.open_query_engine(self.scene)
+            if self.cancelled:
+                return
+            self.stage, self.progress = "localizing in time and space", 0.2
+            self.localization = self.engine.localize(self.query, set(ALL_NEEDS))
+            if self.cancelled:
+                return
+            temporal = self.localization.temporal
+            t = temporal.peak if temporal is not None and temporal.found else 0
+            self.stage, self.progress = "relevancy of the Gaussians", 0.9
+            self.peak_relevancy = np.asarray(self.engine.gaussian_relevancy(self.query, int(t)), np.float32)
+            self.progress, self.stage = 1.0, "done"
+        except Exception as exc:  # reported on the main thread
+            self.error = _err(exc)
+            traceback.print_exc()
+        finally:
+            self.done = True
+
+
+_JOBS: list[_QueryJob] = []
+_LOCALIZERS: dict[str, planning.CachedLocalizer] = {}
+
+
+def cancel_all() -> None:
+    for job in _JOBS:
+        job.cancelled = True
+
+
+class FOURLEGS_OT_run_query(bpy.types.Operator):
+    """Find when and where the query happens (runs in the background; Esc cancels)"""
+
+    bl_idname = "fourlegs.run_query"
+    bl_label = "Run Query"
+    bl_options = {"REGISTER"}
+
+    _timer = None
+    _job: Optional[_QueryJob] = None
+
+    @classmethod
+    def poll(cls, context):
+        props = context.scene.fourlegs
+        return _splat_object(context) is not None and bool(props.query.strip()) and not props.running
+
+    def execute(self, context):
+        return self.invoke(context, None)
+
+    def invoke(self, context, event):
+        props = context.scene.fourlegs
+        obj = _splat_object(context)
+        try:
+            scene = importer.engine_scene_for(obj)
+        except Exception as exc:
+            self.report({"ERROR"}, f"4-LEGS query: {_err(exc)}")
+            return {"CANCELLED"}
+        self._job = _QueryJob(scene, props.query.strip())
+        _JOBS.append(self._job)
+        threading.Thread(target=self._job.run, name="fourlegs-query", daemon=True).start()
+        props.running, props.progress, props.status = True, 0.0, "starting"
+        wm = context.window_manager
+        if context.window is not None:
+            self._timer = wm.event_timer_add(0.2, window=context.window)
+            wm.modal_handler_add(self)
+            return {"RUNNING_MODAL"}
+        # no window (background mode): wait here
+        while not self._job.done:
+            threading.Event().wait(0.05)
+        return self._finish(context)
+
+    def modal(self, context, event):
+        props = context.scene.fourlegs
+        job = self._job
+        if event.type == "ESC" or job.cancelled:
+            job.cancelled = True
+            self._stop(context)
+            props.running, props.status = False, "cancelled"
+            self.report({"WARNING"}, "4-LEGS query cancelled")
+            return {"CANCELLED"}
+        if event.type == "TIMER":
+            props.progress, props.status = job.progress, job.stage
+            for area in context.screen.areas if context.screen else []:
+                if area.type == "VIEW_3D":
+                    area.tag_redraw()
+            if job.done:
+                self._stop(context)
+                return self._finish(context)
+        return {"PASS_THROUGH"}
+
+    def _stop(self, context) -> None:
+        if self._timer is not None:
+            context.window_manager.event_timer_remove(self._timer)
+            self._timer = None
+        if self._job in _JOBS:
+            _JOBS.remove(self._job)
+
+    def _finish(self, context):
+        props = context.scene.fourlegs
+        job = self._job
+        props.running = False
+        if job.error is not None:
+            props.status = f"error: {job.error}"
+            self.report({"ERROR"}, f"4-LEGS query: {job.error}")
+            return {"CANCELLED"}
+        obj = _splat_object(context)
+        store_results(context.scene, obj, job.engine, job.query, job.localization, job.peak_relevancy)
+        props.progress, props.status = 1.0, "done" if props.found else "not found"
+        self.report({"INFO"} if props.found else {"WARNING"},
+                    f"4-LEGS: {job.query!r} " + (f"found at timesteps {props.segment_start}-{props.segment_end}"
+                                                 if props.found else "was not found"))
+        return {"FINISHED"}
+
+
+def store_results(bl_scene, obj, engine: Any, query: str, localization: Any,
+                  peak_relevancy: Optional[np.ndarray]) -> None:
+    """Copy a localization into the scene properties, the s_t image and the viewport relevancy colours."""
+    props = bl_scene.fourlegs
+    temporal = localization.temporal
+    props.found = bool(temporal is not None and temporal.found)
+    seg = temporal.segment if props.found else None
+    props.segment_start, props.segment_end = (int(seg[0]), int(seg[1])) if seg else (-1, -1)
+    props.peak = int(temporal.peak) if props.found and temporal.peak is not None else -1
+    props.best_view = localization.best_view or ""
+    if temporal is not None:
+        plots.scores_image(np.asarray(temporal.scores, np.float64), np.asarray(temporal.positive, bool),
+                           seg, props.peak if props.found else None)
+    key = importer.source_key(obj)
+    _LOCALIZERS[key] = planning.CachedLocalizer(engine, query, localization, ALL_NEEDS)
+    importer.set_relevancy_provider(obj, lambda t, e=engine, q=query: e.gaussian_relevancy(q, t).numpy())
+    if peak_relevancy is not None:
+        importer.set_relevancy(obj, peak_relevancy, show=True)
+
+
+class FOURLEGS_OT_cancel_query(bpy.types.Operator):
+    """Stop the running query"""
+
+    bl_idname = "fourlegs.cancel_query"
+    bl_label = "Cancel"
+
+    def execute(self, context):
+        cancel_all()
+        context.scene.fourlegs.running = False
+        return {"FINISHED"}
+
+
+class FOURLEGS_OT_show_relevancy(bpy.types.Operator):
+    """Colour the point cloud by the query's relevancy, or by its own colours"""
+
+    bl_idname = "fourlegs.show_relevancy"
+    bl_label = "Show Relevancy"
+    bl_options = {"REGISTER", "UNDO"}
+
+    show: BoolProperty(default=True)
+
+    @classmethod
+    def poll(cls, context):
+        return _splat_object(context) is not None
+
+    def execute(self, context):
+        importer.show_relevancy(_splat_object(context), self.show)
+        return {"FINISHED"}
+
+
+# ----------------------------------------------------------------------------- highlight
+def disabled_effects(props) -> list[str]:
+    off = []
+    if not props.use_zoom_in:
+        off.append("zoom_in")
+    if not props.use_bullet_time:
+        off.append("bullet_time")
+    if not props.use_desaturate:
+        off.append("desaturate_background")
+    return off
+
+
+def generate_highlight(bl_scene, plan: dict[str, Any]) -> bpy.types.Object:
+    """Turn a plan dict into Blender data (camera keys, scene-time keys, timeline, passes, compositor)."""
+    cam = keyframes.apply_plan(bl_scene, plan)
+    text = bpy.data.texts.get(render_engine.PLAN_TEXT_NAME) or bpy.data.texts.new(render_engine.PLAN_TEXT_NAME)
+    text.clear()
+    text.write(json.dumps(plan, indent=1))
+    text[keyframes.GENERATED_KEY] = True
+    bl_scene.render.engine = render_engine.ENGINE_ID
+    rel = bool((plan.get("passes") or {}).get("relevancy"))
+    for view_layer in bl_scene.view_layers:
+        view_layer.use_pass_z = bool((plan.get("passes") or {}).get("depth")) or view_layer.use_pass_z
+        view_layer.fourlegs_relevancy = rel
+    compositor.build_compositor(bl_scene, plan)
+    return cam
+
+
+class FOURLEGS_OT_generate_highlight(bpy.types.Operator):
+    """Plan the highlight shots for the query and create the camera animation, scene-time keys and compositor setup"""
+
+    bl_idname = "fourlegs.generate_highlight"
+    bl_label = "Generate Highlight"
+    bl_options = {"REGISTER", "UNDO"}
+
+    plan_file: StringProperty(name="Plan", subtype="FILE_PATH", default="",
+                              description="Use this plan JSON instead of planning from the query")
+
+    @classmethod
+    def poll(cls, context):
+        return _splat_object(context) is not None and not context.scene.fourlegs.running
+
+    def execute(self, context):
+        props = context.scene.fourlegs
+        try:
+            if self.plan_file:
+                plan = json.loads(Path(bpy.path.abspath(self.plan_file)).read_text(encoding="utf-8"))
+            else:
+                obj = _splat_object(context)
+                scene = importer.engine_scene_for(obj)
+                localizer = _LOCALIZERS.get(importer.source_key(obj))
+                query = props.query.strip()
+                if localizer is None or localizer.query != query:
+                    localizer = planning.CachedLocalizer(querying.open_query_engine(scene), query)
+                plan = planning.make_plan(scene, localizer, query, props.preset,
+                                          disabled_effects=disabled_effects(props))
+            generate_highlight(context.scene, plan)
+        except Exception as exc:
+            self.report({"ERROR"}, f"4-LEGS Generate Highlight: {_err(exc)}")
+            return {"CANCELLED"}
+        for msg in plan.get("messages", []):
+            self.report({"WARNING"}, str(msg))
+        self.report({"INFO"}, f"highlight: {len(plan['shots'])} shots, frames {plan['frame_start']}-{plan['frame_end']}")
+        return {"FINISHED"}
+
+
+class FOURLEGS_OT_render_video(bpy.types.Operator):
+    """Render the timeline through the 4-LEGS Splats engine and the compositor to a video or image sequence"""
+
+    bl_idname = "fourlegs.render_video"
+    bl_label = "Render Video"
+    bl_options = {"REGISTER"}
+
+    def execute(self, context):
+        props = context.scene.fourlegs
+        wm = context.window_manager
+        total = context.scene.frame_end - context.scene.frame_start + 1
+        wm.progress_begin(0, total)
+        try:
+            out = video.render_animation(context.scene, props.output_path, fmt=props.output_format,
+                                         overwrite=props.overwrite, on_frame=lambda d, n: wm.progress_update(d))
+        except Exception as exc:
+            self.report({"ERROR"}, f"4-LEGS Render Video: {_err(exc)}")
+            return {"CANCELLED"}
+        finally:
+            wm.progress_end()
+        self.report({"INFO"}, f"wrote {out}")
+        return {"FINISHED"}
+
+
+classes = (FOURLEGS_OT_import_scene, FOURLEGS_OT_run_query, FOURLEGS_OT_cancel_query, FOURLEGS_OT_show_relevancy,
+           FOURLEGS_OT_generate_highlight, FOURLEGS_OT_render_video)

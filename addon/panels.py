@@ -1,0 +1,121 @@
+"""View3D > Sidebar > 4-LEGS: scene status, query, results, effects, preset, highlight, render."""
+from __future__ import annotations
+
+import bpy
+
+from . import importer, plots, render_engine
+
+
+def _torch_available() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("torch") is not None
+
+
+class FOURLEGS_PT_main(bpy.types.Panel):
+    bl_idname = "FOURLEGS_PT_main"
+    bl_label = "4-LEGS Highlights"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "4-LEGS"
+
+    def draw(self, context):
+        layout = self.layout
+        props = context.scene.fourlegs
+        if not _torch_available():
+            box = layout.box()
+            box.label(text="PyTorch is not installed in Blender's Python", icon="ERROR")
+            box.label(text="Install it with Blender's Python:")
+            box.label(text="python -m pip install torch")
+        obj = props.splat_object
+        if obj is None or not importer.source_key(obj):
+            layout.operator("fourlegs.import_scene", icon="IMPORT")
+            return
+        col = layout.column(align=True)
+        col.label(text=f"{obj.name}: {len(obj.data.vertices):,} Gaussians", icon="POINTCLOUD_DATA")
+        col.prop(props, "timestep")
+        col.label(text=f"{props.num_timesteps} timesteps")
+        layout.operator("fourlegs.import_scene", text="Import Another", icon="IMPORT")
+
+
+class FOURLEGS_PT_query(bpy.types.Panel):
+    bl_idname = "FOURLEGS_PT_query"
+    bl_label = "Query"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "4-LEGS"
+    bl_parent_id = "FOURLEGS_PT_main"
+
+    def draw(self, context):
+        layout = self.layout
+        props = context.scene.fourlegs
+        layout.prop(props, "query", text="")
+        if props.running:
+            row = layout.row(align=True)
+            row.progress(factor=props.progress, type="BAR", text=props.status or "running")
+            row.operator("fourlegs.cancel_query", text="", icon="CANCEL")
+        else:
+            layout.operator("fourlegs.run_query", icon="VIEWZOOM")
+            if props.status:
+                layout.label(text=props.status)
+        if props.segment_start >= 0:
+            col = layout.column(align=True)
+            col.label(text=f"Segment: timesteps {props.segment_start}-{props.segment_end}")
+            col.label(text=f"Peak: timestep {props.peak}")
+            if props.best_view:
+                col.label(text=f"Best view: {props.best_view}")
+        img = bpy.data.images.get(plots.IMAGE_NAME)
+        if img is not None and img.preview is not None:
+            layout.template_icon(icon_value=img.preview.icon_id, scale=6.0)
+        row = layout.row(align=True)
+        row.operator("fourlegs.show_relevancy", text="Relevancy").show = True
+        row.operator("fourlegs.show_relevancy", text="Colours").show = False
+
+
+class FOURLEGS_PT_highlight(bpy.types.Panel):
+    bl_idname = "FOURLEGS_PT_highlight"
+    bl_label = "Highlight"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "4-LEGS"
+    bl_parent_id = "FOURLEGS_PT_main"
+
+    def draw(self, context):
+        layout = self.layout
+        props = context.scene.fourlegs
+        layout.prop(props, "preset")
+        col = layout.column(heading="Effects", align=True)
+        col.prop(props, "use_zoom_in")
+        col.prop(props, "use_bullet_time")
+        col.prop(props, "use_desaturate")
+        layout.operator("fourlegs.generate_highlight", icon="CAMERA_DATA")
+        if render_engine.plan_of(context.scene) is not None:
+            layout.label(text=f"Frames {context.scene.frame_start}-{context.scene.frame_end}")
+
+
+class FOURLEGS_PT_render(bpy.types.Panel):
+    bl_idname = "FOURLEGS_PT_render"
+    bl_label = "Render"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "4-LEGS"
+    bl_parent_id = "FOURLEGS_PT_main"
+
+    def draw(self, context):
+        layout = self.layout
+        props = context.scene.fourlegs
+        layout.prop(props, "output_format")
+        layout.prop(props, "output_path")
+        layout.prop(props, "overwrite")
+        layout.operator("fourlegs.render_video", icon="RENDER_ANIMATION")
+
+
+classes = (FOURLEGS_PT_main, FOURLEGS_PT_query, FOURLEGS_PT_highlight, FOURLEGS_PT_render)
+
+
+def register() -> None:
+    pass
+
+
+def unregister() -> None:
+    pass

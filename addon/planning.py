@@ -1,0 +1,58 @@
+"""Presets and planning for the add-on (no bpy): the engine's planner behind a small cached API."""
+from __future__ import annotations
+
+from typing import Any, Iterable, Optional, Sequence
+
+from ._engine import engine_module
+
+#: effects the panel can switch off (``play`` is always kept: it is the context shot)
+OPTIONAL_EFFECTS = ("zoom_in", "bullet_time", "desaturate_background")
+
+
+def preset_names() -> list[str]:
+    try:
+        return sorted(engine_module("highlights.presets").available_presets())
+    except Exception:  # the planner is not installed / presets unreadable: an empty menu, not a crash
+        return []
+
+
+def load_preset(name: str):
+    return engine_module("highlights.presets").load_preset(name)
+
+
+def preset_effects(name: str) -> list[str]:
+    return [s.effect for s in load_preset(name).shots]
+
+
+class CachedLocalizer:
+    """Answers the planner's ``localize(query, need)`` from one earlier, larger localization.
+
+    Run Query localizes everything once (in a background thread); Generate Highlight then plans
+    without recomputing. A need the cached result does not cover falls through to the engine.
+    """
+
+    def __init__(self, engine: Any, query: str, localization: Any = None, need: Iterable[str] = ()):
+        self.engine, self.query, self.localization, self.need = engine, query, localization, set(need)
+
+    def localize(self, query: str, need: set[str]) -> Any:
+        if self.localization is not None and query == self.query and set(need) <= self.need:
+            return self.localization
+        loc = self.engine.localize(query, set(need))
+        self.query, self.localization, self.need = query, loc, set(need)
+        return loc
+
+
+def make_plan(scene: Any, localizer: Any, query: str, preset_name: str, *,
+              disabled_effects: Sequence[str] = (), resolution: Optional[Sequence[int]] = None,
+              fps: Optional[float] = None) -> dict[str, Any]:
+    """Plan a highlight and return the contract's plan dict."""
+    highlights = engine_module("highlights.planner")
+    preset = load_preset(preset_name)
+    if disabled_effects:
+        preset = preset.with_shots([s.effect for s in preset.shots if s.effect not in set(disabled_effects)])
+    plan = highlights.plan_highlight(scene, localizer, query, preset, resolution=resolution, fps=fps)
+    return plan.to_dict() if hasattr(plan, "to_dict") else dict(plan)
+
+
+def plan_needs(preset_name: str) -> set[str]:
+    return set(engine_module("highlights.planner").plan_needs(load_preset(preset_name)))

@@ -1,0 +1,70 @@
+"""Add-on state stored on the Scene (``scene.fourlegs``): source, query, results, effects, output.
+
+``timestep`` is the animatable *scene time* of the 4D scene, independent of the timeline frame:
+keyframing it constant while the camera moves gives bullet-time, keyframing it slower than the
+timeline gives slow motion. A frame-change handler (``importer.on_frame_change``) shows it.
+"""
+from __future__ import annotations
+
+import bpy
+from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
+                       StringProperty)
+
+PLAN_TEXT_NAME = "fourlegs_plan.json"
+PLOT_IMAGE_NAME = "fourlegs_scores"
+
+
+def _preset_items(self, context):
+    from . import planning
+    return [(name, name.replace("_", " ").title(), f"{name} preset") for name in planning.preset_names()]
+
+
+def _timestep_changed(self, context):
+    from . import importer
+    importer.update_scene_objects(context.scene)
+
+
+class FourlegsSceneProps(bpy.types.PropertyGroup):
+    # --- source
+    source_path: StringProperty(name="Scene", description="Scene bundle, params.npz directory or PLY file/directory",
+                                subtype="FILE_PATH", default="")
+    splat_object: PointerProperty(name="Splats", type=bpy.types.Object,
+                                  description="The imported point-cloud object of the 4D scene")
+    timestep: FloatProperty(name="Scene Time", description="Timestep of the 4D scene shown (keyframable; "
+                            "hold it for bullet-time)", default=0.0, min=0.0, update=_timestep_changed,
+                            options={"ANIMATABLE"})
+    num_timesteps: IntProperty(name="Timesteps", default=0, min=0)
+    # --- query
+    query: StringProperty(name="Query", description="What to find, e.g. 'a ball flying in the air'", default="")
+    running: BoolProperty(name="Running", default=False, options={"SKIP_SAVE"})
+    progress: FloatProperty(name="Progress", default=0.0, min=0.0, max=1.0, subtype="FACTOR",
+                            options={"SKIP_SAVE"})
+    status: StringProperty(name="Status", default="")
+    found: BoolProperty(name="Found", default=False)
+    segment_start: IntProperty(name="Segment Start", default=-1)
+    segment_end: IntProperty(name="Segment End", default=-1)
+    peak: IntProperty(name="Peak", default=-1)
+    best_view: StringProperty(name="Best View", default="")
+    # --- highlight
+    preset: EnumProperty(name="Preset", description="Highlight preset of the planner", items=_preset_items)
+    use_bullet_time: BoolProperty(name="Bullet Time", default=True)
+    use_zoom_in: BoolProperty(name="Zoom In", default=True)
+    use_desaturate: BoolProperty(name="Desaturate Background", default=True)
+    # --- output
+    output_path: StringProperty(name="Output", subtype="FILE_PATH", default="//highlight.mp4")
+    output_format: EnumProperty(name="Format", items=[("MP4", "MP4 (H.264)", "One video file"),
+                                                       ("PNG", "PNG sequence", "One PNG per frame"),
+                                                       ("EXR", "OpenEXR sequence", "One EXR per frame")],
+                                default="MP4")
+    overwrite: BoolProperty(name="Overwrite", default=False, description="Replace an existing output")
+
+
+classes = (FourlegsSceneProps,)
+
+
+def register() -> None:
+    bpy.types.Scene.fourlegs = PointerProperty(type=FourlegsSceneProps)
+
+
+def unregister() -> None:
+    del bpy.types.Scene.fourlegs

@@ -1,0 +1,32 @@
+"""Register / unregister every Blender class, property and handler of the add-on (bpy only here)."""
+from __future__ import annotations
+
+import bpy
+
+from . import importer, operators, panels, properties, render_engine
+
+classes = (
+    *properties.classes,
+    *operators.classes,
+    *panels.classes,
+    *render_engine.classes,
+)
+
+
+def register() -> None:
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    properties.register()
+    render_engine.register()
+    panels.register()
+    importer.register()
+
+
+def unregister() -> None:
+    operators.cancel_all()
+    importer.unregister()
+    panels.unregister()
+    render_engine.unregister()
+    properties.unregister()
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,223 @@
+"""The "4-LEGS Splats" render engine: F12 / animation renders through the engine's Gaussian rasterizer.
+
+For the current frame it rasterizes every visible imported splat object at the scene timestep
+(``scene.fourlegs.timestep``, fractional values interpolate positions and colours) seen from the
+scene's active camera, and writes
+
+- ``Combined``: RGB (alpha = coverage when the film is transparent, else 1),
+- ``Depth``: expected camera depth (1e10 where nothing was hit, as Blender's other engines do),
+- ``Relevancy``: the query's relevancy of the visible surface in [0, 1], declared through
+  ``update_render_passes`` when the view layer asks for it (``view_layer.fourlegs_relevancy``),
+  and computed **only on frames the highlight plan lists** in ``passes["relevancy"]`` (elsewhere
+  the pass stays 0 and nothing is computed).
+
+Relevancy is the per-Gaussian relevancy of that timestep rendered as a one-channel feature in the
+same rasterization as the colours and divided by the coverage (so it is the weighted mean relevancy
+of what the pixel sees). Works in background mode (no GPU module needed).
+"""
+from __future__ import annotations
+
+import json
+import time
+from typing import Any, Optional
+
+import bpy
+import numpy as np
+
+from . import convert, importer
+from ._engine import engine, engine_module
+from .keyframes import frames_in_ranges
+
+ENGINE_ID = "FOURLEGS_SPLATS"
+RELEVANCY_PASS = "Relevancy"
+PLAN_TEXT_NAME = "fourlegs_plan.json"
+EMPTY_DEPTH = 1e10
+
+#: per-frame statistics of the last render (the headless job reads and reports them)
+stats: dict[str, Any] = {"frames": 0, "relevancy_frames": [], "seconds": 0.0, "last_error": None}
+
+
+def reset_stats() -> None:
+    stats.update(frames=0, relevancy_frames=[], seconds=0.0, last_error=None)
+
+
+def plan_of(scene: bpy.types.Scene) -> Optional[dict[str, Any]]:
+    """The highlight plan stored by Generate Highlight (text datablock), or None."""
+    name = scene.get("fourlegs_plan_text", PLAN_TEXT_NAME)
+    text = bpy.data.texts.get(name)
+    if text is None:
+        return None
+    try:
+        return json.loads(text.as_string())
+    except json.JSONDecodeError:
+        return None
+
+
+def relevancy_frames(scene: bpy.types.Scene) -> list:
+    plan = plan_of(scene)
+    return list(((plan or {}).get("passes") or {}).get("relevancy") or [])
+
+
+def wants_relevancy_pass(view_layer: bpy.types.ViewLayer) -> bool:
+    return bool(getattr(view_layer, "fourlegs_relevancy", False))
+
+
+def scene_camera(scene: bpy.types.Scene, depsgraph, width: int, height: int):
+    """The active camera as an engine ``Camera`` (OpenCV) at the render resolution."""
+    cam_obj = scene.camera
+    if cam_obj is None:
+        raise RuntimeError("the scene has no active camera")
+    cam_eval = cam_obj.evaluated_get(depsgraph) if depsgraph is not None else cam_obj
+    data = cam_eval.data
+    if data.type != "PERSP":
+        raise RuntimeError(f"camera {cam_obj.name!r} is {data.type}; the splat renderer needs a perspective camera")
+    render = scene.render
+    K = convert.camera_intrinsics(data.lens, data.sensor_width, data.sensor_height, data.sensor_fit, width,
+                                  height, shift_x=data.shift_x, shift_y=data.shift_y,
+                                  pixel_aspect_x=render.pixel_aspect_x, pixel_aspect_y=render.pixel_aspect_y)
+    c2w = convert.blender_to_opencv_c2w(np.array(cam_eval.matrix_world))
+    w2c = convert.rigid_inverse(c2w)
+    Camera = engine_module("scene").Camera
+    return Camera(K=K, w2c=w2c, width=width, height=height, near=max(data.clip_start, 1e-4),
+                  far=max(data.clip_end, data.clip_start * 2), name=cam_obj.name)
+
+
+def gather_gaussians(scene: bpy.types.Scene, t: float, with_relevancy: bool) -> Optional[dict[str, np.ndarray]]:
+    """Concatenate the visible splat objects' Gaussians at timestep ``t`` (world space)."""
+    parts = []
+    for obj in importer.splat_objects(scene):
+        if obj.hide_render:
+            continue
+        src = importer.engine_scene_for(obj)
+        if src is None:
+            continue
+        g = src.gaussians
+        tt = min(max(float(t), 0.0), float(g.num_timesteps - 1))
+        ti = int(round(tt))
+        means = importer.blend_timestep(g.means, tt)
+        mw = np.array(obj.matrix_world, dtype=np.float64)
+        if not np.allclose(mw, np.eye(4)):
+            means = (means @ mw[:3, :3].T + mw[:3, 3]).astype(np.float32)
+        log_scales = np.asarray(g.log_scales[ti] if g.log_scales.ndim == 3 else g.log_scales, np.float32)
+        if g.colors is not None:
+            colors = importer.blend_timestep(g.colors, tt) if g.colors.ndim == 3 else np.asarray(g.colors, np.float32)
+        else:
+            colors = g.rgb(ti).astype(np.float32)
+        part = {"means": means, "rotations": np.asarray(g.rotations[ti], np.float32), "log_scales": log_scales,
+                "opacity_logits": np.asarray(g.opacity_logits, np.float32), "colors": colors}
+        if with_relevancy:
+            rel = importer.gaussian_relevancy(obj, ti)
+            part["relevancy"] = (np.zeros(g.num_gaussians, np.float32) if rel is None
+                                 else np.asarray(rel, np.float32))
+        parts.append(part)
+    if not parts:
+        return None
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *, frame: int,
+                  relevancy_pass: bool) -> dict[str, np.ndarray]:
+    """Rasterize the current state: returns top-down (H,W,·) float32 arrays rgba, depth, [relevancy]."""
+    import torch
+
+    t = float(scene.fourlegs.timestep)
+    compute_rel = relevancy_pass and frames_in_ranges(relevancy_frames(scene), frame)
+    camera = scene_camera(scene, depsgraph, width, height)
+    data = gather_gaussians(scene, t, compute_rel)
+    out: dict[str, np.ndarray] = {}
+    if data is None:
+        out["rgba"] = np.zeros((height, width, 4), np.float32)
+        out["depth"] = np.full((height, width, 1), EMPTY_DEPTH, np.float32)
+        if relevancy_pass:
+            out["relevancy"] = np.zeros((height, width, 1), np.float32)
+        return out
+    rasterize = engine_module("render").rasterize
+    tens = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in data.items()}
+    outputs = ["rgb", "depth", "alpha"] + (["features"] if compute_rel else [])
+    with torch.no_grad():
+        res = rasterize(tens["means"], tens["rotations"], tens["log_scales"], tens["opacity_logits"], camera,
+                        colors=tens["colors"], features=tens["relevancy"][:, None] if compute_rel else None,
+                        outputs=tuple(outputs))
+    alpha = res["alpha"].numpy().astype(np.float32)
+    rgb = np.clip(np.nan_to_num(res["rgb"].numpy().astype(np.float32)), 0.0, None)
+    a = alpha if scene.render.film_transparent else np.ones_like(alpha)
+    out["rgba"] = np.concatenate([rgb, a], axis=2)
+    depth = res["depth"].numpy().astype(np.float32)
+    out["depth"] = np.where(alpha > 1e-3, depth, EMPTY_DEPTH).astype(np.float32)
+    if relevancy_pass:
+        if compute_rel:
+            feat = res["features"].numpy().astype(np.float32)
+            rel = np.where(alpha > 1e-3, feat / np.maximum(alpha, 1e-3), 0.0)
+            out["relevancy"] = np.clip(np.nan_to_num(rel), 0.0, 1.0).astype(np.float32)
+        else:
+            out["relevancy"] = np.zeros((height, width, 1), np.float32)
+    out["relevancy_computed"] = np.array(compute_rel)
+    return out
+
+
+def _to_rect(img: np.ndarray) -> np.ndarray:
+    """Top-down (H,W,C) image -> Blender's bottom-up (H*W, C) pixel rows."""
+    return np.ascontiguousarray(img[::-1].reshape(-1, img.shape[2]), dtype=np.float32)
+
+
+class FourlegsRenderEngine(bpy.types.RenderEngine):
+    bl_idname = ENGINE_ID
+    bl_label = "4-LEGS Splats"
+    bl_use_preview = False
+    bl_use_postprocess = True
+    bl_use_shading_nodes_custom = False
+
+    def update_render_passes(self, scene=None, renderlayer=None):
+        self.register_pass(scene, renderlayer, "Combined", 4, "RGBA", "COLOR")
+        if renderlayer.use_pass_z:
+            self.register_pass(scene, renderlayer, "Depth", 1, "Z", "VALUE")
+        if wants_relevancy_pass(renderlayer):
+            self.register_pass(scene, renderlayer, RELEVANCY_PASS, 1, "X", "VALUE")
+
+    def render(self, depsgraph):
+        scene = depsgraph.scene
+        scale = scene.render.resolution_percentage / 100.0
+        width = max(1, int(scene.render.resolution_x * scale))
+        height = max(1, int(scene.render.resolution_y * scale))
+        view_layer = depsgraph.view_layer
+        want_rel = wants_relevancy_pass(view_layer)
+        if want_rel:
+            self.add_pass(RELEVANCY_PASS, 1, "X", layer=view_layer.name)
+        start = time.perf_counter()
+        result = self.begin_result(0, 0, width, height, layer=view_layer.name)
+        try:
+            arrays = render_arrays(scene, depsgraph, width, height, frame=scene.frame_current,
+                                   relevancy_pass=want_rel)
+        except Exception as exc:  # report, leave an empty (black) frame, let the caller see the error
+            stats["last_error"] = f"{type(exc).__name__}: {exc}"
+            self.report({"ERROR"}, f"4-LEGS Splats: {stats['last_error']}")
+            self.end_result(result, cancel=False)
+            return
+        layer = result.layers[0]
+        layer.passes["Combined"].rect = _to_rect(arrays["rgba"])
+        depth_pass = layer.passes.get("Depth") if hasattr(layer.passes, "get") else None
+        if depth_pass is not None:
+            depth_pass.rect = _to_rect(arrays["depth"])
+        if want_rel:
+            rel_pass = layer.passes.get(RELEVANCY_PASS)
+            if rel_pass is not None:
+                rel_pass.rect = _to_rect(arrays["relevancy"])
+        self.end_result(result)
+        stats["frames"] += 1
+        if bool(arrays.get("relevancy_computed", False)):
+            stats["relevancy_frames"].append(scene.frame_current)
+        stats["seconds"] += time.perf_counter() - start
+
+
+def register() -> None:
+    bpy.types.ViewLayer.fourlegs_relevancy = bpy.props.BoolProperty(
+        name="4-LEGS Relevancy", default=False,
+        description="Write the query's Relevancy pass (computed only on frames the highlight plan lists)")
+
+
+def unregister() -> None:
+    del bpy.types.ViewLayer.fourlegs_relevancy
+
+
+classes = (FourlegsRenderEngine,)
+__all__ = ["FourlegsRenderEngine", "engine", "render_arrays", "plan_of", "stats"]

@@ -1,0 +1,130 @@
+"""Render the scene's frame range to an MP4 (H.264 through Blender's FFmpeg) or an EXR/PNG sequence.
+
+The movie is rendered into a temporary sibling directory and renamed onto the requested path only
+when every frame succeeded, so a cancelled or failed render never leaves a half-written file, and an
+existing output is refused unless ``overwrite=True``. Progress: ``on_frame(done, total)`` is called
+after each frame (the headless job feeds tqdm from it).
+"""
+from __future__ import annotations
+
+import contextlib
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Callable, Iterator, Optional
+
+import bpy
+
+FORMATS = ("MP4", "PNG", "EXR")
+
+
+class OutputExists(FileExistsError):
+    def __init__(self, path: Path):
+        super().__init__(f"{path}: already exists (pass overwrite=True / --overwrite to replace it)")
+        self.path = path
+
+
+def configure_output(scene: bpy.types.Scene, fmt: str, quality: str = "HIGH") -> None:
+    """Set the scene's output format: 'MP4' (H.264), 'PNG' (8-bit RGB) or 'EXR' (half float, multilayer)."""
+    settings = scene.render.image_settings
+    has_media_type = hasattr(settings, "media_type")  # Blender 5.0
+    if fmt == "MP4":
+        if has_media_type:
+            settings.media_type = "VIDEO"  # must precede file_format on 5.0
+        settings.file_format = "FFMPEG"
+        ff = scene.render.ffmpeg
+        ff.format = "MPEG4"
+        ff.codec = "H264"
+        ff.constant_rate_factor = quality
+        ff.ffmpeg_preset = "GOOD"
+        ff.audio_codec = "NONE"
+        settings.color_mode = "RGB"
+    elif fmt == "PNG":
+        if has_media_type:
+            settings.media_type = "IMAGE"
+        settings.file_format = "PNG"
+        settings.color_mode = "RGB"
+        settings.color_depth = "8"
+    elif fmt == "EXR":
+        if has_media_type:
+            settings.media_type = "MULTI_LAYER_IMAGE"
+        else:
+            settings.file_format = "OPEN_EXR_MULTILAYER"
+        settings.color_depth = "16"
+        settings.exr_codec = "ZIP"
+    else:
+        raise ValueError(f"unknown output format {fmt!r} (one of {', '.join(FORMATS)})")
+    scene.render.use_file_extension = True
+
+
+@contextlib.contextmanager
+def _frame_callbacks(on_frame: Optional[Callable[[int, int], None]], total: int) -> Iterator[None]:
+    done = [0]
+
+    def post(scene, *_):
+        done[0] += 1
+        if on_frame is not None:
+            on_frame(done[0], total)
+
+    bpy.app.handlers.render_write.append(post)
+    try:
+        yield
+    finally:
+        bpy.app.handlers.render_write.remove(post)
+
+
+def render_animation(scene: bpy.types.Scene, output: str | Path, *, fmt: str = "MP4", overwrite: bool = False,
+                     on_frame: Optional[Callable[[int, int], None]] = None) -> Path:
+    """Render ``scene.frame_start..frame_end`` to ``output``.
+
+    Args:
+        output: the .mp4 file (MP4), or the directory receiving ``frame_0001.png``/``.exr`` (sequences).
+        fmt: 'MP4', 'PNG' or 'EXR'.
+        overwrite: replace an existing output.
+        on_frame: progress callback ``(frames_done, frames_total)``.
+    Returns:
+        The output path.
+    """
+    fmt = fmt.upper()
+    output = Path(bpy.path.abspath(str(output))).resolve()
+    if output.exists() and not overwrite:
+        raise OutputExists(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    total = scene.frame_end - scene.frame_start + 1
+    tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.", suffix=".part", dir=output.parent))
+    old_path = scene.render.filepath
+    try:
+        configure_output(scene, fmt)
+        scene.render.filepath = str(tmp / ("movie_" if fmt == "MP4" else "frame_"))
+        with _frame_callbacks(on_frame, total):
+            result = bpy.ops.render.render(animation=True, scene=scene.name)
+        if "FINISHED" not in result:
+            raise RuntimeError(f"rendering stopped ({result})")
+        files = sorted(p for p in tmp.iterdir() if p.is_file())
+        if fmt == "MP4":
+            movies = [p for p in files if p.suffix.lower() == ".mp4"]
+            if len(movies) != 1:
+                raise RuntimeError(f"expected one movie file from Blender's FFmpeg, found {[p.name for p in files]}")
+            if output.exists():
+                output.unlink() if output.is_file() else shutil.rmtree(output)
+            movies[0].replace(output)
+        else:
+            if len(files) != total:
+                raise RuntimeError(f"expected {total} frames, Blender wrote {len(files)}")
+            if output.exists():
+                output.unlink() if output.is_file() else shutil.rmtree(output)
+            tmp.replace(output)
+        return output
+    finally:
+        scene.render.filepath = old_path
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def movie_frame_count(path: str | Path) -> int:
+    """Number of frames of a movie file, decoded with Blender's own FFmpeg (movie clip loading)."""
+    clip = bpy.data.movieclips.load(str(path), check_existing=False)
+    try:
+        return int(clip.frame_duration)
+    finally:
+        bpy.data.movieclips.remove(clip)

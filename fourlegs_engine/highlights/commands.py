@@ -1,0 +1,174 @@
+"""``fourlegs plan``: text query -> highlight plan JSON (+ a contact-sheet preview)."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "plan", help="plan a highlight (shots, camera and time keys, render passes) for a text query",
+        description="Plan a highlight of a text query: SCENE \"text\" (a scene with a distilled language "
+                    "field), or --demo \"text\" for the bundled synthetic demo scene. Writes the plan JSON "
+                    "(docs/CONTRACTS.md) and optionally a contact-sheet preview rendered by the engine.")
+    p.add_argument("inputs", nargs="*", metavar="SCENE QUERY", help="scene path and query text")
+    p.add_argument("--demo", metavar="QUERY", help="plan on the synthetic demo scene (generated on first use)")
+    p.add_argument("--preset", default="broadcast", help="preset name or .toml path (default: broadcast)")
+    p.add_argument("--preset-dir", action="append", default=[], metavar="DIR",
+                   help="extra preset directory (searched first; also $FOURLEGS_PRESETS)")
+    p.add_argument("--list-presets", action="store_true", help="list the available presets and exit")
+    p.add_argument("--effects", metavar="LIST",
+                   help="keep only the preset's shots with these effects (comma-separated)")
+    p.add_argument("-o", "--output", metavar="PLAN.json", help="where to write the plan")
+    p.add_argument("--preview", metavar="PNG", help="also write a contact sheet of sampled frames")
+    p.add_argument("--overlay", action="store_true", help="overlay relevancy on every preview tile")
+    p.add_argument("--preview-width", type=int, default=320, help="width of a preview tile (px)")
+    p.add_argument("--per-shot", type=int, default=4, help="preview frames per shot")
+    p.add_argument("--fps", type=float, help="override the preset's output frame rate")
+    p.add_argument("--resolution", metavar="WxH", help="override the preset's output resolution")
+    p.add_argument("--query-path", choices=("exact", "codebook"), default="codebook",
+                   help="per-Gaussian relevancy path of the query engine (default: codebook)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    enc = p.add_argument_group("encoder (only used when the scene has no language field yet, and for queries)")
+    enc.add_argument("--encoder", default="auto",
+                     help="video-text encoder: auto (the one the field was distilled with), simulated, viclip")
+    enc.add_argument("--checkpoint", help="ViCLIP weights (never downloaded)")
+    enc.add_argument("--vocab", help="CLIP BPE vocabulary bpe_simple_vocab_16e6.txt.gz")
+    enc.add_argument("--device", default="auto", help="cpu, cuda or auto")
+    p.set_defaults(func=run_plan)
+
+
+def _parse_resolution(text: str | None) -> tuple[int, int] | None:
+    from ..errors import InputError
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"expected WIDTHxHEIGHT, got {text!r}", field="--resolution") from None
+    if w <= 0 or h <= 0:
+        raise InputError(f"must be positive, got {text!r}", field="--resolution")
+    return w, h
+
+
+def open_scene_and_localizer(scene_path: str | Path | None, *, demo: bool, encoder: str = "auto",
+                             query_path: str = "codebook", encoder_args: argparse.Namespace | None = None):
+    """Load the scene (or the demo scene) and a :class:`~fourlegs_engine.query.engine.QueryEngine` on it.
+
+    A scene without a distilled language field gets one first (extract features -> train the
+    autoencoder -> distil with the learning-free lift; every stage resumes and is skipped when done).
+    A scene that is not a bundle is converted into a cached bundle (the language stages write there).
+    Returns (scene, engine).
+    """
+    from ..errors import InputError
+    from ..language.field import LanguageField
+    from ..query.engine import QueryEngine
+    from ..scene import is_bundle, write_bundle
+    from ..scene.loaders import load_scene
+
+    if demo:
+        from ..eval.synthetic import ensure_demo_bundle
+        scene_path = ensure_demo_bundle("demo")
+    if scene_path is None:
+        raise InputError("no scene given (SCENE QUERY, or --demo QUERY)", field="scene")
+    scene = load_scene(scene_path)
+    if scene.root is None or not is_bundle(scene.root):
+        import hashlib
+        from ..paths import cache_dir
+        digest = hashlib.sha256(str(Path(scene_path).resolve()).encode()).hexdigest()[:12]
+        target = cache_dir() / "bundles" / f"{scene.name}-{digest}"
+        if not is_bundle(target):
+            write_bundle(scene, target)
+        scene = load_scene(target)
+    text_encoder = _text_encoder(scene, encoder, encoder_args)
+    if not scene.language:
+        from ..language.autoencoder import train_autoencoder
+        from ..language.distill import distill_scene
+        from ..language.extract import extract_features
+        print(f"{scene.name}: no language field yet; extracting features, training the autoencoder and "
+              "distilling (lift) — once per scene", file=sys.stderr)
+        extract_features(scene, text_encoder, progress=True)
+        train_autoencoder(scene, progress=True)
+        distill_scene(scene, mode="lift", progress=True)
+        scene = load_scene(scene.root)
+    field = LanguageField.open(scene.root)
+    return scene, QueryEngine(scene, field, text_encoder, path=query_path)
+
+
+def _text_encoder(scene, name: str, encoder_args: argparse.Namespace | None):
+    """The video-text encoder the scene's field was (or will be) distilled with."""
+    from ..language.encoders import load_encoder_from_args
+
+    if name == "auto":
+        name = (scene.language or {}).get("encoder") or (
+            "simulated" if (scene.metadata or {}).get("labels") else "viclip")
+    ns = argparse.Namespace(**{**vars(encoder_args or argparse.Namespace()), "encoder": name})
+    return load_encoder_from_args(ns, **({"scene": scene} if name == "simulated" else {}))
+
+
+def run_plan(args: argparse.Namespace) -> int:
+    from ..errors import InputError
+    from .presets import available_presets, load_preset
+
+    if args.list_presets:
+        for name, path in sorted(available_presets(args.preset_dir).items()):
+            preset = load_preset(path)
+            print(f"{name:20s} {preset.description}  [{path}]")
+        return 0
+    if args.demo is not None:
+        if args.inputs:
+            raise InputError("give either --demo QUERY or SCENE QUERY, not both", field="inputs")
+        scene_path, query = None, args.demo
+    else:
+        if len(args.inputs) != 2:
+            raise InputError("expected SCENE QUERY (or --demo QUERY)", field="inputs")
+        scene_path, query = args.inputs
+    if not query.strip():
+        raise InputError("the query text is empty", field="query")
+    if not args.output:
+        raise InputError("missing -o PLAN.json", field="--output")
+    out = Path(args.output)
+    preview = Path(args.preview) if args.preview else None
+    for path in (out, preview):
+        if path is not None and path.exists() and not args.overwrite:
+            from ..errors import OutputExistsError
+            raise OutputExistsError(path)
+    if args.per_shot < 1 or args.preview_width < 16:
+        raise InputError("--per-shot must be >= 1 and --preview-width >= 16", field="preview")
+
+    preset = load_preset(args.preset, args.preset_dir)
+    if args.effects:
+        from .effects import EFFECTS
+        wanted = [e.strip() for e in args.effects.split(",") if e.strip()]
+        unknown = [e for e in wanted if e not in EFFECTS]
+        if unknown:
+            raise InputError(f"unknown effects {unknown} (one of {', '.join(EFFECTS)})", field="--effects")
+        preset = preset.with_shots(wanted)
+        if not preset.shots:
+            raise InputError(f"preset {preset.name!r} has no shot with the effects {wanted}", field="--effects")
+
+    from .planner import plan_highlight
+    scene, localizer = open_scene_and_localizer(scene_path, demo=args.demo is not None, encoder=args.encoder,
+                                                query_path=args.query_path, encoder_args=args)
+    plan = plan_highlight(scene, localizer, query, preset, resolution=_parse_resolution(args.resolution),
+                          fps=args.fps)
+    plan.save(out, overwrite=args.overwrite)
+    loc = plan.localization
+    print(f"plan: {out}  ({plan.frame_end - plan.frame_start + 1} frames at {plan.fps:g} fps, "
+          f"{plan.resolution[0]}x{plan.resolution[1]})")
+    print(f"  query {query!r}: found={loc['found']} segment={loc['segment']} peak={loc['peak']} "
+          f"best view={loc['best_view']} action centre="
+          f"{None if loc['action_centre'] is None else [round(v, 3) for v in loc['action_centre']]}")
+    for s in plan.shots:
+        print(f"  {s.name:14s} {s.effect:22s} frames {s.frame_start}-{s.frame_end}")
+    print("  passes: " + ", ".join(f"{k} {v}" for k, v in plan.passes.items()))
+    for m in plan.messages:
+        print(f"  note: {m}", file=sys.stderr)
+    if preview is not None:
+        from .preview import write_contact_sheet
+        write_contact_sheet(preview, scene, plan, localizer=localizer, overlay=args.overlay,
+                            per_shot=args.per_shot, width=args.preview_width, overwrite=args.overwrite)
+        print(f"preview: {preview}")
+    return 0

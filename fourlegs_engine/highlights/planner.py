@@ -1,0 +1,236 @@
+"""Demand-driven planning: preset + localization -> :class:`HighlightPlan`.
+
+The planner first asks every shot of the preset what it needs, then asks the localizer for exactly
+that (``localize(query, need)`` with ``need`` a subset of {"temporal", "best_view", "action_centre"};
+nothing at all when no shot needs a localization), builds the shots one after the other (each starts
+where the previous camera ended), and lists per render pass the frames that need it: ``rgb`` on every
+frame, ``relevancy`` only where the background is desaturated, ``depth`` only for shots that ask for
+depth of field.
+
+Following the paper (§6.1): the best view is the camera with the highest mean relevancy at the peak;
+the action centre is the relevancy centre of mass lifted with rendered depth; with ``recentre`` the
+best view is turned so the action centre sits mid-frame; the segment is the longest positive run and
+the peak its centre.
+"""
+from __future__ import annotations
+
+from typing import Any, Optional, Protocol, Sequence
+
+import numpy as np
+
+from ..errors import InputError
+from .camera_paths import Pose, aim
+from .effects import (LOCALIZATION_NEEDS, NEED_ACTION_CENTRE, NEED_BEST_VIEW, NEED_TEMPORAL, ShotContext,
+                      get_effect)
+from .plan import CameraKey, HighlightPlan, Shot, TimeKey, merge_ranges
+from .presets import Preset, ShotSpec
+
+
+class Localizer(Protocol):
+    """What the planner needs from a query engine (``fourlegs_engine.query.QueryEngine`` fits).
+
+    ``localize`` must compute only the parts named in ``need`` and return an object with the
+    attributes of ``query.results.Localization``: ``temporal`` (``found``, ``message``, ``segment``,
+    ``segments``, ``peak``, ``scores``), ``best_view`` (camera name), ``action_centre`` ((3,) or None),
+    ``t`` (timestep of the view/centre, optional) and ``messages`` (optional).
+    """
+
+    def localize(self, query: str, need: set[str]) -> Any: ...
+
+
+def shot_needs(preset: Preset) -> list[set[str]]:
+    """The localization needs of each shot of ``preset``."""
+    return [get_effect(s.effect).needs(s.params, first=(i == 0)) for i, s in enumerate(preset.shots)]
+
+
+def plan_needs(preset: Preset) -> set[str]:
+    """Union of what the preset's shots need from the localizer."""
+    out: set[str] = set()
+    for n in shot_needs(preset):
+        out |= n
+    return out
+
+
+def _focal_for_output(camera, resolution: tuple[int, int], fov_fit: str) -> float:
+    """Focal length (output px) keeping the camera's vertical or horizontal field of view."""
+    if fov_fit == "horizontal":
+        return camera.fx * resolution[0] / camera.width
+    return camera.fy * resolution[1] / camera.height
+
+
+def _find_camera(scene, name: str, t: int):
+    """A scene camera by name at timestep t; unnamed cameras answer to "cameraNN" (their index in the
+    query engine's list of all cameras)."""
+    t = min(max(int(t), 0), max(scene.cameras.num_timesteps - 1, 0))
+    cams = scene.cameras.cameras(t, "all")
+    for i, cam in enumerate(cams):
+        if (cam.name or f"camera{i:02d}") == name:
+            return cam
+    names = ", ".join(c.name or f"camera{i:02d}" for i, c in enumerate(cams))
+    raise InputError(f"no camera named {name!r} in scene {scene.name!r} (cameras: {names})", field="camera")
+
+
+def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Preset, *,
+                   resolution: Optional[Sequence[int]] = None, fps: Optional[float] = None) -> HighlightPlan:
+    """Plan a highlight of ``query`` in ``scene`` with ``preset``.
+
+    Args:
+        scene: a :class:`fourlegs_engine.scene.Scene` (cameras, fps, timesteps, name, root).
+        localizer: see :class:`Localizer`; may be None when the preset needs no localization.
+        query: the text query.
+        preset: a validated :class:`Preset`.
+        resolution, fps: override the preset's output resolution / frame rate.
+    Returns:
+        The plan. A query that is not found gives a plan without the localized shots (a full-length
+        context shot instead) and a message saying so.
+    """
+    resolution = tuple(int(v) for v in (resolution or preset.resolution))
+    if len(resolution) != 2 or min(resolution) <= 0:
+        raise InputError(f"must be [width, height] > 0, got {list(resolution)}", field="resolution")
+    out_fps = float(fps if fps is not None else preset.fps)
+    if not out_fps > 0 or not np.isfinite(out_fps):
+        raise InputError(f"must be positive, got {out_fps}", field="fps")
+    T = int(scene.num_timesteps)
+    messages: list[str] = []
+
+    per_shot = shot_needs(preset)
+    need = set().union(*per_shot) if per_shot else set()
+    loc = None
+    if need:
+        if localizer is None:
+            raise InputError(f"preset {preset.name!r} needs a localization ({', '.join(sorted(need))}) but no "
+                             "query engine was given", field="localizer")
+        loc = localizer.localize(query, set(need))
+        tmp = getattr(loc, "temporal", None)
+        skip = {getattr(tmp, "message", None)} if tmp is not None else set()
+        messages.extend(str(m) for m in (getattr(loc, "messages", None) or []) if m not in skip)
+
+    temporal = getattr(loc, "temporal", None) if loc is not None else None
+    found = bool(temporal is not None and temporal.found)
+    segment = tuple(int(v) for v in temporal.segment) if found and temporal.segment is not None else None
+    peak = int(temporal.peak) if found and temporal.peak is not None else None
+    best_name = getattr(loc, "best_view", None) if loc is not None else None
+    centre = getattr(loc, "action_centre", None) if loc is not None else None
+    centre = None if centre is None else np.asarray(centre, dtype=np.float64).reshape(3)
+    if centre is not None and not np.all(np.isfinite(centre)):
+        messages.append("the action centre was not finite and is ignored")
+        centre = None
+    view_t = getattr(loc, "t", None) if loc is not None else None
+    view_t = int(view_t) if view_t is not None else (peak if peak is not None else 0)
+
+    # Which shots can be built with what was found.
+    available = set()
+    if found:
+        available.add(NEED_TEMPORAL)
+    if best_name is not None:
+        available.add(NEED_BEST_VIEW)
+    if centre is not None:
+        available.add(NEED_ACTION_CENTRE)
+    specs = []
+    dropped = []
+    for spec, needs in zip(preset.shots, per_shot):
+        (specs if needs <= available else dropped).append((spec, needs))
+    if NEED_TEMPORAL in need and not found:
+        why = (temporal.message if temporal is not None and temporal.message else "no timestep is positive")
+        messages.append(f"query {query!r} was not found in scene {scene.name!r} ({why}); the plan has no "
+                        "localized effects" + (f" (left out: {', '.join(s.name for s, _ in dropped)})"
+                                               if dropped else ""))
+    elif dropped:
+        for spec, needs in dropped:
+            missing = sorted(needs - available)
+            messages.append(f"shot {spec.name!r} ({spec.effect}) left out: {', '.join(missing)} could not be "
+                            "determined")
+
+    # The anchor camera: the best view, turned onto the action centre (§6.1) when it is known.
+    anchor, anchor_focal = None, None
+    if best_name is not None:
+        cam = _find_camera(scene, str(best_name), view_t)
+        anchor, anchor_focal = Pose.from_camera(cam), _focal_for_output(cam, resolution, preset.fov_fit)
+        if centre is not None and preset.recentre:
+            if anchor.depth_of(centre) <= 0:
+                messages.append(f"the action centre lies behind the best view {best_name!r}; that camera is "
+                                "turned round to face it")
+            anchor = aim(anchor, centre)
+
+    def camera_pose(name: str) -> tuple[Pose, float]:
+        cam = _find_camera(scene, name, view_t)
+        return Pose.from_camera(cam), _focal_for_output(cam, resolution, preset.fov_fit)
+
+    if not specs:  # nothing localized survived: show the whole sequence from a sensible camera
+        fallback = get_effect("play").resolve({"from": "start", "to": "end", "min_duration_s": 0.0})
+        if anchor is None:
+            cams = scene.cameras.cameras(0, "train") or scene.cameras.cameras(0, "all")
+            if not cams:
+                raise InputError("the scene has no cameras to film from", field="cameras")
+            anchor, anchor_focal = Pose.from_camera(cams[0]), _focal_for_output(cams[0], resolution, preset.fov_fit)
+            fallback["camera"] = "previous"
+            messages.append(f"context shot of the whole sequence from camera {cams[0].name or 0!r}")
+        specs = [(ShotSpec("context", "play", fallback), set())]
+
+    shots: list[Shot] = []
+    frame = int(preset.frame_start)
+    prev_pose, prev_focal = None, None
+    for spec, _ in specs:
+        ctx = ShotContext(num_timesteps=T, scene_fps=float(scene.fps), output_fps=out_fps, segment=segment,
+                          peak=peak, action_centre=centre, anchor=anchor, anchor_focal=anchor_focal,
+                          previous=prev_pose, previous_focal=prev_focal, camera_pose=camera_pose)
+        effect = get_effect(spec.effect)
+        path = effect.build(spec.params, ctx)
+        messages.extend(f"{spec.name}: {m}" if not m.startswith(spec.name) else m for m in ctx.messages)
+        n = len(path.poses)
+        frames = range(frame, frame + n)
+        keys = [CameraKey.make(f, pose, focal, resolution[0], preset.sensor_width_mm)
+                for f, pose, focal in zip(frames, path.poses, path.focals)]
+        times = [TimeKey(f, float(t)) for f, t in zip(frames, path.timesteps)]
+        passes: dict[str, list[list[int]]] = {"rgb": [[frame, frame + n - 1]]}
+        for extra in effect.passes(spec.params):
+            passes[extra] = [[frame, frame + n - 1]]
+        params = dict(path.params)
+        if path.desaturation is not None:
+            on = [f for f, w in zip(frames, path.desaturation) if w > 0]
+            passes["relevancy"] = merge_ranges([[f, f] for f in on])
+            params["desaturation_weights"] = [float(w) for w in path.desaturation]
+        shots.append(Shot(spec.name, spec.effect, frame, frame + n - 1, keys, times, "linear", params, passes))
+        prev_pose, prev_focal = path.poses[-1], float(path.focals[-1])
+        frame += n
+
+    all_passes: dict[str, list[list[int]]] = {}
+    for s in shots:
+        for k, ranges in s.passes.items():
+            all_passes.setdefault(k, []).extend(ranges)
+    all_passes = {k: merge_ranges(v) for k, v in all_passes.items()}
+
+    desaturate = None
+    weights = {}
+    first_desat = None
+    for s in shots:
+        w = s.params.pop("desaturation_weights", None)
+        if w is None:
+            continue
+        first_desat = first_desat or s
+        weights.update({str(f): float(x) for f, x in zip(range(s.frame_start, s.frame_end + 1), w) if x > 0})
+    if weights:
+        desaturate = {"ranges": all_passes.get("relevancy", []),
+                      "fade_in": int(first_desat.params["fade_in_frames"]),
+                      "fade_out": int(first_desat.params["fade_out_frames"]),
+                      "strength": float(first_desat.params["strength"]), "weights": weights}
+
+    localization = {
+        "found": found if temporal is not None else None,
+        "message": (temporal.message if temporal is not None else "no localization was needed"),
+        "segment": None if segment is None else list(segment),
+        "peak": peak,
+        "segments": [] if temporal is None else [[int(a), int(b)] for a, b in temporal.segments],
+        "scores": [] if temporal is None else [float(v) for v in np.asarray(temporal.scores).reshape(-1)],
+        "action_centre": None if centre is None else [float(v) for v in centre],
+        "best_view": None if best_name is None else str(best_name),
+        "t": view_t if (best_name is not None or centre is not None) else None,
+        "computed": sorted(need, key=LOCALIZATION_NEEDS.index),
+    }
+    plan = HighlightPlan(
+        scene={"name": scene.name, "path": None if scene.root is None else str(scene.root),
+               "num_timesteps": T, "fps": float(scene.fps)},
+        query=query, localization=localization, fps=out_fps, resolution=resolution,
+        frame_start=int(preset.frame_start), frame_end=frame - 1, shots=shots, passes=all_passes,
+        desaturate=desaturate, messages=messages, preset=preset.name)
+    return plan.validate()

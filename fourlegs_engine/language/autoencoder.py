@@ -1,0 +1,304 @@
+"""The per-scene feature autoencoder (LangSplat-style; paper §3.1): 768 -> 128 -> 768.
+
+Encoder 768 -> 512 -> 256 -> 128 (Linear + BatchNorm + ReLU between layers, L2-normalized latent);
+decoder 128 -> 256 -> 512 -> 768 (same blocks, L2-normalized output). Loss: L1 + 0.01 * (1 - cos).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+NORM_EPS = 1e-8
+COSINE_WEIGHT = 0.01
+
+
+def l2_normalize(x: torch.Tensor, dim: int = -1) -> torch.Tensor:
+    """x / max(|x|, eps) — zero vectors stay zero instead of becoming NaN."""
+    return x / x.norm(dim=dim, keepdim=True).clamp_min(NORM_EPS)
+
+
+def _mlp(dims: Sequence[int]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(dims[:-1], dims[1:])):
+        layers.append(nn.Linear(a, b))
+        if i < len(dims) - 2:
+            layers += [nn.BatchNorm1d(b), nn.ReLU(inplace=True)]
+    return nn.Sequential(*layers)
+
+
+class FeatureEncoder(nn.Module):
+    """(M, D) features -> (M, d) L2-normalized latents."""
+
+    def __init__(self, dims: Sequence[int] = (768, 512, 256, 128)):
+        super().__init__()
+        self.dims = tuple(int(d) for d in dims)
+        self.net = _mlp(self.dims)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return l2_normalize(self.net(x))
+
+    def first_layer(self) -> nn.Linear:
+        return self.net[0]
+
+    def after_first_layer(self, h: torch.Tensor) -> torch.Tensor:
+        """Finish encoding from the first Linear's output (M, dims[1]) -> (M, d) normalized latents.
+
+        The first layer is affine and the pixel interpolation is a convex combination of crop
+        features, so applying the first layer to crop features and interpolating afterwards is exact;
+        the teacher computation uses this to skip most of the 768-d work.
+        """
+        return l2_normalize(self.net[1:](h))
+
+
+class FeatureDecoder(nn.Module):
+    """(M, d) latents -> (M, D) L2-normalized features."""
+
+    def __init__(self, dims: Sequence[int] = (128, 256, 512, 768)):
+        super().__init__()
+        self.dims = tuple(int(d) for d in dims)
+        self.net = _mlp(self.dims)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return l2_normalize(self.net(z))
+
+
+class FeatureAutoencoder(nn.Module):
+    def __init__(self, feature_dim: int = 768, latent_dim: int = 128, hidden: Sequence[int] = (512, 256)):
+        super().__init__()
+        self.encoder = FeatureEncoder((feature_dim, *hidden, latent_dim))
+        self.decoder = FeatureDecoder((latent_dim, *reversed(tuple(hidden)), feature_dim))
+
+    @property
+    def feature_dim(self) -> int:
+        return self.encoder.dims[0]
+
+    @property
+    def latent_dim(self) -> int:
+        return self.encoder.dims[-1]
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(M,D) -> (latents (M,d), reconstruction (M,D))."""
+        z = self.encoder(x)
+        return z, self.decoder(z)
+
+
+def reconstruction_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """L1 + 0.01 * (1 - cosine), averaged over the batch."""
+    l1 = (pred - target).abs().mean()
+    cos = torch.nn.functional.cosine_similarity(pred, target, dim=-1, eps=NORM_EPS).mean()
+    return l1 + COSINE_WEIGHT * (1.0 - cos)
+
+
+# ------------------------------------------------------------------------------------ training
+AE_DIR = "language"
+AE_CHECKPOINT = "language/autoencoder.ckpt.pt"
+AE_REPORT = "language/autoencoder.json"
+ENCODER_FILE = "language/encoder.pt"
+DECODER_FILE = "language/decoder.pt"
+
+
+@dataclass
+class AETrainConfig:
+    """Autoencoder training settings (all enter the config hash).
+
+    Training data is a *sample* of per-pixel teacher features: ``samples`` pixels drawn uniformly
+    (seeded) over every timestep and every training camera except ``holdout_camera``, each pixel's
+    feature interpolated from the stored crop features. ``heldout_samples`` pixels of the held-out
+    camera measure reconstruction cosine on a view the autoencoder never saw.
+    """
+
+    epochs: int = 4
+    samples: int = 32768
+    heldout_samples: int = 4096
+    batch_size: int = 1024
+    lr: float = 7e-4
+    latent_dim: int = 128
+    hidden: tuple[int, ...] = (512, 256)
+    holdout_camera: int = -1
+    seed: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["hidden"] = list(self.hidden)
+        return d
+
+
+def _sample_pixel_features(scene: Any, store: Any, views: list[tuple[int, int]], total: int,
+                           rng: np.random.Generator) -> torch.Tensor:
+    """(≈total, D) float32 per-pixel features at uniformly random pixels of the given (t, camera) views."""
+    from .extract import load_step_features
+    from .pyramid import interpolate_points
+    if not views or total <= 0:
+        return torch.zeros((0, int(store.config["dim"])))
+    per_view = max(1, -(-total // len(views)))
+    by_t: dict[int, list[int]] = {}
+    for t, c in views:
+        by_t.setdefault(t, []).append(c)
+    out = []
+    for t in sorted(by_t):
+        feats, layouts, offsets = load_step_features(scene, store, t)
+        for c in by_t[t]:
+            lay = layouts[c]
+            crop = torch.from_numpy(np.asarray(feats[offsets[c]:offsets[c] + lay.num_crops], dtype=np.float32))
+            xs = torch.from_numpy(rng.integers(0, lay.width, per_view).astype(np.float64))
+            ys = torch.from_numpy(rng.integers(0, lay.height, per_view).astype(np.float64))
+            out.append(interpolate_points(lay, crop, xs, ys))
+    return torch.cat(out)[:total] if len(out) else torch.zeros((0, int(store.config["dim"])))
+
+
+def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwrite: bool = False,
+                      progress: bool = False, stop_after_epoch: int | None = None) -> dict[str, Any]:
+    """Train the scene's autoencoder from its extracted features; resumable from per-epoch checkpoints.
+
+    Writes ``language/encoder.pt`` and ``language/decoder.pt`` (state dicts) and
+    ``language/autoencoder.json`` (config hash, reconstruction cosine on held-out and training views,
+    loss history). Returns that report. ``stop_after_epoch`` stops early (tests of resumption).
+    """
+    from ..errors import ConfigMismatchError, InputError
+    from ..fileio import atomic_path, read_json, write_json_atomic
+    from .extract import feature_store
+    from .store import config_hash
+
+    config = config or AETrainConfig()
+    if config.epochs < 1 or config.samples < 2 or config.batch_size < 2:
+        raise InputError("need epochs >= 1, samples >= 2 and batch size >= 2", field="train-ae")
+    root = Path(scene.root)
+    store = feature_store(scene)
+    missing = store.missing()
+    if missing:
+        from .store import format_ranges
+        raise InputError(f"features of timesteps {format_ranges(missing)} are missing; finish "
+                         "`fourlegs extract` first", file=store.root)
+    cfg = {"features": store.hash, **config.to_dict()}
+    chash = config_hash(cfg)
+    report_path, ckpt_path = root / AE_REPORT, root / AE_CHECKPOINT
+    for path in (report_path, ckpt_path):
+        if not path.is_file():
+            continue
+        old = (read_json(path).get("config_hash") if path.suffix == ".json"
+               else torch.load(path, weights_only=True, map_location="cpu").get("config_hash"))
+        if old != chash:
+            if not overwrite:
+                raise ConfigMismatchError(
+                    f"{path}: an autoencoder of another configuration exists (hash {old}, now {chash}); "
+                    "pass --overwrite to retrain, or use the same settings")
+            path.unlink()
+    if report_path.is_file() and not overwrite:
+        report = read_json(report_path)
+        report["skipped"] = True
+        return report
+
+    start = time.perf_counter()
+    num_cams = scene.cameras.num_cameras(store.config.get("split", "train"))
+    holdout = config.holdout_camera % num_cams if num_cams > 1 else None
+    rng = np.random.default_rng(np.random.SeedSequence([config.seed, 0xAE]))
+    T = scene.num_timesteps
+    train_views = [(t, c) for t in range(T) for c in range(num_cams) if c != holdout]
+    held_views = [(t, holdout) for t in range(T)] if holdout is not None else []
+    x_train = _sample_pixel_features(scene, store, train_views, config.samples, rng)
+    x_held = _sample_pixel_features(scene, store, held_views, config.heldout_samples, rng)
+    sample_seconds = time.perf_counter() - start
+
+    torch.manual_seed(config.seed)
+    model = FeatureAutoencoder(int(store.config["dim"]), config.latent_dim, config.hidden)
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    history: list[float] = []
+    first_epoch = 0
+    if ckpt_path.is_file():
+        ckpt = torch.load(ckpt_path, weights_only=True, map_location="cpu")
+        model.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        first_epoch = int(ckpt["epoch"])
+        history = [float(v) for v in ckpt["history"]]
+    epochs = range(first_epoch, config.epochs)
+    if progress:
+        from tqdm import tqdm
+        epochs = tqdm(epochs, desc="train-ae", unit="epoch", initial=first_epoch, total=config.epochs)
+    n = x_train.shape[0]
+    for epoch in epochs:
+        model.train()
+        gen = torch.Generator().manual_seed(config.seed * 100003 + epoch)
+        order = torch.randperm(n, generator=gen)
+        total, count = 0.0, 0
+        for s in range(0, n, config.batch_size):
+            idx = order[s:s + config.batch_size]
+            if idx.numel() < 2:  # BatchNorm needs two samples
+                continue
+            batch = x_train[idx]
+            _, recon = model(batch)
+            loss = reconstruction_loss(recon, batch)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            total += float(loss) * idx.numel()
+            count += idx.numel()
+        history.append(total / max(count, 1))
+        with atomic_path(ckpt_path) as tmp:
+            torch.save({"config_hash": chash, "epoch": epoch + 1, "model": model.state_dict(),
+                        "optimizer": opt.state_dict(), "history": history}, tmp)
+        if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch and epoch + 1 < config.epochs:
+            return {"stopped_after_epoch": epoch + 1}
+
+    model.eval()
+    report = {"config_hash": chash, "config": cfg, "epochs": config.epochs, "loss_history": history,
+              "train_samples": int(n), "heldout_camera": holdout, "heldout_samples": int(x_held.shape[0]),
+              "train_cosine": reconstruction_cosine(model, x_train[:config.heldout_samples]),
+              "heldout_cosine": reconstruction_cosine(model, x_held) if x_held.shape[0] else None,
+              "sample_seconds": sample_seconds, "seconds": time.perf_counter() - start,
+              "encoder": ENCODER_FILE, "decoder": DECODER_FILE}
+    with atomic_path(root / ENCODER_FILE) as tmp:
+        torch.save(model.encoder.state_dict(), tmp)
+    with atomic_path(root / DECODER_FILE) as tmp:
+        torch.save(model.decoder.state_dict(), tmp)
+    write_json_atomic(report_path, report)
+    ckpt_path.unlink(missing_ok=True)
+    return report
+
+
+@torch.no_grad()
+def reconstruction_cosine(model: FeatureAutoencoder, x: torch.Tensor) -> float:
+    """Mean cosine between features and their reconstructions (model in eval mode)."""
+    was_training = model.training
+    model.eval()
+    _, recon = model(x)
+    model.train(was_training)
+    return float(torch.nn.functional.cosine_similarity(recon, x, dim=-1, eps=NORM_EPS).mean())
+
+
+def _dims_from_state(state: dict[str, torch.Tensor]) -> tuple[int, ...]:
+    """Layer widths of an MLP state dict (net.0.weight, net.3.weight, ...)."""
+    weights = sorted(((int(k.split(".")[1]), v) for k, v in state.items()
+                      if k.startswith("net.") and k.endswith(".weight") and v.dim() == 2), key=lambda kv: kv[0])
+    if not weights:
+        raise ValueError("no Linear layers in the state dict")
+    return (int(weights[0][1].shape[1]),) + tuple(int(w.shape[0]) for _, w in weights)
+
+
+def load_encoder(path: str | Path) -> FeatureEncoder:
+    """The trained feature encoder (eval mode) from its state dict (never unpickles)."""
+    return _load(path, FeatureEncoder)
+
+
+def load_decoder(path: str | Path) -> FeatureDecoder:
+    """The trained feature decoder (eval mode) from its state dict (never unpickles)."""
+    return _load(path, FeatureDecoder)
+
+
+def _load(path: str | Path, cls: type) -> Any:
+    from ..errors import InputError
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file is missing; run `fourlegs train-ae` first", file=path)
+    try:
+        state = torch.load(path, weights_only=True, map_location="cpu")
+        model = cls(_dims_from_state(state))
+        model.load_state_dict(state, strict=True)
+    except (RuntimeError, ValueError, KeyError, EOFError) as exc:
+        raise InputError(f"not a valid {cls.__name__} state dict ({exc})", file=path) from None
+    return model.eval()

@@ -1,0 +1,491 @@
+"""Distil the teacher features into per-Gaussian 128-d latents, timestep by timestep (paper §3.1).
+
+Modes (geometry frozen in all of them):
+
+``lift`` (learning-free; LUDVIG-style, beyond the paper)
+    Rendering is linear in the latents: pixel p of view v renders l(p) = Σ_i w_i(p) L_i with
+    w_i(p) = α_i T_i. The lift is the rendering-weighted average of the encoded teacher latents
+    L_i ∝ Σ_v Σ_p w_i(p) e_v(p) / Σ_v Σ_p w_i(p), L2-normalized — one rasterizer pass per view. Where
+    every pixel sees a single Gaussian this is exactly the direction of the least-squares solution.
+    Gaussians no training pixel sees keep a zero latent.
+``optimize`` (the paper)
+    Latents start at 0 and are smoothed by single-head self-attention over each Gaussian's 20 nearest
+    neighbours (kNN once per timestep); the smoothed latents are rendered and compared with L1 to the
+    encoded teacher of ``views_per_iteration`` randomly drawn training views per iteration (the
+    official code draws one view per iteration); Adam (eps 1e-15), lr 0.0025 for the latents and
+    1.6e-4 for the attention, 2000 iterations by default. Ablations: ``smoothing="none"`` (w/o Attn),
+    ``"blur"`` (Local_Blur: kNN mean) and ``smoothness`` λ (Local_Reg).
+``lift+refine``
+    The lift, then ``iterations`` optimize steps from there (attention initialized near the identity).
+
+Rendering during optimization uses the blending weights of each view, computed once per timestep
+by the rasterizer (``outputs=("weights",)``): with frozen geometry, rendering features is the sparse
+linear map (P×N) @ (N×d), identical to the rasterizer's feature output and much cheaper to repeat.
+
+Teacher: the encoder of the trained autoencoder applied to the per-pixel teacher features. Its first
+Linear layer is applied to the crop features before the pixel interpolation (exact: the
+interpolation is a convex combination), the rest per sample pixel. With ``teacher_stride`` s > 1 the
+encoded latents are computed at the centres of s×s pixel blocks and bilinearly upsampled (then
+re-normalized) — a speed knob measured by ``fourlegs bench distill``.
+
+Results: one float16 (N, 128) file per timestep under ``language/steps/`` (atomic; a killed run
+resumes and ends with exactly the uninterrupted result since every timestep is seeded from its index
+and written only when finished), merged into ``language/latents.npy`` (T, N, 128) when complete.
+"""
+from __future__ import annotations
+
+import math
+import shutil
+import time
+import warnings
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from ..errors import ConfigMismatchError, InputError
+from ..fileio import atomic_path, load_npy, read_json
+from ..scene.scene import Scene
+from .attention import NeighbourhoodAttention, knn_indices, neighbour_blur, smoothness_loss
+from .autoencoder import AE_REPORT, DECODER_FILE, ENCODER_FILE, FeatureEncoder, l2_normalize, load_encoder
+from .encoders import CANONICAL_PHRASES
+from .extract import feature_store, load_step_features
+from .pyramid import PyramidLayout, pixel_features, upsample_to_pixels
+from .store import StepStore, config_hash, format_ranges, select_timesteps
+
+MODES = ("optimize", "lift", "lift+refine")
+SMOOTHING = ("attention", "none", "blur")
+LANGUAGE_DIR = "language"
+STEPS_DIR = "language/steps"
+LATENTS_FILE = "language/latents.npy"
+DEFAULT_ITERATIONS = {"optimize": 2000, "lift": 0, "lift+refine": 200}
+
+
+@dataclass
+class DistillConfig:
+    """Distillation settings; :meth:`to_dict` (the hashed part) keeps only what affects the result.
+
+    Attributes:
+        mode: "optimize" | "lift" | "lift+refine".
+        iterations: optimizer steps per timestep (None: 2000 optimize, 200 lift+refine).
+        smoothing: "attention" (paper) | "none" (w/o Attn) | "blur" (Local_Blur).
+        smoothness: weight λ of the Local_Reg loss (0 = off).
+        neighbours: k of the kNN (the Gaussian itself included).
+        lr_latents, lr_attention: Adam learning rates.
+        views_per_iteration: training views rendered per optimizer step (sampled without replacement).
+        teacher_stride: the teacher latents are encoded every ``teacher_stride`` pixels and upsampled.
+        seed: base seed; timestep t uses a seed derived from (seed, t).
+        split: the camera split distilled from.
+    """
+
+    mode: str = "lift"
+    iterations: int | None = None
+    smoothing: str = "attention"
+    smoothness: float = 0.0
+    neighbours: int = 20
+    lr_latents: float = 0.0025
+    lr_attention: float = 1.6e-4
+    views_per_iteration: int = 1
+    teacher_stride: int = 2
+    seed: int = 0
+    split: str = "train"
+
+    def check(self) -> "DistillConfig":
+        if self.mode not in MODES:
+            raise InputError(f"unknown mode {self.mode!r} (choose from {', '.join(MODES)})", field="--mode")
+        if self.smoothing not in SMOOTHING:
+            raise InputError(f"unknown smoothing {self.smoothing!r} (choose from {', '.join(SMOOTHING)})",
+                             field="smoothing")
+        if self.iterations is not None and self.iterations < 0:
+            raise InputError(f"must be >= 0, got {self.iterations}", field="--iterations")
+        if self.mode == "optimize" and self.num_iterations < 1:
+            raise InputError("optimize needs at least one iteration", field="--iterations")
+        if self.neighbours < 1 or self.views_per_iteration < 1 or self.teacher_stride < 1:
+            raise InputError("neighbours, views per iteration and teacher stride must be >= 1", field="distill")
+        if not (self.smoothness >= 0 and math.isfinite(self.smoothness)):
+            raise InputError(f"must be >= 0, got {self.smoothness}", field="--smoothness")
+        return self
+
+    @property
+    def num_iterations(self) -> int:
+        return DEFAULT_ITERATIONS[self.mode] if self.iterations is None else int(self.iterations)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["iterations"] = self.num_iterations
+        if self.mode == "lift":
+            for key in ("smoothing", "smoothness", "neighbours", "lr_latents", "lr_attention",
+                        "views_per_iteration", "seed", "iterations"):
+                d.pop(key)
+        elif self.smoothing != "attention":
+            d.pop("lr_attention")
+        return d
+
+
+@dataclass
+class TimestepTiming:
+    t: int
+    seconds: float
+    weights_seconds: float
+    teacher_seconds: float
+    lift_seconds: float
+    optimize_seconds: float
+    iterations: int
+    final_loss: float | None
+
+    @property
+    def seconds_per_iteration(self) -> float | None:
+        return self.optimize_seconds / self.iterations if self.iterations else None
+
+
+@dataclass
+class DistillResult:
+    """What :func:`distill_scene` did: per-timestep timings, where the latents are, what was skipped."""
+
+    mode: str
+    config: dict[str, Any]
+    config_hash: str
+    out_dir: str
+    latents: str | None
+    timings: list[TimestepTiming] = field(default_factory=list)
+    skipped: list[int] = field(default_factory=list)
+
+    @property
+    def seconds_per_timestep(self) -> float | None:
+        return float(np.mean([t.seconds for t in self.timings])) if self.timings else None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"mode": self.mode, "config": self.config, "config_hash": self.config_hash,
+                "out_dir": self.out_dir, "latents": self.latents, "skipped": self.skipped,
+                "seconds_per_timestep": self.seconds_per_timestep,
+                "timings": [dict(asdict(t), seconds_per_iteration=t.seconds_per_iteration) for t in self.timings]}
+
+
+# ------------------------------------------------------------------------------ rendering map
+class ViewOperator:
+    """Rendering of per-Gaussian features for one view with frozen geometry, as sparse matrices.
+
+    ``render(L)`` = A @ L with A (P×N), A[p,i] = α_i T_i at pixel p — what the rasterizer's
+    ``features`` output computes (background 0) — and ``splat(E)`` = Aᵀ @ E.
+    """
+
+    def __init__(self, pixel: torch.Tensor, gaussian: torch.Tensor, weight: torch.Tensor, num_pixels: int,
+                 num_gaussians: int):
+        pixel, gaussian = pixel.long(), gaussian.long()
+        weight = weight.detach().to(torch.float32)
+        self.num_pixels, self.num_gaussians = int(num_pixels), int(num_gaussians)
+        order = torch.argsort(pixel, stable=True)
+        pixel, gaussian, weight = pixel[order], gaussian[order], weight[order]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            self.A = torch.sparse_csr_tensor(_crow(pixel, num_pixels), gaussian, weight,
+                                             (num_pixels, num_gaussians))
+            by_g = torch.argsort(gaussian, stable=True)
+            self.At = torch.sparse_csr_tensor(_crow(gaussian[by_g], num_gaussians), pixel[by_g], weight[by_g],
+                                              (num_gaussians, num_pixels))
+        self.weight_sum = torch.bincount(gaussian, weights=weight.double(), minlength=num_gaussians).float()
+        self.nnz = int(weight.numel())
+
+    @staticmethod
+    def from_weights(weights: Any, num_gaussians: int) -> "ViewOperator":
+        return ViewOperator(weights.pixel, weights.gaussian, weights.weight, weights.width * weights.height,
+                            num_gaussians)
+
+    def render(self, latents: torch.Tensor) -> torch.Tensor:
+        """(N,d) -> (P,d), differentiable w.r.t. the latents."""
+        return _SparseRender.apply(latents, self)
+
+    def splat(self, values: torch.Tensor) -> torch.Tensor:
+        """(P,d) -> (N,d): Σ_p w_i(p) values(p)."""
+        return self.At @ values
+
+
+def _crow(sorted_rows: torch.Tensor, num_rows: int) -> torch.Tensor:
+    crow = torch.zeros(num_rows + 1, dtype=torch.long)
+    crow[1:] = torch.cumsum(torch.bincount(sorted_rows, minlength=num_rows), 0)
+    return crow
+
+
+class _SparseRender(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx: Any, latents: torch.Tensor, op: ViewOperator) -> torch.Tensor:  # noqa: D401
+        ctx.op = op
+        return op.A @ latents
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
+        return ctx.op.At @ grad.contiguous(), None
+
+
+def view_operator(frame: Any, camera: Any) -> ViewOperator:
+    """Blending weights of one view from the rasterizer, as a :class:`ViewOperator`."""
+    from ..render import rasterize
+    with torch.no_grad():
+        out = rasterize(frame.means, frame.rotations, frame.log_scales, frame.opacity_logits, camera,
+                        outputs=("weights",))
+    return ViewOperator.from_weights(out["weights"], frame.num_gaussians)
+
+
+# ------------------------------------------------------------------------------------ teacher
+@torch.no_grad()
+def teacher_latents(encoder: FeatureEncoder, layout: PyramidLayout, crop_features: np.ndarray | torch.Tensor,
+                    stride: int = 1) -> torch.Tensor:
+    """Encoded per-pixel teacher of one view: (num_crops, D) crop features -> (H*W, d) unit latents."""
+    crops = torch.as_tensor(np.asarray(crop_features), dtype=torch.float32)
+    h = encoder.first_layer()(crops)                                  # (n, hidden) exact before interp.
+    grid = pixel_features(layout, h, stride)                          # (h', w', hidden)
+    z = encoder.after_first_layer(grid.reshape(-1, grid.shape[-1])).view(grid.shape[0], grid.shape[1], -1)
+    if stride > 1:
+        z = l2_normalize(upsample_to_pixels(z, layout.width, layout.height, stride))
+    return z.reshape(layout.width * layout.height, -1).contiguous()
+
+
+# ---------------------------------------------------------------------------------- per step
+def timestep_seed(seed: int, t: int) -> int:
+    return int(np.random.SeedSequence([int(seed), int(t), 0x4C45]).generate_state(1)[0])
+
+
+def lift_latents(ops: Sequence[ViewOperator], teachers: Sequence[torch.Tensor]) -> torch.Tensor:
+    """Rendering-weighted average of the teacher latents per Gaussian, L2-normalized: -> (N,d)."""
+    num = None
+    den = None
+    for op, e in zip(ops, teachers):
+        part = op.splat(e)
+        num = part if num is None else num + part
+        den = op.weight_sum if den is None else den + op.weight_sum
+    seen = den > 1e-12
+    out = torch.zeros_like(num)
+    out[seen] = num[seen] / den[seen, None]
+    return l2_normalize(out)
+
+
+def optimize_latents(ops: Sequence[ViewOperator], teachers: Sequence[torch.Tensor], neighbours: torch.Tensor | None,
+                     config: DistillConfig, seed: int, init: torch.Tensor | None = None,
+                     progress: Any = None) -> tuple[torch.Tensor, float | None]:
+    """The paper's optimization for one timestep; returns (smoothed latents (N,d), last loss)."""
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    n, d = ops[0].num_gaussians, teachers[0].shape[1]
+    latents = torch.zeros(n, d) if init is None else init.detach().clone().float()
+    latents.requires_grad_(True)
+    groups: list[dict[str, Any]] = [{"params": [latents], "lr": config.lr_latents}]
+    attention = None
+    if config.smoothing == "attention":
+        attention = NeighbourhoodAttention(d)
+        if init is not None:
+            attention.init_near_identity()
+        groups.append({"params": list(attention.parameters()), "lr": config.lr_attention})
+    opt = torch.optim.Adam(groups, eps=1e-15)
+
+    def smooth(x: torch.Tensor) -> torch.Tensor:
+        if config.smoothing == "attention":
+            return attention(x, neighbours)
+        if config.smoothing == "blur":
+            return neighbour_blur(x, neighbours)
+        return x
+
+    k = min(config.views_per_iteration, len(ops))
+    loss_value = None
+    for _ in range(config.num_iterations):
+        views = rng.choice(len(ops), size=k, replace=False)
+        smoothed = smooth(latents)
+        loss = sum((ops[v].render(smoothed) - teachers[v]).abs().mean() for v in views) / k
+        if config.smoothness > 0:
+            loss = loss + config.smoothness * smoothness_loss(latents, neighbours)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        loss_value = float(loss)
+        if progress is not None:
+            progress.update(1)
+    with torch.no_grad():
+        final = smooth(latents).detach()
+    if not torch.all(torch.isfinite(final)):
+        raise FloatingPointError("distillation diverged (NaN/Inf latents); lower the learning rates")
+    return final, loss_value
+
+
+def distill_timestep(scene: Scene, t: int, encoder: FeatureEncoder, features: StepStore,
+                     config: DistillConfig, progress: Any = None) -> tuple[np.ndarray, TimestepTiming]:
+    """Latents (N, d) float32 of timestep t and its timing breakdown."""
+    start = time.perf_counter()
+    frame = scene.gaussians.at(t)
+    cameras = scene.cameras.cameras(t, config.split)
+    feats, layouts, offsets = load_step_features(scene, features, t)
+    ops, teachers = [], []
+    w_s = te_s = 0.0
+    for cam, layout, off in zip(cameras, layouts, offsets):
+        s = time.perf_counter()
+        ops.append(view_operator(frame, cam))
+        w_s += time.perf_counter() - s
+        s = time.perf_counter()
+        teachers.append(teacher_latents(encoder, layout, feats[off:off + layout.num_crops], config.teacher_stride))
+        te_s += time.perf_counter() - s
+    lift_s = opt_s = 0.0
+    init = None
+    loss = None
+    if config.mode in ("lift", "lift+refine"):
+        s = time.perf_counter()
+        init = lift_latents(ops, teachers)
+        lift_s = time.perf_counter() - s
+    result = init
+    iterations = 0
+    if config.mode in ("optimize", "lift+refine") and config.num_iterations > 0:
+        s = time.perf_counter()
+        neighbours = None
+        if config.smoothing != "none" or config.smoothness > 0:
+            neighbours = knn_indices(frame.means, config.neighbours)
+        result, loss = optimize_latents(ops, teachers, neighbours, config, timestep_seed(config.seed, t),
+                                        init=init, progress=progress)
+        opt_s = time.perf_counter() - s
+        iterations = config.num_iterations
+    timing = TimestepTiming(t, time.perf_counter() - start, w_s, te_s, lift_s, opt_s, iterations, loss)
+    return result.numpy(), timing
+
+
+# ------------------------------------------------------------------------------------- scene
+def distill_scene(scene: Scene, mode: str = "lift", iterations: int | None = None,
+                  timesteps: str | Sequence[int] | None = None, shard: str | tuple[int, int] | None = None, *,
+                  config: DistillConfig | None = None, out_dir: str | Path | None = None,
+                  overwrite: bool = False, merge: bool = True, progress: bool = False,
+                  **options: Any) -> DistillResult:
+    """Distil the language field of a bundle scene (features extracted, autoencoder trained).
+
+    Args:
+        scene: a bundle scene (``scene.root`` set).
+        mode, iterations: see :class:`DistillConfig` (``options`` sets its other fields).
+        timesteps, shard: the timesteps this worker handles ("a:b", [..], "i/n").
+        out_dir: where results go (default ``<bundle>/language``: merged latents + scene.json entry);
+            another directory (benchmarks) gets ``steps/`` and, when complete, ``latents.npy``.
+        overwrite: discard results of another configuration instead of refusing.
+        merge: merge into the (T,N,d) latents file when every timestep is finished.
+    Returns:
+        :class:`DistillResult` with per-timestep timings.
+    """
+    if config is None:
+        config = DistillConfig(mode=mode, iterations=iterations, **options)
+    config.check()
+    if scene.root is None:
+        raise InputError("the scene must be a bundle on disk", field="scene")
+    root = Path(scene.root)
+    features = feature_store(scene)
+    ae_report_path = root / AE_REPORT
+    if not ae_report_path.is_file():
+        raise InputError("no trained autoencoder; run `fourlegs train-ae` first", file=ae_report_path)
+    ae_report = read_json(ae_report_path)
+    cfg = {"features": features.hash, "autoencoder": ae_report.get("config_hash"), **config.to_dict()}
+    chash = config_hash(cfg)
+    default_out = out_dir is None
+    out = root / LANGUAGE_DIR if default_out else Path(out_dir)
+    latents_path = out / "latents.npy"
+    store = StepStore(out / "steps", "latents", cfg, scene.num_timesteps)
+    merged_hash = _merged_hash(scene, out, default_out)
+    if merged_hash is not None and merged_hash != chash:
+        if not overwrite:
+            raise ConfigMismatchError(
+                f"{latents_path}: latents of another configuration exist (hash {merged_hash}, now {chash}); "
+                "pass --overwrite to replace them, or use the same settings")
+        latents_path.unlink(missing_ok=True)
+        _forget_merged(out)
+        merged_hash = None
+    store.open(overwrite=overwrite)
+    result = DistillResult(config.mode, cfg, chash, str(out), None)
+    steps = select_timesteps(scene.num_timesteps, timesteps, shard)
+    if merged_hash == chash:
+        result.skipped = list(steps)
+        result.latents = str(latents_path)
+        return result
+    todo = [t for t in steps if not store.is_done(t)]
+    result.skipped = [t for t in steps if store.is_done(t)]
+    encoder = load_encoder(root / ENCODER_FILE)
+    bar = None
+    if progress and todo:
+        from tqdm import tqdm
+        per = max(config.num_iterations, 1)
+        bar = tqdm(total=len(todo) * per, desc=f"distill ({config.mode})",
+                   unit="it" if config.num_iterations else "timestep")
+    try:
+        for t in todo:
+            latents, timing = distill_timestep(scene, t, encoder, features, config,
+                                               progress=bar if config.num_iterations else None)
+            store.save(t, latents.astype(np.float16))
+            result.timings.append(timing)
+            if bar is not None and not config.num_iterations:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    if merge and not store.missing():
+        merge_latents(scene, store, out, chash, config, update_bundle=default_out)
+        result.latents = str(latents_path)
+    return result
+
+
+def _merged_hash(scene: Scene, out: Path, default_out: bool) -> str | None:
+    if not (out / "latents.npy").is_file():
+        return None
+    if default_out:
+        lang = read_json(Path(scene.root) / "scene.json").get("language") or {}
+        return lang.get("config_hash")
+    marker = out / "latents.json"
+    return read_json(marker).get("config_hash") if marker.is_file() else None
+
+
+def _forget_merged(out: Path) -> None:
+    (out / "latents.json").unlink(missing_ok=True)
+
+
+def merge_latents(scene: Scene, store: StepStore, out: Path, chash: str, config: DistillConfig, *,
+                  update_bundle: bool) -> Path:
+    """Assemble the per-timestep files into (T,N,d) float16 ``latents.npy`` atomically; then record it
+    (scene.json ``language`` for the bundle's own field, ``latents.json`` elsewhere) and drop the parts."""
+    from ..fileio import write_json_atomic
+    from ..scene.bundle import update_bundle_meta, read_bundle_meta
+    first = store.load(0)
+    T = scene.num_timesteps
+    path = out / "latents.npy"
+    with atomic_path(path) as tmp:
+        arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=(T,) + tuple(first.shape))
+        for t in range(T):
+            arr[t] = store.load(t)
+        arr.flush()
+        del arr
+    root = Path(scene.root)
+    info = {"encoder": _encoder_name(store, scene), "latent_dim": int(first.shape[1]),
+            "canonical_phrases": list(CANONICAL_PHRASES), "decoder": DECODER_FILE, "latents": LATENTS_FILE,
+            "mode": config.mode, "config_hash": chash, "config": store.config}
+    if update_bundle:
+        meta = read_bundle_meta(root)
+        arrays = dict(meta["arrays"])
+        arrays["latents"] = LATENTS_FILE
+        update_bundle_meta(root, language=info, arrays=arrays)
+    else:
+        write_json_atomic(out / "latents.json", {**info, "latents": str(path)})
+    shutil.rmtree(store.root, ignore_errors=True)
+    return path
+
+
+def _encoder_name(store: StepStore, scene: Scene) -> str:
+    return str(feature_store(scene).config.get("encoder", "unknown"))
+
+
+def check_distill(scene: Scene, out_dir: str | Path | None = None) -> dict[str, Any]:
+    """Merge/check report of the distillation results (missing timesteps, merged or not)."""
+    root = Path(scene.root)
+    out = root / LANGUAGE_DIR if out_dir is None else Path(out_dir)
+    merged = (out / "latents.npy").is_file()
+    store = StepStore(out / "steps", "latents", {}, scene.num_timesteps)
+    meta = store.read_manifest()
+    if merged and not (out / "steps").is_dir():
+        lat = load_npy(out / "latents.npy", field="latents")
+        return {"stage": "latents", "merged": True, "shape": list(lat.shape), "missing": [], "complete": True}
+    if meta is None:
+        return {"stage": "latents", "merged": False, "missing": list(range(scene.num_timesteps)),
+                "missing_ranges": format_ranges(range(scene.num_timesteps)), "complete": False}
+    store.config = meta["config"]
+    report = store.check((scene.num_gaussians, 128))
+    report["merged"] = merged
+    report["missing_ranges"] = format_ranges(report["missing"])
+    return report

@@ -1,0 +1,408 @@
+"""Simulated video-text encoders for synthetic scenes with ground-truth labels.
+
+These stand in for ViCLIP where weights are unavailable: they are *simulations*, built from the
+ground-truth labels of :mod:`fourlegs_engine.eval.synthetic` scenes, and named as such.
+
+Text (:class:`SimulatedTextEncoder`)
+    A phrase is reduced to lemmas (lower case, stop words dropped, synonyms and inflections mapped to
+    one lemma: "jumps", "leaping" -> "jump"; "man", "player" -> "person"). Every known lemma owns one
+    axis of a fixed orthonormal basis of R^768 (built once from a fixed seed); an unknown word gets a
+    deterministic pseudo-random unit vector from a hash of the word (nearly orthogonal to everything).
+    The phrase embedding is ``sqrt(g) * generic + sqrt(1-g) * normalize(sum_k w_k * v_k)`` with the
+    shared ``generic`` axis (share ``g = GENERIC_SHARE`` = 0.3) and per-lemma weights ``w_k`` (the
+    subject "person" weighs 0.35, objects of an action 0.5, the rest 1). Hence:
+
+    * a query is closest to the label that uses its words (cosine 1 for the same lemmas),
+    * labels sharing only the subject ("person jumping" vs "person waving") stay below the canonical
+      phrases' similarity, so the LERF relevancy of one against the other is < 0.5,
+    * the canonical phrases ("object", "things", "stuff", "texture") are mostly the generic axis
+      (share ``CANONICAL_GENERIC_SHARE`` = 0.92): cosine ~ sqrt(0.3 * 0.92) = 0.525 to *every* phrase,
+    * unrelated queries have cosine ~0.3 (the generic share) to every label: relevancy ~0.1.
+
+Video (:class:`SimulatedVideoEncoder`)
+    Input: clips (B, 8, C, h, w) of per-pixel label coverage in [0, 1] (channel c = the share of the
+    pixel's colour contributed by Gaussians of label c, rendered with the rasterizer, see
+    :func:`render_label_coverage`). Output: the coverage-weighted embedding of the labels in the crop
+    over the tube (the uncovered share weighs the "background" phrase), with three documented
+    corruptions, all deterministic given ``seed`` (randomness is drawn from a hash of the seed, the
+    camera and the clip's coverage, so the same input always gives the same output, as a real model):
+
+    * wrong-label frames: each of the 8 frames, with probability ``wrong_label_fraction`` (default
+      0.1), has its label channels cyclically shifted (every label replaced by another one);
+    * additive noise orthogonal to the clean embedding, sized so that the cosine to the clean
+      embedding is ``noise_cosine`` (default 0.8);
+    * a per-camera bias: a fixed unit vector per camera name, added with weight ``camera_bias``
+      (default 0.25) before the final normalization (overall cosine to the clean embedding ~0.78).
+
+    The defaults are fixed; tests must not depend on tuning them.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+from functools import lru_cache
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from .encoders import CANONICAL_PHRASES
+
+EMBED_DIM = 768
+GENERIC_SHARE = 0.3
+CANONICAL_GENERIC_SHARE = 0.92
+BASIS_SEED = 20250401
+BACKGROUND_PHRASE = "background"
+
+DEFAULT_NOISE_COSINE = 0.8
+DEFAULT_CAMERA_BIAS = 0.25
+DEFAULT_WRONG_LABEL_FRACTION = 0.1
+
+STOP_WORDS = frozenset("""a an the in on of at to into onto with by from for and or is are was were be being
+his her their its this that these those some while up down it one who which as""".split())
+
+# Inflections and synonyms -> lemma. Words of the synthetic label vocabulary, their common variants,
+# and a few neighbours a user is likely to type.
+LEMMAS: dict[str, str] = {}
+_GROUPS = {
+    "person": "person people persons man men woman women player players guy girl boy human someone somebody "
+              "kid child athlete",
+    "jump": "jump jumps jumping jumped leap leaps leaping hop hops hopping",
+    "wave": "wave waves waving waved",
+    "throw": "throw throws throwing threw thrown toss tosses tossing tossed pass passes passing",
+    "catch": "catch catches catching caught",
+    "walk": "walk walks walking walked stroll strolling",
+    "hold": "hold holds holding held carry carries carrying grab grabbing",
+    "stand": "stand stands standing stood idle",
+    "ball": "ball balls basketball football",
+    "fly": "fly flies flying flew airborne",
+    "air": "air sky",
+    "hand": "hand hands arm arms",
+    "floor": "floor ground court",
+    "wall": "wall walls dome",
+    "box": "box boxes crate",
+    "wood": "wooden wood",
+    "bench": "bench benches seat",
+    "background": "background",
+}
+for _lemma, _words in _GROUPS.items():
+    for _w in _words.split():
+        LEMMAS[_w] = _lemma
+KNOWN_LEMMAS: tuple[str, ...] = tuple(_GROUPS)
+LEMMA_WEIGHTS = {"person": 0.35, "ball": 0.5, "air": 0.5, "wood": 0.5}
+_GENERIC_AXIS = "<generic>"
+
+
+def lemmatize(text: str) -> list[str]:
+    """Lemmas of ``text`` in order (stop words dropped; unknown words kept, lightly stemmed)."""
+    if not isinstance(text, str):
+        raise InputError(f"text must be a string, got {type(text).__name__}", field="text")
+    out = []
+    for word in re.findall(r"[a-z0-9']+", text.lower()):
+        word = word.strip("'")
+        if not word or word in STOP_WORDS:
+            continue
+        if word in LEMMAS:
+            out.append(LEMMAS[word])
+            continue
+        out.append(_stem(word))
+    return out
+
+
+def _stem(word: str) -> str:
+    for suffix in ("ing", "ed", "es", "s"):
+        if word.endswith(suffix) and len(word) - len(suffix) >= 3:
+            stem = word[: -len(suffix)]
+            return LEMMAS.get(stem, stem)
+    return word
+
+
+@lru_cache(maxsize=1)
+def _basis() -> dict[str, np.ndarray]:
+    """Orthonormal axes (float64) for the generic direction, every known lemma and the canonical phrases."""
+    names = (_GENERIC_AXIS,) + KNOWN_LEMMAS + tuple(CANONICAL_PHRASES)
+    rng = np.random.default_rng(BASIS_SEED)
+    q, r = np.linalg.qr(rng.normal(size=(EMBED_DIM, len(names))))
+    q = q * np.sign(np.diag(r))[None, :]  # make the factorization unique
+    return {name: q[:, i].copy() for i, name in enumerate(names)}
+
+
+@lru_cache(maxsize=4096)
+def _word_vector(lemma: str) -> np.ndarray:
+    """(D,) float64 unit vector of a lemma: a basis axis when known, else a hash-seeded random direction."""
+    basis = _basis()
+    if lemma in basis:
+        return basis[lemma]
+    digest = hashlib.sha256(("fourlegs-simulated:" + lemma).encode()).digest()
+    v = np.random.default_rng(int.from_bytes(digest[:8], "little")).normal(size=EMBED_DIM)
+    return v / np.linalg.norm(v)
+
+
+def phrase_embedding(text: str) -> np.ndarray:
+    """(D,) float64 unit embedding of one phrase (see the module docstring)."""
+    basis = _basis()
+    stripped = text.strip().lower() if isinstance(text, str) else text
+    if stripped in CANONICAL_PHRASES:
+        e = math.sqrt(CANONICAL_GENERIC_SHARE) * basis[_GENERIC_AXIS] + \
+            math.sqrt(1 - CANONICAL_GENERIC_SHARE) * basis[stripped]
+        return e / np.linalg.norm(e)
+    content = np.zeros(EMBED_DIM)
+    for lemma in dict.fromkeys(lemmatize(text)):  # each lemma once, in order
+        content += LEMMA_WEIGHTS.get(lemma, 1.0) * _word_vector(lemma)
+    norm = np.linalg.norm(content)
+    if norm < 1e-12:  # empty or stop words only: purely generic
+        return basis[_GENERIC_AXIS].copy()
+    e = math.sqrt(GENERIC_SHARE) * basis[_GENERIC_AXIS] + math.sqrt(1 - GENERIC_SHARE) * content / norm
+    return e / np.linalg.norm(e)
+
+
+class SimulatedTextEncoder:
+    """Deterministic 768-d L2-normalized phrase embeddings (see the module docstring)."""
+
+    name = "simulated"
+    dim = EMBED_DIM
+
+    def encode_text(self, texts: Sequence[str] | str) -> torch.Tensor:
+        """n strings -> (n, 768) float32, L2-normalized."""
+        if isinstance(texts, str):
+            texts = [texts]
+        texts = list(texts)
+        if not texts:
+            return torch.zeros(0, EMBED_DIM)
+        return torch.from_numpy(np.stack([phrase_embedding(t) for t in texts])).float()
+
+    def encode_text64(self, texts: Sequence[str]) -> np.ndarray:
+        """Float64 version for references: (n, 768)."""
+        return np.stack([phrase_embedding(t) for t in texts]) if texts else np.zeros((0, EMBED_DIM))
+
+
+class SimulatedVideoEncoder:
+    """Simulated video-text model over label-coverage clips (``input_kind = "labels"``).
+
+    Args:
+        labels: the label vocabulary; channel c of a clip is the coverage of ``labels[c]``.
+        seed: seed of every corruption.
+        noise_cosine: cosine between the noisy and the clean embedding (1 disables the noise).
+        camera_bias: weight of the per-camera bias vector (0 disables it).
+        wrong_label_fraction: probability that a frame's labels are replaced by other labels.
+        camera: the camera whose bias applies (see :meth:`bind_camera`); None = a shared bias.
+    """
+
+    name = "simulated"
+    dim = EMBED_DIM
+    input_kind = "labels"
+
+    def __init__(self, labels: Sequence[str], *, seed: int = 0, noise_cosine: float = DEFAULT_NOISE_COSINE,
+                 camera_bias: float = DEFAULT_CAMERA_BIAS,
+                 wrong_label_fraction: float = DEFAULT_WRONG_LABEL_FRACTION, camera: str | None = None):
+        labels = [str(x) for x in labels]
+        if not labels:
+            raise InputError("the label vocabulary is empty", field="labels")
+        if not 0.0 < noise_cosine <= 1.0:
+            raise InputError(f"noise_cosine must be in (0, 1], got {noise_cosine}", field="noise_cosine")
+        if not (camera_bias >= 0.0 and math.isfinite(camera_bias)):
+            raise InputError(f"camera_bias must be >= 0, got {camera_bias}", field="camera_bias")
+        if not 0.0 <= wrong_label_fraction <= 1.0:
+            raise InputError(f"wrong_label_fraction must be in [0, 1], got {wrong_label_fraction}",
+                             field="wrong_label_fraction")
+        self.labels = labels
+        self.seed = int(seed)
+        self.noise_cosine = float(noise_cosine)
+        self.camera_bias = float(camera_bias)
+        self.wrong_label_fraction = float(wrong_label_fraction)
+        self.camera = camera
+        self.text = SimulatedTextEncoder()
+        self._label_emb = torch.from_numpy(self.text.encode_text64(labels))              # (L, D) float64
+        self._background = torch.from_numpy(phrase_embedding(BACKGROUND_PHRASE))       # (D,)
+
+    @property
+    def num_labels(self) -> int:
+        return len(self.labels)
+
+    def config(self) -> dict[str, Any]:
+        """JSON-serializable settings (for config hashes of cached features)."""
+        return {"encoder": self.name, "labels": list(self.labels), "seed": self.seed,
+                "noise_cosine": self.noise_cosine, "camera_bias": self.camera_bias,
+                "wrong_label_fraction": self.wrong_label_fraction}
+
+    def bind_camera(self, camera: str | None) -> "SimulatedVideoEncoder":
+        """The same encoder with ``camera``'s bias (tables are shared, nothing is recomputed)."""
+        other = object.__new__(SimulatedVideoEncoder)
+        other.__dict__.update(self.__dict__)
+        other.camera = camera
+        return other
+
+    def clean(self) -> "SimulatedVideoEncoder":
+        """The same encoder without corruptions (the oracle the tests compare against)."""
+        return SimulatedVideoEncoder(self.labels, seed=self.seed, noise_cosine=1.0, camera_bias=0.0,
+                                     wrong_label_fraction=0.0, camera=self.camera)
+
+    def encode_text(self, texts: Sequence[str]) -> torch.Tensor:
+        return self.text.encode_text(texts)
+
+    # ------------------------------------------------------------------ video
+    def encode_video(self, clips: torch.Tensor, camera: str | None = None) -> torch.Tensor:
+        """clips (B, 8, C, h, w) label coverage in [0,1] -> (B, 768) float32 L2-normalized.
+
+        ``camera`` overrides the bound camera for this call.
+        """
+        clips = torch.as_tensor(clips)
+        if clips.dim() != 5 or clips.shape[2] != self.num_labels:
+            raise InputError(f"clips must be (B, frames, {self.num_labels}, h, w) label coverage, got "
+                             f"{tuple(clips.shape)}", field="clips")
+        coverage = torch.nan_to_num(clips.detach().to("cpu", torch.float64), nan=0.0).clamp_(0.0, 1.0)
+        return self.encode_coverage(coverage.mean(dim=(3, 4)), camera=camera)
+
+    def encode_coverage(self, frame_coverage: torch.Tensor, camera: str | None = None) -> torch.Tensor:
+        """Per-frame mean label coverage (B, F, C) in [0,1] -> (B, 768) float32 L2-normalized.
+
+        The same result as :meth:`encode_video` on clips whose per-frame channel means are these.
+        """
+        cov = torch.nan_to_num(torch.as_tensor(frame_coverage, dtype=torch.float64), nan=0.0).clamp(0.0, 1.0)
+        if cov.dim() != 3 or cov.shape[2] != self.num_labels:
+            raise InputError(f"frame coverage must be (B, frames, {self.num_labels}), got {tuple(cov.shape)}",
+                             field="frame_coverage")
+        B, Fr, C = cov.shape
+        if B == 0:
+            return torch.zeros(0, EMBED_DIM)
+        cam = self.camera if camera is None else camera
+        keys = self._clip_keys(cov, cam)                                    # (B,) uint64
+        if self.wrong_label_fraction > 0 and C > 1:
+            wrong = _uniform(keys, np.arange(Fr) + 1_000) < self.wrong_label_fraction       # (B, F)
+            shift = np.where(wrong, 1 + np.floor(_uniform(keys, np.arange(Fr) + 2_000) * (C - 1)), 0)
+            src = (np.arange(C)[None, None, :] - shift[:, :, None].astype(np.int64)) % C    # roll by shift
+            cov = torch.gather(cov, 2, torch.from_numpy(src))
+        weights = cov.mean(dim=1)                                          # (B, C)
+        background = (1.0 - weights.sum(dim=1)).clamp_min(0.0)           # (B,)
+        clean = weights @ self._label_emb + background[:, None] * self._background[None]
+        clean = clean / clean.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        out = clean
+        if self.noise_cosine < 1.0:
+            noise = torch.from_numpy(_normal(keys, EMBED_DIM))
+            noise = noise - (noise * clean).sum(1, keepdim=True) * clean   # orthogonal to the clean one
+            noise = noise / noise.norm(dim=1, keepdim=True).clamp_min(1e-12)
+            c = self.noise_cosine
+            out = c * clean + math.sqrt(max(0.0, 1 - c * c)) * noise
+        if self.camera_bias > 0:
+            out = out + self.camera_bias * torch.from_numpy(_camera_bias_vector(self.seed, cam))[None]
+        out = out / out.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        return out.float()
+
+    def _clip_keys(self, cov: torch.Tensor, camera: str | None) -> np.ndarray:
+        """(B,) uint64 per-clip keys from (seed, camera, the clip's quantized per-frame coverage)."""
+        q = np.round(cov.numpy() * 4096).astype(np.int32)
+        head = hashlib.blake2b(f"{self.seed}|{camera}".encode(), digest_size=8).digest()
+        return np.array([int.from_bytes(hashlib.blake2b(head + q[b].tobytes(), digest_size=8).digest(), "little")
+                         for b in range(q.shape[0])], dtype=np.uint64)
+
+
+_MASK64 = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+def _splitmix64(x: np.ndarray) -> np.ndarray:
+    """SplitMix64 finalizer, vectorized over uint64 arrays (wrap-around arithmetic)."""
+    with np.errstate(over="ignore"):
+        z = x + np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        return z ^ (z >> np.uint64(31))
+
+
+def _uniform(keys: np.ndarray, counters: np.ndarray) -> np.ndarray:
+    """(B,) keys x (K,) counters -> (B, K) float64 uniform in (0, 1), counter-based (order independent)."""
+    with np.errstate(over="ignore"):
+        x = keys[:, None] * np.uint64(0xD1B54A32D192ED03) + np.asarray(counters, dtype=np.uint64)[None, :]
+    bits = _splitmix64(_splitmix64(x)) >> np.uint64(11)
+    return (bits.astype(np.float64) + 0.5) / float(1 << 53)
+
+
+def _normal(keys: np.ndarray, dim: int) -> np.ndarray:
+    """(B,) keys -> (B, dim) standard normal samples (Box-Muller on counter-based uniforms)."""
+    half = (dim + 1) // 2
+    u1 = _uniform(keys, np.arange(half))
+    u2 = _uniform(keys, np.arange(half) + half)
+    r = np.sqrt(-2.0 * np.log(u1))
+    z = np.concatenate([r * np.cos(2 * np.pi * u2), r * np.sin(2 * np.pi * u2)], axis=1)
+    return z[:, :dim]
+
+
+@lru_cache(maxsize=256)
+def _camera_bias_vector(seed: int, camera: str | None) -> np.ndarray:
+    d = hashlib.sha256(f"fourlegs-camera-bias|{seed}|{camera}".encode()).digest()
+    v = np.random.default_rng(int.from_bytes(d[:8], "little")).normal(size=EMBED_DIM)
+    return v / np.linalg.norm(v)
+
+
+def create_encoder(*, labels: Sequence[str] | None = None, scene: Any = None, seed: int = 0,
+                   **options: Any) -> SimulatedVideoEncoder:
+    """Factory used by ``language.encoders.get_encoder("simulated", ...)``.
+
+    The vocabulary comes from ``labels`` or from ``scene.metadata["labels"]`` (synthetic scenes).
+    """
+    if labels is None and scene is not None:
+        labels = (getattr(scene, "metadata", None) or {}).get("labels")
+    if labels is None:
+        raise InputError("the simulated encoder needs the scene's label vocabulary (a synthetic scene with "
+                         "metadata['labels'])", field="encoder")
+    allowed = {"noise_cosine", "camera_bias", "wrong_label_fraction", "camera"}
+    unknown = set(options) - allowed - {"device", "dtype", "batch_size"}
+    if unknown:
+        raise InputError(f"unknown option(s) for the simulated encoder: {', '.join(sorted(unknown))}",
+                         field="encoder")
+    return SimulatedVideoEncoder(labels, seed=seed, **{k: v for k, v in options.items() if k in allowed})
+
+
+# --------------------------------------------------------------------------- label coverage frames
+
+
+def label_one_hot(labels: np.ndarray | torch.Tensor, num_labels: int, dtype: torch.dtype = torch.float32
+                  ) -> torch.Tensor:
+    """(N,) int labels -> (N, num_labels) one-hot features (label -1 or out of range -> all zero)."""
+    lab = torch.from_numpy(np.array(labels, dtype=np.int64).reshape(-1))
+    valid = (lab >= 0) & (lab < num_labels)
+    out = torch.zeros(lab.shape[0], num_labels, dtype=dtype)
+    idx = torch.nonzero(valid, as_tuple=True)[0]
+    out[idx, lab[idx]] = 1.0
+    return out
+
+
+def render_label_coverage(scene: Any, camera: Any, t: int, *, num_labels: int | None = None,
+                          options: Any = None, backend: str = "auto") -> torch.Tensor:
+    """Per-pixel label coverage of ``scene`` at timestep ``t`` seen by ``camera``.
+
+    Renders one-hot label features with the rasterizer: channel c at a pixel is sum over Gaussians of
+    label c of alpha_i * T_i, the share of the pixel's colour those Gaussians contribute, with
+    occlusion by every other Gaussian of the scene accounted for.
+
+    Returns:
+        (C, H, W) float32 in [0, 1] with C = ``num_labels`` (default: the scene's vocabulary size).
+    """
+    from ..render import render_frame
+
+    g = scene.gaussians
+    if g.labels is None:
+        raise InputError("the scene has no ground-truth labels (not a synthetic scene)", field="labels")
+    if num_labels is None:
+        num_labels = len((scene.metadata or {}).get("labels") or []) or int(np.max(g.labels)) + 1
+    t = g.check_timestep(t)
+    frame = g.at(t)
+    features = label_one_hot(np.asarray(g.labels[t]), num_labels)
+    kwargs: dict[str, Any] = {"outputs": ("features",), "features": features, "backend": backend}
+    if options is not None:
+        kwargs["options"] = options
+    out = render_frame(frame, camera, **kwargs)
+    cov = torch.nan_to_num(out["features"].float(), nan=0.0).clamp_(0.0, 1.0)  # (H, W, C)
+    return cov.permute(2, 0, 1).contiguous()
+
+
+def label_coverage_tube(frames: Sequence[torch.Tensor] | torch.Tensor, t: int,
+                        offsets: Iterable[int] = tuple(range(-4, 4))) -> torch.Tensor:
+    """Stack coverage frames (T of (C,H,W)) into the 8-frame tube around ``t``: (8, C, H, W).
+
+    Edge tubes repeat the first/last frame, as the ViCLIP pipeline does.
+    """
+    T = len(frames)
+    idx = [min(max(t + o, 0), T - 1) for o in offsets]
+    return torch.stack([frames[i] for i in idx])

@@ -1,0 +1,112 @@
+"""``ViCLIPEncoder``: the ``VideoTextEncoder`` backed by a ViCLIP model and the CLIP BPE tokenizer."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import torch
+
+from ...errors import InputError
+from .checkpoint import load_viclip
+from .model import CLIP_MEAN, CLIP_STD, IMAGENET_MEAN, IMAGENET_STD, ViCLIPModel
+from .tokenizer import BPETokenizer
+
+NORMALIZATIONS = {"clip": (CLIP_MEAN, CLIP_STD), "imagenet": (IMAGENET_MEAN, IMAGENET_STD)}
+
+
+class ViCLIPEncoder:
+    """Video and text embeddings in ViCLIP's joint space, L2-normalized, batched, without gradients.
+
+    ``encode_video`` takes clips that are ALREADY normalized with ``pixel_mean``/``pixel_std``
+    (``normalize`` does that for clips in [0, 1]). ``normalization="clip"`` (the default) gives the
+    CLIP statistics named by the 4-LEGS feature pipeline; ``"imagenet"`` gives the statistics ViCLIP
+    itself was trained and demonstrated with.
+    """
+
+    input_kind = "rgb"
+
+    def __init__(self, model: ViCLIPModel, tokenizer: BPETokenizer, *, batch_size: int = 16,
+                 normalization: str = "clip", name: str | None = None):
+        config = model.config
+        if tokenizer.vocab_size != config.vocab_size:
+            raise InputError(f"the vocabulary has {tokenizer.vocab_size} ids but the model's text tower "
+                             f"has {config.vocab_size}: wrong bpe_simple_vocab file?", file=tokenizer.path)
+        if normalization not in NORMALIZATIONS:
+            raise InputError(f"unknown normalization {normalization!r} (choose from {sorted(NORMALIZATIONS)})",
+                             field="normalization")
+        if batch_size < 1:
+            raise InputError(f"batch size must be at least 1, got {batch_size}", field="batch_size")
+        self.model = model.eval().requires_grad_(False)
+        self.tokenizer = tokenizer
+        self.config = config
+        self.batch_size = int(batch_size)
+        self.normalization = normalization
+        mean, std = NORMALIZATIONS[normalization]
+        self.pixel_mean = torch.tensor(mean)
+        self.pixel_std = torch.tensor(std)
+        self.dim = config.embed_dim
+        self.num_frames = config.num_frames
+        self.image_size = config.image_size
+        self.context_length = config.context_length
+        self.name = name or ("viclip" if config.size_name == "L/14" else
+                             "viclip-b16" if config.size_name == "B/16" else "viclip-custom")
+
+    @classmethod
+    def from_files(cls, checkpoint: str | Path, vocab: str | Path, *, size: str | None = "auto",
+                   device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32,
+                   batch_size: int = 16, normalization: str = "clip") -> "ViCLIPEncoder":
+        """Tokenizer first (cheap, fails fast on a wrong path), then the strict checkpoint load."""
+        tokenizer = BPETokenizer(vocab)
+        model = load_viclip(checkpoint, size=size, device=device, dtype=dtype)
+        return cls(model, tokenizer, batch_size=batch_size, normalization=normalization)
+
+    @property
+    def device(self) -> torch.device:
+        return self.model.temp.device
+
+    def normalize(self, clips: torch.Tensor) -> torch.Tensor:
+        """clips (..., 3, H, W) in [0, 1] -> normalized with ``pixel_mean``/``pixel_std``."""
+        mean = self.pixel_mean.to(clips.device, clips.dtype)[:, None, None]
+        std = self.pixel_std.to(clips.device, clips.dtype)[:, None, None]
+        return (clips - mean) / std
+
+    def _check_clips(self, clips: torch.Tensor) -> None:
+        if not isinstance(clips, torch.Tensor):
+            raise InputError(f"clips must be a tensor, got {type(clips).__name__}", field="clips")
+        size, frames = self.image_size, self.num_frames
+        if clips.ndim != 5 or clips.shape[2] != 3 or clips.shape[3:] != (size, size) \
+                or clips.shape[1] not in (frames, 1):
+            raise InputError(f"clips must be (B, {frames}, 3, {size}, {size}), got {tuple(clips.shape)}",
+                             field="clips")
+        if not clips.is_floating_point():
+            raise InputError(f"clips must be floating point (normalized pixels), got {clips.dtype}",
+                             field="clips")
+        if not bool(torch.isfinite(clips).all()):
+            raise InputError("clips contain NaN or Inf", field="clips")
+
+    @torch.inference_mode()
+    def encode_video(self, clips: torch.Tensor) -> torch.Tensor:
+        """clips (B, 8, 3, 224, 224) normalized -> (B, D) float32, on the clips' device."""
+        self._check_clips(clips)
+        if clips.shape[0] == 0:
+            return torch.zeros(0, self.dim, device=clips.device)
+        model_dtype = self.model.temp.dtype
+        out = [self.model.encode_video(chunk.to(self.device, model_dtype, non_blocking=True)).float()
+               for chunk in clips.split(self.batch_size)]
+        return torch.cat(out).to(clips.device)
+
+    @torch.inference_mode()
+    def encode_text(self, texts: Sequence[str]) -> torch.Tensor:
+        """texts (n strings) -> (n, D) float32 on the encoder's device."""
+        if isinstance(texts, str):
+            texts = [texts]
+        if len(texts) == 0:
+            return torch.zeros(0, self.dim, device=self.device)
+        tokens = self.tokenizer.tokenize(list(texts), context_length=self.context_length)
+        out = [self.model.encode_tokens(chunk.to(self.device)).float()
+               for chunk in tokens.split(self.batch_size)]
+        return torch.cat(out)
+
+    def __repr__(self) -> str:
+        return (f"ViCLIPEncoder({self.config.size_name}, dim={self.dim}, device={self.device}, "
+                f"normalization={self.normalization!r})")

@@ -1,0 +1,281 @@
+"""Codebook fast path: k-means the (T,N,d) latents of a scene into K codes once.
+
+A query then decodes only the K codes (once per engine: the decoded codebook does not depend on the
+query), scores them, and
+
+* scores every Gaussian by lookup ``R[codes[t]]`` (``gaussian_relevancy``), and
+* answers a temporal query from the per-timestep code histogram (T,K): the counts of the temporal
+  localization become a (T,K) reduction, so T x N latents are never decoded.
+
+K-means stays feasible on a CPU for 300k x 150 latents by training on a sample and, for large K, a
+two-level (coarse K1 x fine K2 = K) quantizer: a point is assigned to its nearest coarse centroid, then
+to the nearest fine code inside that cell. Assignment streams over timesteps in chunks with torch
+matmuls. Files (inside the bundle's ``language/`` directory, each written atomically)::
+
+    codebook_K.npz   centroids (K,d) float32, histogram (T,K) int32, coarse (K1,d), meta (json string)
+    codes_K.npy      (T,N) uint16 (K <= 65536) or int32 code index of every Gaussian at every timestep
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..fileio import atomic_path, load_npy, save_npy_atomic
+
+CODEBOOK_VERSION = 1
+SINGLE_LEVEL_WORK = 4e9  # points x codes below which a flat k-means is affordable
+ASSIGN_CHUNK = 1 << 18
+
+
+@dataclass
+class Codebook:
+    """K codes of a latent field.
+
+    Attributes:
+        centroids: (K,d) float32 code vectors.
+        codes: (T,N) integer array (memmap when loaded) of each Gaussian's code per timestep.
+        histogram: (T,K) int32 number of Gaussians holding each code at each timestep.
+        coarse: (K1,d) coarse centroids of the two-level quantizer (K1 = 1 when flat).
+        meta: build settings and the fingerprint of the latents it was built from.
+    """
+
+    centroids: np.ndarray
+    codes: Any
+    histogram: np.ndarray
+    coarse: np.ndarray
+    meta: dict
+
+    @property
+    def size(self) -> int:
+        return int(self.centroids.shape[0])
+
+    def quantization_error(self, latents, timesteps=None, max_points: int = 200_000) -> float:
+        """Mean squared distance between latents and their codes over (a sample of) the field."""
+        T = latents.shape[0]
+        ts = range(T) if timesteps is None else timesteps
+        err, n = 0.0, 0
+        for t in ts:
+            x = np.asarray(latents[t], dtype=np.float32)
+            c = self.centroids[np.asarray(self.codes[t], dtype=np.int64)]
+            err += float(((x - c) ** 2).sum())
+            n += x.shape[0]
+            if n >= max_points:
+                break
+        return err / max(n, 1)
+
+
+# ----------------------------------------------------------------------------- k-means
+def _sqnorm(c: torch.Tensor) -> torch.Tensor:
+    return (c * c).sum(1)
+
+
+def nearest(x: torch.Tensor, centroids: torch.Tensor, chunk: int = ASSIGN_CHUNK) -> torch.Tensor:
+    """(M,d),(K,d) -> (M,) int64 index of the nearest centroid (squared Euclidean), chunked matmuls."""
+    cn = _sqnorm(centroids)
+    out = torch.empty(x.shape[0], dtype=torch.int64)
+    step = max(1, min(chunk, int(2e8 // max(centroids.shape[0], 1))))
+    for s in range(0, x.shape[0], step):
+        d = torch.addmm(cn[None], x[s:s + step], centroids.T, alpha=-2.0)
+        out[s:s + step] = d.argmin(1)
+    return out
+
+
+def kmeans(x: torch.Tensor, k: int, *, iters: int = 10, seed: int = 0) -> torch.Tensor:
+    """Lloyd's k-means. (M,d) -> (k,d) centroids; k > M pads with repeated points (never chosen).
+
+    Initialized from k distinct random points (duplicates, e.g. never-seen Gaussians' zero latents,
+    are removed first, so data with at most k distinct rows is reproduced exactly); an empty cluster
+    keeps its previous centroid.
+    """
+    M, d = x.shape
+    g = torch.Generator().manual_seed(seed)
+    if M == 0:
+        return torch.zeros(k, d, dtype=x.dtype)
+    distinct = torch.unique(x, dim=0)
+    if len(distinct) <= k:
+        pad = distinct[torch.arange(k - len(distinct)) % len(distinct)]
+        return torch.cat([distinct, pad], 0).clone()
+    cent = distinct[torch.randperm(len(distinct), generator=g)[:k]].clone()
+    for _ in range(iters):
+        idx = nearest(x, cent)
+        sums = torch.zeros_like(cent).index_add_(0, idx, x)
+        cnt = torch.bincount(idx, minlength=k).to(x.dtype)
+        filled = cnt > 0
+        cent[filled] = sums[filled] / cnt[filled, None]
+    return cent
+
+
+def split_levels(k: int, num_points: int) -> tuple[int, int]:
+    """(K1, K2) with K1 * K2 = k: flat (1, k) when affordable, else K1 the largest divisor <= sqrt(k)."""
+    if num_points * k <= SINGLE_LEVEL_WORK:
+        return 1, k
+    k1 = int(math.isqrt(k))
+    while k % k1:
+        k1 -= 1
+    return k1, k // k1
+
+
+def train(sample: torch.Tensor, k: int, *, num_points: int, seed: int = 0, iters: int = 10
+          ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Train a (possibly two-level) quantizer on ``sample`` (S,d).
+
+    Returns:
+        coarse (K1,d), fine (K1*K2, d) with code = cell * K2 + j.
+    """
+    k1, k2 = split_levels(k, num_points)
+    if k1 == 1:
+        fine = kmeans(sample, k, iters=iters, seed=seed)
+        return sample.mean(0, keepdim=True) if len(sample) else torch.zeros(1, sample.shape[1]), fine
+    coarse = kmeans(sample, k1, iters=iters, seed=seed)
+    cell = nearest(sample, coarse)
+    fine = coarse.repeat_interleave(k2, 0).clone()
+    for c in range(k1):
+        members = sample[cell == c]
+        if len(members):
+            fine[c * k2:(c + 1) * k2] = kmeans(members, k2, iters=max(4, iters - 2), seed=seed + 1 + c)
+    return coarse, fine
+
+
+def assign(x: torch.Tensor, coarse: torch.Tensor, fine: torch.Tensor) -> torch.Tensor:
+    """(M,d) -> (M,) code index under the two-level quantizer (flat when ``coarse`` has one row)."""
+    k1 = coarse.shape[0]
+    if k1 == 1:
+        return nearest(x, fine)
+    k2 = fine.shape[0] // k1
+    cell = nearest(x, coarse)
+    out = torch.empty_like(cell)
+    order = torch.argsort(cell)
+    bounds = torch.searchsorted(cell[order], torch.arange(k1 + 1))
+    for c in range(k1):
+        a, b = int(bounds[c]), int(bounds[c + 1])
+        if a == b:
+            continue
+        rows = order[a:b]
+        out[rows] = nearest(x[rows], fine[c * k2:(c + 1) * k2]) + c * k2
+    return out
+
+
+# ----------------------------------------------------------------------------- build / load
+def fingerprint(latents) -> dict:
+    """What the codebook depends on: the latents' shape, dtype, file identity and a few sampled values."""
+    T, N, d = (int(s) for s in latents.shape)
+    fp: dict[str, Any] = {"shape": [T, N, d], "dtype": str(latents.dtype)}
+    fname = getattr(latents, "filename", None)
+    if fname:
+        st = Path(fname).stat()
+        fp["file_size"] = int(st.st_size)
+        fp["mtime_ns"] = int(st.st_mtime_ns)
+    if T and N:
+        probe = np.asarray(latents[[0, T // 2, T - 1]][:, [0, N // 2, N - 1]], dtype=np.float64)
+        fp["probe"] = float(np.round(probe.sum(), 6))
+    return fp
+
+
+def sample_latents(latents, size: int, seed: int = 0) -> torch.Tensor:
+    """(S,d) float32 uniform sample of (t, g) pairs, read timestep by timestep from the memmap."""
+    T, N, d = latents.shape
+    M = T * N
+    rng = np.random.default_rng(seed)
+    if M <= size:
+        return torch.from_numpy(np.asarray(latents, dtype=np.float32).reshape(M, d).copy())
+    flat = np.sort(rng.choice(M, size=size, replace=False))
+    ts, gs = np.divmod(flat, N)
+    out = np.empty((size, d), dtype=np.float32)
+    for t in np.unique(ts):
+        sel = ts == t
+        out[sel] = np.asarray(latents[int(t)], dtype=np.float32)[gs[sel]]
+    return torch.from_numpy(out)
+
+
+def build_codebook(latents, k: int, *, out_dir: Optional[Path] = None, seed: int = 0, sample_size: Optional[int] = None,
+                   iters: int = 10, progress: bool = False) -> Codebook:
+    """K-means the (T,N,d) latents into ``k`` codes and assign every Gaussian at every timestep.
+
+    Args:
+        latents: (T,N,d) array-like (memmap; streamed a timestep at a time).
+        k: number of codes (<= 2**31).
+        out_dir: where to store ``codebook_k.npz`` and ``codes_k.npy`` (None: keep in memory).
+        sample_size: training sample (default min(T*N, clip(16 k, 50k, 400k))).
+    """
+    if k < 1:
+        raise InputError(f"codebook size must be >= 1, got {k}", field="codebook")
+    T, N, d = (int(s) for s in latents.shape)
+    M = T * N
+    if sample_size is None:
+        sample_size = int(min(M, min(max(16 * k, 50_000), 400_000)))
+    torch.manual_seed(seed)
+    sample = sample_latents(latents, max(1, sample_size), seed) if M else torch.zeros(0, d)
+    coarse, fine = train(sample, k, num_points=M, seed=seed, iters=iters)
+    code_dtype = np.uint16 if k <= 65536 else np.int32
+    codes_path = None if out_dir is None else Path(out_dir) / f"codes_{k}.npy"
+    hist = np.zeros((T, k), dtype=np.int32)
+    codes = np.zeros((T, N), dtype=code_dtype)
+    steps = range(T)
+    if progress:
+        from tqdm import tqdm
+        steps = tqdm(steps, desc=f"codebook K={k}: assigning", unit="t")
+    per_chunk = max(1, ASSIGN_CHUNK * 4 // max(N, 1))
+    for t0 in range(0, T, per_chunk):
+        t1 = min(T, t0 + per_chunk)
+        x = torch.from_numpy(np.array(latents[t0:t1], dtype=np.float32).reshape(-1, d))
+        c = assign(x, coarse, fine).numpy().reshape(t1 - t0, N)
+        codes[t0:t1] = c.astype(code_dtype)
+        for i, t in enumerate(range(t0, t1)):
+            hist[t] = np.bincount(c[i], minlength=k)
+        if progress:
+            steps.update(t1 - t0)  # type: ignore[attr-defined]
+    if progress:
+        steps.close()  # type: ignore[attr-defined]
+    meta = {"version": CODEBOOK_VERSION, "k": k, "levels": [int(coarse.shape[0]), k // int(coarse.shape[0])],
+            "seed": seed, "sample_size": int(sample_size), "iters": iters, "latents": fingerprint(latents)}
+    book = Codebook(centroids=fine.numpy().astype(np.float32), codes=codes, histogram=hist,
+                    coarse=coarse.numpy().astype(np.float32), meta=meta)
+    if out_dir is not None:
+        save_codebook(book, Path(out_dir), k)
+        book.codes = load_npy(codes_path, mmap=True, field="codes")
+    return book
+
+
+def save_codebook(book: Codebook, out_dir: Path, k: int) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    save_npy_atomic(out_dir / f"codes_{k}.npy", np.asarray(book.codes))
+    with atomic_path(out_dir / f"codebook_{k}.npz") as tmp:
+        np.savez(tmp, centroids=book.centroids, histogram=book.histogram, coarse=book.coarse,
+                 meta=np.array(json.dumps(book.meta)))
+
+
+def load_codebook(out_dir: Path, k: int, latents=None) -> Optional[Codebook]:
+    """The stored codebook of size ``k``, or None when missing or built from different latents."""
+    npz_path = Path(out_dir) / f"codebook_{k}.npz"
+    codes_path = Path(out_dir) / f"codes_{k}.npy"
+    if not npz_path.is_file() or not codes_path.is_file():
+        return None
+    try:
+        with np.load(npz_path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            book = Codebook(centroids=z["centroids"], codes=None, histogram=z["histogram"], coarse=z["coarse"],
+                            meta=meta)
+    except (ValueError, KeyError, OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"corrupt codebook ({exc}); delete it to rebuild", file=npz_path) from None
+    if meta.get("version") != CODEBOOK_VERSION or meta.get("k") != k:
+        return None
+    if latents is not None and meta.get("latents") != fingerprint(latents):
+        return None
+    book.codes = load_npy(codes_path, mmap=True, field="codes")
+    return book
+
+
+def ensure_codebook(latents, k: int, out_dir: Optional[Path], **kw) -> Codebook:
+    """Load the stored codebook for these latents, or build (and store) it."""
+    if out_dir is not None:
+        book = load_codebook(out_dir, k, latents)
+        if book is not None:
+            return book
+    return build_codebook(latents, k, out_dir=out_dir, **kw)

@@ -1,0 +1,391 @@
+"""``QueryEngine``: when and where a text query happens in a scene with a distilled language field.
+
+Paths (each selectable, each measured against the exact one by ``fourlegs bench accuracy-time``):
+
+* temporal / per-Gaussian relevancy — ``path="exact"`` decodes every latent (streamed in chunks, never
+  T x N x 768 at once); ``path="codebook"`` decodes only the K codes (once per engine) and scores
+  Gaussians by lookup, a temporal query being a (T,K) histogram reduction;
+* ``temporal_stride`` scores every k-th timestep only;
+* spatial maps — ``spatial="exact"`` renders the 128-channel latents, decodes every pixel and scores
+  it (paper §3.2); ``spatial="fast"`` renders one channel, the per-Gaussian relevancy;
+* ``resolution_scale`` renders the maps at a fraction of the camera resolution.
+
+Every public method counts its calls (and the heavy work it did: decoded latents, decoded pixels,
+128- and 1-channel renders) in ``.stats`` so callers can prove nothing was computed that was not asked
+for; ``localize(query, need)`` computes only the parts named in ``need``.
+"""
+from __future__ import annotations
+
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any, Iterable, Optional, Sequence
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..scene.camera import Camera
+from ..scene.scene import Scene
+from . import spatial
+from .codebook import Codebook, ensure_codebook
+from .relevancy import RELEVANCY_SCALE, as_tensor, l2_normalize, relevancy
+from .results import CentreResult, Localization, TemporalResult, ViewResult
+from .temporal import counts_from_code_histogram, counts_from_relevancy, localize_counts, sampled_timesteps
+
+__all__ = ["QueryEngine", "TemporalResult", "Localization", "ViewResult", "CentreResult"]
+
+NEEDS = frozenset({"temporal", "best_view", "action_centre"})
+DEFAULT_CODEBOOK_SIZE = 4096
+
+
+class QueryEngine:
+    """Answer text queries on one scene.
+
+    Args:
+        scene: the scene (geometry and cameras).
+        field: the distilled language field (``.latents`` (T,N,d), ``.decode(M,d)->(M,D)``,
+            ``.canonical_phrases``).
+        text_encoder: ``encode_text(list[str]) -> (n,D)`` of the encoder the field was distilled from.
+        path: "exact" or "codebook" (per-Gaussian relevancy and temporal localization).
+        codebook_size: K of the codebook path.
+        codebook: a prebuilt :class:`Codebook` (else loaded from / stored in ``codebook_dir``, by default
+            the bundle's ``language/`` directory, or built in memory).
+        negatives: scene-specific negative phrases added to the canonical set.
+        temporal_stride: score every k-th timestep.
+        spatial: "exact" (128-channel render, per-pixel decode) or "fast" (1-channel relevancy render).
+        resolution_scale: render spatial maps at this fraction of each camera's resolution.
+        dilation: radius of the temporal dilation.
+        chunk: latents decoded per batch on the exact path.
+        latent_dtype: read latents as this numpy dtype before decoding (e.g. "float16" to measure
+            half-precision storage); None keeps the stored dtype.
+        camera_split: which cameras ``best_view`` considers by default ("train", "test" or "all").
+        render_options / render_backend: passed to the rasterizer.
+    """
+
+    def __init__(self, scene: Scene, field: Any, text_encoder: Any, *, path: str = "exact",
+                 codebook_size: int = DEFAULT_CODEBOOK_SIZE, codebook: Optional[Codebook] = None,
+                 codebook_dir: Optional[Path] = None, negatives: Sequence[str] = (), temporal_stride: int = 1,
+                 spatial: str = "exact", resolution_scale: float = 1.0, dilation: int = 1, chunk: int = 32768,
+                 latent_dtype: Optional[str] = None, camera_split: str = "all", render_options: Any = None,
+                 render_backend: str = "auto", relevancy_scale: float = RELEVANCY_SCALE):
+        if path not in ("exact", "codebook"):
+            raise InputError(f"unknown query path {path!r} (exact, codebook)", field="path")
+        if spatial not in ("exact", "fast"):
+            raise InputError(f"unknown spatial path {spatial!r} (exact, fast)", field="spatial")
+        if not resolution_scale > 0:
+            raise InputError(f"resolution scale must be positive, got {resolution_scale}", field="resolution_scale")
+        if int(temporal_stride) < 1:
+            raise InputError(f"temporal stride must be >= 1, got {temporal_stride}", field="temporal_stride")
+        latents = getattr(field, "latents", None)
+        if latents is None:
+            raise InputError("the scene has no distilled language field (run `fourlegs distill` first)",
+                             file=scene.root, field="language")
+        T, N = scene.num_timesteps, scene.num_gaussians
+        if tuple(latents.shape[:2]) != (T, N):
+            raise InputError(f"latents have shape {tuple(latents.shape)}, the scene has T={T}, N={N}",
+                             file=scene.root, field="language.latents")
+        self.scene = scene
+        self.field = field
+        self.text_encoder = text_encoder
+        self.path = path
+        self.codebook_size = int(codebook_size)
+        self.codebook_dir = codebook_dir if codebook_dir is not None else (
+            Path(scene.root) / "language" if scene.root is not None else None)
+        self._codebook = codebook
+        self.negatives = tuple(str(n) for n in negatives if str(n).strip())
+        self.temporal_stride = int(temporal_stride)
+        self.spatial = spatial
+        self.resolution_scale = float(resolution_scale)
+        self.dilation = int(dilation)
+        self.chunk = int(chunk)
+        self.latent_dtype = None if latent_dtype is None else np.dtype(latent_dtype)
+        self.camera_split = camera_split
+        self.render_options = render_options
+        self.render_backend = render_backend
+        self.relevancy_scale = float(relevancy_scale)
+        self.stats: Counter = Counter()
+        self._text_cache: dict[str, torch.Tensor] = {}
+        self._refs: Optional[tuple[torch.Tensor, Optional[torch.Tensor]]] = None
+        self._decoded_codes: Optional[torch.Tensor] = None
+        self._code_scores: dict[str, torch.Tensor] = {}
+        self._background_score: dict[str, float] = {}
+
+    # ------------------------------------------------------------------ embeddings
+    @property
+    def latents(self):
+        return self.field.latents
+
+    def _encode(self, texts: list[str]) -> torch.Tensor:
+        missing = [t for t in texts if t not in self._text_cache]
+        if missing:
+            self.stats["encode_text"] += 1
+            with torch.inference_mode():
+                emb = as_tensor(self.text_encoder.encode_text(missing))
+            for text, e in zip(missing, emb):
+                self._text_cache[text] = l2_normalize(e)
+        return torch.stack([self._text_cache[t] for t in texts]) if texts else torch.zeros(0)
+
+    def embed_query(self, query: str) -> torch.Tensor:
+        """(D,) L2-normalized embedding of ``query`` (cached)."""
+        if not isinstance(query, str) or not query.strip():
+            raise InputError("the query text is empty", field="query")
+        return self._encode([query])[0]
+
+    def reference_embeddings(self) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+        """Canonical (K,D) and negative (J,D)|None phrase embeddings."""
+        if self._refs is None:
+            canon = list(getattr(self.field, "canonical_phrases", None) or ())
+            if not canon:
+                from ..language import CANONICAL_PHRASES  # noqa: WPS433 (fallback only)
+                canon = list(CANONICAL_PHRASES)
+            c = self._encode(canon)
+            n = self._encode(list(self.negatives)) if self.negatives else None
+            self._refs = (c, n)
+        return self._refs
+
+    def _score(self, features: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        canon, neg = self.reference_embeddings()
+        return relevancy(features, q, canon, neg, scale=self.relevancy_scale)
+
+    # ------------------------------------------------------------------ decoding
+    def _read_latents(self, t: int) -> np.ndarray:
+        x = self.latents[t]
+        dtype = self.latent_dtype or np.float32
+        return np.asarray(x, dtype=dtype)
+
+    def _decode(self, latents: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """(M,d) latents -> (M,D) decoded features, float32."""
+        x = torch.as_tensor(latents)
+        if x.dtype != torch.float32:
+            x = x.to(torch.float32)
+        with torch.inference_mode():
+            out = self.field.decode(x)
+        return as_tensor(out)
+
+    def _score_latents(self, latents: np.ndarray, q: torch.Tensor) -> torch.Tensor:
+        """(M,d) latents -> (M,) relevancy, decoded in chunks of ``self.chunk``."""
+        M = latents.shape[0]
+        out = torch.empty(M, dtype=torch.float32)
+        for s in range(0, M, self.chunk):
+            out[s:s + self.chunk] = self._score(self._decode(latents[s:s + self.chunk]), q)
+        self.stats["decoded_latents"] += M
+        return out
+
+    # ------------------------------------------------------------------ codebook
+    @property
+    def codebook(self) -> Codebook:
+        if self._codebook is None:
+            self.stats["codebook_load"] += 1
+            self._codebook = ensure_codebook(self.latents, self.codebook_size, self.codebook_dir)
+        return self._codebook
+
+    def _codes_scores(self, query: str) -> torch.Tensor:
+        """(K,) relevancy of every code (the decoded codebook is computed once per engine)."""
+        if query not in self._code_scores:
+            if self._decoded_codes is None:
+                self._decoded_codes = self._decode(self.codebook.centroids)
+                self.stats["decoded_codes"] += int(self._decoded_codes.shape[0])
+            self._code_scores[query] = self._score(self._decoded_codes, self.embed_query(query))
+        return self._code_scores[query]
+
+    # ------------------------------------------------------------------ per Gaussian
+    def gaussian_relevancy(self, query: str, t: int) -> torch.Tensor:
+        """(N,) relevancy of every Gaussian at timestep ``t`` (decoded volumetric latents)."""
+        self.stats["gaussian_relevancy"] += 1
+        return self._gaussian_relevancy(query, self.scene.gaussians.check_timestep(t))
+
+    def _gaussian_relevancy(self, query: str, t: int) -> torch.Tensor:
+        if self.scene.num_gaussians == 0:
+            return torch.zeros(0)
+        if self.path == "codebook":
+            codes = torch.from_numpy(np.asarray(self.codebook.codes[t], dtype=np.int64))
+            return self._codes_scores(query)[codes]
+        return self._score_latents(self._read_latents(t), self.embed_query(query))
+
+    # ------------------------------------------------------------------ temporal
+    def temporal(self, query: str, *, stride: Optional[int] = None) -> TemporalResult:
+        """When ``query`` happens: s_t, positive timesteps, segments, the longest one and its peak."""
+        self.stats["temporal"] += 1
+        T, N = self.scene.num_timesteps, self.scene.num_gaussians
+        ts = sampled_timesteps(T, stride or self.temporal_stride)
+        if N == 0:
+            counts, r_avg, n_rel = np.zeros(len(ts), np.int64), 0.0, 0
+        elif self.path == "codebook":
+            hist = self.codebook.histogram[ts]
+            counts, r_avg, n_rel = counts_from_code_histogram(self._codes_scores(query).double().numpy(), hist)
+        else:
+            q = self.embed_query(query)
+            scores = np.empty((len(ts), N), dtype=np.float32)
+            for i, t in enumerate(ts):
+                scores[i] = self._score_latents(self._read_latents(int(t)), q).numpy()
+            counts, r_avg, n_rel = counts_from_relevancy(scores)
+        return localize_counts(counts, ts, T, dilation=self.dilation, r_avg=r_avg, num_relevant=n_rel,
+                               query=query, num_gaussians=N)
+
+    # ------------------------------------------------------------------ spatial
+    def _camera(self, camera: Camera, scale: Optional[float]) -> Camera:
+        s = self.resolution_scale if scale is None else float(scale)
+        return camera if s == 1.0 else camera.scaled(s)
+
+    def _rasterize(self, t: int, camera: Camera, features: torch.Tensor, outputs: tuple[str, ...]) -> dict:
+        from ..render import rasterize  # render is left of query in the data flow
+        frame = self.scene.gaussians.at(t)
+        with torch.inference_mode():
+            return rasterize(frame.means, frame.rotations, frame.log_scales, frame.opacity_logits, camera,
+                             features=features, outputs=outputs, options=self.render_options,
+                             backend=self.render_backend)
+
+    def background_relevancy(self, query: str) -> float:
+        """Relevancy of an empty pixel on the exact path (its rendered latent is 0)."""
+        if query not in self._background_score:
+            d = int(self.latents.shape[-1])
+            self._background_score[query] = float(
+                self._score(self._decode(torch.zeros(1, d)), self.embed_query(query))[0])
+        return self._background_score[query]
+
+    def relevancy_map(self, query: str, camera: Camera, t: int, fast: Optional[bool] = None,
+                      outputs: Iterable[str] = ("relevancy", "depth", "alpha"), *,
+                      scale: Optional[float] = None) -> dict[str, np.ndarray]:
+        """Per-pixel relevancy of ``query`` seen from ``camera`` at timestep ``t``.
+
+        Exact (paper §3.2): render the (N,d) latents, decode every pixel, score it. Fast: render the
+        (N,1) per-Gaussian relevancy; empty pixels take the exact path's background value, so
+        ``map = Σ w_i R_i + (1 − alpha) R_bg``.
+
+        Returns:
+            dict with the requested keys among "relevancy", "depth", "alpha": (H,W) float32 arrays at
+            the (scaled) camera resolution.
+        """
+        self.stats["relevancy_map"] += 1
+        t = self.scene.gaussians.check_timestep(t)
+        outputs = tuple(outputs)
+        unknown = set(outputs) - {"relevancy", "depth", "alpha"}
+        if unknown:
+            raise InputError(f"unknown map outputs {sorted(unknown)} (relevancy, depth, alpha)", field="outputs")
+        fast = (self.spatial == "fast") if fast is None else bool(fast)
+        cam = self._camera(camera, scale)
+        H, W = cam.height, cam.width
+        q = self.embed_query(query)
+        r_bg = self.background_relevancy(query)
+        if self.scene.num_gaussians == 0:
+            empty = {"relevancy": np.full((H, W), r_bg, np.float32), "depth": np.zeros((H, W), np.float32),
+                     "alpha": np.zeros((H, W), np.float32)}
+            return {k: empty[k] for k in outputs}
+        render_outputs = ("features", "alpha") + (("depth",) if "depth" in outputs else ())
+        if fast:
+            per_gaussian = self._gaussian_relevancy(query, t).to(torch.float32)
+            out = self._rasterize(t, cam, per_gaussian[:, None], render_outputs)
+            self.stats["render_relevancy"] += 1
+            alpha = out["alpha"].reshape(H, W)
+            rel = out["features"].reshape(H, W) + (1.0 - alpha).clamp(0.0, 1.0) * r_bg
+        else:
+            lat = torch.from_numpy(self._read_latents(t).astype(np.float32, copy=False))
+            out = self._rasterize(t, cam, lat, render_outputs)
+            self.stats["render_features"] += 1
+            pix = out["features"].reshape(H * W, -1)
+            rel = torch.empty(H * W, dtype=torch.float32)
+            for s in range(0, H * W, self.chunk):
+                rel[s:s + self.chunk] = self._score(self._decode(pix[s:s + self.chunk]), q)
+            self.stats["decoded_pixels"] += H * W
+            rel = rel.reshape(H, W)
+            alpha = out["alpha"].reshape(H, W)
+        result = {"relevancy": rel.clamp(0.0, 1.0), "alpha": alpha}
+        if "depth" in outputs:
+            result["depth"] = out["depth"].reshape(H, W)
+        return {k: np.nan_to_num(result[k].detach().cpu().numpy().astype(np.float32)) for k in outputs}
+
+    def cameras_at(self, t: int, split: Optional[str] = None) -> list[Camera]:
+        return self.scene.cameras.cameras(t, split or self.camera_split)
+
+    def best_view(self, query: str, t: int, cameras: Optional[Sequence[Camera]] = None) -> ViewResult:
+        """The camera with the highest mean relevancy at timestep ``t`` (paper §6.1)."""
+        self.stats["best_view"] += 1
+        cams = list(cameras) if cameras is not None else self.cameras_at(t)
+        scores: dict[str, float] = {}
+        for i, cam in enumerate(cams):
+            m = self.relevancy_map(query, cam, t, outputs=("relevancy",))["relevancy"]
+            scores[camera_name(cam, i)] = float(m.mean()) if m.size else 0.0
+        if not scores:
+            return ViewResult(best=None, index=None, scores={}, t=t)
+        names = list(scores)
+        idx = int(np.argmax([scores[n] for n in names]))
+        return ViewResult(best=names[idx], index=idx, scores=scores, t=t)
+
+    def action_centre(self, query: str, t: int, camera: Camera) -> CentreResult:
+        """2D centre of mass of the relevancy map, lifted to 3D with the rendered depth; plus the bbox."""
+        self.stats["action_centre"] += 1
+        maps = self.relevancy_map(query, camera, t)
+        cam = self._camera(camera, None)
+        centre = spatial.centre_of_mass(maps["relevancy"])
+        point, depth = spatial.lift_centre(cam, centre, maps["depth"], maps["alpha"], maps["relevancy"])
+        box = spatial.best_component_bbox(maps["relevancy"])
+        message = "" if point is not None else "no rendered surface under the relevant pixels; no 3D centre"
+        scale = cam.width / camera.width
+        return CentreResult(centre_px=None if centre is None else centre / scale, centre_3d=point, depth=depth,
+                            bbox=None if box is None else _scale_box(box, scale), camera=camera.name, t=t,
+                            message=message)
+
+    # ------------------------------------------------------------------ all together
+    def localize(self, query: str, need: Iterable[str] = ("temporal",), *, t: Optional[int] = None,
+                 camera: Optional[Camera] = None) -> Localization:
+        """Compute only what ``need`` names ({"temporal", "best_view", "action_centre"}).
+
+        The spatial parts are evaluated at ``t`` (default: the temporal peak, which then requires the
+        temporal localization) and the action centre in ``camera`` (default: the best view, which then
+        requires the best-view search). Parts not asked for and not required stay None.
+        """
+        need = set(need)
+        unknown = need - NEEDS
+        if unknown:
+            raise InputError(f"unknown localization parts {sorted(unknown)} ({', '.join(sorted(NEEDS))})",
+                             field="need")
+        self.stats["localize"] += 1
+        loc = Localization(query=query, scene=self.scene.name, temporal=None)
+        spatial_needed = bool(need & {"best_view", "action_centre"})
+        if "temporal" in need or (spatial_needed and t is None):
+            t0 = time.perf_counter()
+            loc.temporal = self.temporal(query)
+            loc.timings["temporal"] = time.perf_counter() - t0
+            if not loc.temporal.found and loc.temporal.message:
+                loc.messages.append(loc.temporal.message)
+        if not spatial_needed:
+            return loc
+        if t is None:
+            t = loc.temporal.peak if loc.temporal is not None and loc.temporal.found else None
+        if t is None:
+            loc.messages.append("no temporal peak: spatial localization skipped")
+            return loc
+        loc.t = int(t)
+        view_cam = camera
+        if "best_view" in need or ("action_centre" in need and camera is None):
+            t0 = time.perf_counter()
+            cams = self.cameras_at(int(t))
+            view = self.best_view(query, int(t), cams)
+            loc.timings["best_view"] = time.perf_counter() - t0
+            loc.best_view, loc.view_scores = view.best, view.scores
+            if view.index is not None and view_cam is None:
+                view_cam = cams[view.index]
+        if "action_centre" in need:
+            if view_cam is None:
+                loc.messages.append("no camera to localize the action centre in")
+                return loc
+            t0 = time.perf_counter()
+            centre = self.action_centre(query, int(t), view_cam)
+            loc.timings["action_centre"] = time.perf_counter() - t0
+            loc.action_centre, loc.centre_px, loc.bbox = centre.centre_3d, centre.centre_px, centre.bbox
+            if centre.message:
+                loc.messages.append(centre.message)
+        return loc
+
+
+def camera_name(camera: Camera, index: int) -> str:
+    return camera.name or f"camera{index:02d}"
+
+
+def _scale_box(box: tuple[int, int, int, int], scale: float) -> tuple[int, int, int, int]:
+    if scale == 1.0:
+        return box
+    x0, y0, x1, y1 = box
+    return (int(np.floor(x0 / scale)), int(np.floor(y0 / scale)), int(np.ceil((x1 + 1) / scale)) - 1,
+            int(np.ceil((y1 + 1) / scale)) - 1)

@@ -1,0 +1,77 @@
+"""Tile binning: which Gaussians touch which square pixel tile, front to back.
+
+Each visible Gaussian is paired with every tile its pixel bounds overlap; the pairs are sorted by
+(tile, depth) so every tile owns a contiguous, depth-ordered run of Gaussian ids.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .projection import Projected
+
+
+@dataclass
+class Binning:
+    """Depth-sorted Gaussian lists per tile.
+
+    Attributes:
+        gaussian_ids: (M,) int64 Gaussian index of each (tile, Gaussian) pair, grouped by tile and
+            front to back inside a tile (ties in depth broken by index).
+        tile_offsets: (n_tiles + 1,) int64: tile t owns ``gaussian_ids[tile_offsets[t]:tile_offsets[t+1]]``.
+        tiles_x, tiles_y: tile grid size; tile t covers pixels x in [tx·s, tx·s + s), y likewise,
+            with t = ty·tiles_x + tx.
+        tile_size: s.
+        width, height: image size.
+    """
+
+    gaussian_ids: torch.Tensor
+    tile_offsets: torch.Tensor
+    tiles_x: int
+    tiles_y: int
+    tile_size: int
+    width: int
+    height: int
+
+    @property
+    def num_tiles(self) -> int:
+        return self.tiles_x * self.tiles_y
+
+    @property
+    def tile_counts(self) -> torch.Tensor:
+        return self.tile_offsets[1:] - self.tile_offsets[:-1]
+
+    @property
+    def num_pairs(self) -> int:
+        return int(self.gaussian_ids.shape[0])
+
+
+def bin_gaussians(proj: Projected, width: int, height: int, tile_size: int) -> Binning:
+    """Pair visible Gaussians with the tiles their pixel bounds overlap, sorted by (tile, depth)."""
+    device = proj.depths.device
+    tiles_x = (width + tile_size - 1) // tile_size
+    tiles_y = (height + tile_size - 1) // tile_size
+    n_tiles = tiles_x * tiles_y
+    with torch.no_grad():
+        vis = torch.nonzero(proj.visible).squeeze(1)
+        order = vis[torch.sort(proj.depths.detach()[vis], stable=True).indices]  # front to back
+        b = proj.bounds[order]
+        tx0, tx1 = b[:, 0] // tile_size, b[:, 1] // tile_size
+        ty0, ty1 = b[:, 2] // tile_size, b[:, 3] // tile_size
+        span_x = tx1 - tx0 + 1
+        counts = span_x * (ty1 - ty0 + 1)
+        n_vis = int(order.shape[0])
+        rank = torch.repeat_interleave(torch.arange(n_vis, device=device), counts)
+        starts = torch.cumsum(counts, 0) - counts
+        local = torch.arange(rank.shape[0], device=device) - starts[rank]
+        sx = span_x[rank]
+        tile = (ty0[rank] + local // sx) * tiles_x + (tx0[rank] + local % sx)
+        key = tile * max(n_vis, 1) + rank  # unique: sorts by tile, then depth rank
+        key = torch.sort(key).values
+        gaussian_ids = order[key % max(n_vis, 1)]
+        per_tile = torch.bincount(key // max(n_vis, 1), minlength=n_tiles)
+        offsets = torch.zeros(n_tiles + 1, dtype=torch.int64, device=device)
+        offsets[1:] = torch.cumsum(per_tile, 0)
+    return Binning(gaussian_ids=gaussian_ids, tile_offsets=offsets, tiles_x=tiles_x, tiles_y=tiles_y,
+                   tile_size=tile_size, width=width, height=height)

@@ -1,0 +1,326 @@
+"""Tile rasterizer in pure torch with a hand-written backward.
+
+Tiles are processed in batches padded to a common list length K: a batch is a dense (B, P, K)
+problem (B tiles, P = tile_size² pixels, K depth-sorted Gaussians), solved with a cumulative product
+for the transmittance and one batched matmul for all channels at once ((B,P,K) weights @ (B,K,C)).
+The backward recomputes α per batch (nothing of size P·K is kept between passes) and obtains the
+transmittance gradient from a reverse cumulative sum:
+
+    out_p   = Σ_i w_i v_i + T_final·bg,     w_i = α_i T_i,     T_i = Π_{j<i} (1 − α_j)
+    ∂L/∂α_i = T_i s_i − (Σ_{k>i} w_k s_k + T_final ∂L/∂T_final) / (1 − α_i),   s_i = ∂L/∂w_i = g_p·v_i
+
+The background term is applied outside (plain autograd), so the kernel returns Σ w v and T_final.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator
+
+import torch
+
+from .binning import Binning
+from .options import RasterOptions
+
+GEOM_CHANNELS = 6  # mx, my, conic a, b, c, opacity
+
+
+@dataclass
+class RasterResult:
+    """Raw per-tile results (tile-major; see :func:`tiles_to_image`).
+
+    Attributes:
+        accum: (n_tiles, P, C) Σ w·values.
+        transmittance: (n_tiles, P) final transmittance (1 − alpha).
+        median_ids: (n_tiles, P) int64 Gaussian at the median of the weight distribution, −1 if none;
+            None unless requested.
+        weights: (pixel, gaussian, weight) rows or None unless requested.
+    """
+
+    accum: torch.Tensor
+    transmittance: torch.Tensor
+    median_ids: torch.Tensor | None
+    weights: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None
+
+
+def tile_batches(binning: Binning, budget: int, chunk: int) -> Iterator[tuple[torch.Tensor, int]]:
+    """Yield (tile indices (B,), longest list length K) covering every non-empty tile once.
+
+    Tiles are taken in decreasing list length, B = budget // (P·chunk) at a time (a batch is processed
+    ``chunk`` list entries at a time, so its working set is at most ``budget`` pixel×Gaussian pairs).
+    """
+    counts = binning.tile_counts
+    P = binning.tile_size ** 2
+    nonempty = torch.nonzero(counts > 0).squeeze(1)
+    if nonempty.numel() == 0:
+        return
+    c_sorted, idx = torch.sort(counts[nonempty], descending=True)
+    tiles = nonempty[idx]
+    step = max(1, budget // (P * chunk))
+    c_list = c_sorted.tolist()
+    for i in range(0, len(c_list), step):
+        yield tiles[i:i + step], c_list[i]
+
+
+class TileGeometry:
+    """Per-batch constants: tile origins, list starts/lengths, and the pixel basis Φ.
+
+    The exponent of every (pixel, Gaussian) pair is a quadratic in the tile-local pixel centre
+    (lx, ly): power = Φ(lx, ly) · coef, Φ = [lx², lx·ly, ly², lx, ly, 1], so a whole chunk of exponents
+    is one (P,6) @ (B,6,K) matmul. Coordinates are tile-local, so the expansion loses no precision.
+    """
+
+    def __init__(self, binning: Binning, tiles: torch.Tensor, dtype: torch.dtype):
+        ts = binning.tile_size
+        device = tiles.device
+        self.tiles = tiles
+        self.start = binning.tile_offsets[tiles]
+        self.count = binning.tile_offsets[tiles + 1] - self.start
+        self.x0 = ((tiles % binning.tiles_x) * ts).to(dtype)
+        self.y0 = ((tiles // binning.tiles_x) * ts).to(dtype)
+        p = torch.arange(ts * ts, device=device)
+        lx = (p % ts).to(dtype) + 0.5
+        ly = (p // ts).to(dtype) + 0.5
+        self.phi = torch.stack([lx * lx, lx * ly, ly * ly, lx, ly, torch.ones_like(lx)], dim=-1)  # (P,6)
+        self.px_int = (tiles % binning.tiles_x)[:, None] * ts + p % ts  # (B,P) int64
+        self.py_int = (tiles // binning.tiles_x)[:, None] * ts + p // ts
+
+
+class Chunk:
+    """List entries [j0, j0+K) of the tiles ``rows`` (indices into the batch) and their α."""
+
+    def __init__(self, geom: torch.Tensor, binning: Binning, tg: TileGeometry, rows: torch.Tensor,
+                 j0: int, k: int, opts: RasterOptions):
+        ar = torch.arange(j0, j0 + k, device=geom.device)
+        self.rows = rows
+        self.valid = ar[None, :] < tg.count[rows, None]  # (b,K)
+        pos = torch.where(self.valid, tg.start[rows, None] + ar[None, :], torch.zeros_like(ar)[None, :])
+        self.gid = binning.gaussian_ids[pos]  # (b,K)
+        mx, my, ca, cb, cc, o = geom[self.gid].unbind(-1)
+        self.ux = mx - tg.x0[rows, None]  # tile-local mean
+        self.uy = my - tg.y0[rows, None]
+        self.ca, self.cb, self.cc, self.o = ca, cb, cc, o
+        ux, uy = self.ux, self.uy
+        const = -0.5 * (ca * ux * ux + cc * uy * uy) - cb * ux * uy + torch.log(o)
+        const = torch.where(self.valid, const, torch.full_like(const, -torch.inf))
+        coef = torch.stack([-0.5 * ca, -cb, -0.5 * cc, ca * ux + cb * uy, cb * ux + cc * uy, const], dim=1)
+        alpha = torch.matmul(tg.phi, coef).exp_()  # (b,P,K) o·G
+        self.unclamped = alpha < opts.alpha_max
+        alpha.clamp_(max=opts.alpha_max)
+        alpha.masked_fill_(alpha < opts.alpha_min, 0.0)
+        self.alpha = alpha
+
+    def blend(self, t_start: torch.Tensor, done: torch.Tensor, opts: RasterOptions
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Front-to-back blending from transmittance ``t_start`` (b,P) for pixels not ``done`` (b,P).
+
+        Zeroes α where not blended. Returns T before each entry (b,P,K), the transmittance after the
+        chunk (b,P), the updated done flags (b,P) and the inclusive transmittance (b,P,K).
+        """
+        alpha = self.alpha
+        t_incl = torch.cumprod(1.0 - alpha, dim=-1).mul_(t_start[..., None])
+        blend = (t_incl >= opts.transmittance_min) & ~done[..., None]
+        alpha.mul_(blend)
+        t_excl = torch.empty_like(t_incl)
+        t_excl[..., 0] = t_start
+        t_excl[..., 1:] = t_incl[..., :-1]
+        t_end = torch.where(blend, t_incl, t_start[..., None]).amin(dim=-1)
+        done = done | (t_incl[..., -1] < opts.transmittance_min)
+        return t_excl, t_end, done, t_incl
+
+
+def _chunks(geom: torch.Tensor, binning: Binning, tg: TileGeometry, k_max: int, opts: RasterOptions,
+            chunk: int, t_state: torch.Tensor, done: torch.Tensor):
+    """Run the batch front to back, yielding (Chunk, t_start, done_start, t_excl, t_end, t_incl)
+    per chunk; ``t_state``/``done`` (B,P) are updated in place. Tiles whose pixels are all done, or
+    whose lists are exhausted, leave the loop early."""
+    rows = torch.arange(tg.tiles.shape[0], device=geom.device)
+    for j0 in range(0, k_max, chunk):
+        alive = (tg.count[rows] > j0) & ~done[rows].all(dim=-1)
+        rows = rows[alive]
+        if rows.numel() == 0:
+            return
+        ch = Chunk(geom, binning, tg, rows, j0, min(chunk, k_max - j0), opts)
+        t_start, d_start = t_state[rows], done[rows]
+        t_excl, t_end, d_end, t_incl = ch.blend(t_start, d_start, opts)
+        t_state[rows] = t_end
+        done[rows] = d_end
+        yield ch, t_start, d_start, t_excl, t_end, t_incl
+
+
+def rasterize_forward(geom: torch.Tensor, values: torch.Tensor, binning: Binning, opts: RasterOptions,
+                      want_median: bool = False, want_weights: bool = False) -> RasterResult:
+    """Blend every tile front to back (no autograd).
+
+    Args:
+        geom: (N,6) mx, my, conic a, b, c, opacity. values: (N,C) channels to blend (C may be 0).
+    """
+    P = binning.tile_size ** 2
+    n_tiles = binning.num_tiles
+    device, dtype = geom.device, geom.dtype
+    C = values.shape[1]
+    chunk = opts.chunk
+    accum = torch.zeros(n_tiles, P, C, device=device, dtype=dtype)
+    t_final_all = torch.ones(n_tiles, P, device=device, dtype=dtype)
+    median = torch.full((n_tiles, P), -1, device=device, dtype=torch.int64) if want_median else None
+    rows_out: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+    with torch.no_grad():
+        for tiles, k_max in tile_batches(binning, opts.batch_elements, chunk):
+            tg = TileGeometry(binning, tiles, dtype)
+            B = tiles.shape[0]
+            t_state = torch.ones(B, P, device=device, dtype=dtype)
+            done = torch.zeros(B, P, device=device, dtype=torch.bool)
+            acc = torch.zeros(B, P, C, device=device, dtype=dtype)
+            for ch, _, _, t_excl, _, _ in _chunks(geom, binning, tg, k_max, opts, chunk, t_state, done):
+                w = ch.alpha.mul_(t_excl)
+                if C:
+                    acc[ch.rows] += torch.bmm(w, values[ch.gid].to(dtype))
+                if want_weights:
+                    inside = (tg.px_int[ch.rows] < binning.width) & (tg.py_int[ch.rows] < binning.height)
+                    b, p, kk = torch.nonzero((w > 0) & inside[..., None], as_tuple=True)
+                    r = ch.rows[b]
+                    rows_out.append((tg.py_int[r, p] * binning.width + tg.px_int[r, p], ch.gid[b, kk], w[b, p, kk]))
+            accum[tiles] = acc
+            t_final_all[tiles] = t_state
+            if want_median:
+                median[tiles] = _median_ids(geom, binning, tg, k_max, opts, chunk, t_state)
+    weights = None
+    if want_weights:
+        if rows_out:
+            pix = torch.cat([r[0] for r in rows_out])
+            gid = torch.cat([r[1] for r in rows_out])
+            wt = torch.cat([r[2] for r in rows_out])
+            order = torch.sort(pix, stable=True).indices
+            weights = (pix[order], gid[order], wt[order])
+        else:
+            empty = torch.zeros(0, dtype=torch.int64, device=device)
+            weights = (empty, empty.clone(), torch.zeros(0, dtype=dtype, device=device))
+    return RasterResult(accum=accum, transmittance=t_final_all, median_ids=median, weights=weights)
+
+
+def _median_ids(geom, binning, tg, k_max, opts, chunk, t_final) -> torch.Tensor:
+    """(B,P) id of the first Gaussian where the accumulated weight 1 − T reaches half of the pixel's
+    alpha, i.e. T_incl ≤ (1 + T_final)/2; −1 where nothing is drawn (a second pass over the batch)."""
+    B, P = t_final.shape
+    device = geom.device
+    thresh = 0.5 * (1.0 + t_final)
+    ids = torch.full((B, P), -1, dtype=torch.int64, device=device)
+    found = t_final >= 1.0  # nothing drawn: never search
+    t_state = torch.ones_like(t_final)
+    done = torch.zeros_like(found)
+    for ch, _, _, _, _, t_incl in _chunks(geom, binning, tg, k_max, opts, chunk, t_state, done):
+        hit = (t_incl <= thresh[ch.rows, :, None]) & (ch.alpha > 0) & ~found[ch.rows, :, None]
+        any_hit = hit.any(-1)
+        first = hit.to(torch.int8).argmax(dim=-1)
+        picked = torch.gather(ch.gid, 1, first)
+        r = ch.rows
+        ids[r] = torch.where(any_hit, picked, ids[r])
+        found[r] |= any_hit
+    return ids
+
+
+def rasterize_backward(geom: torch.Tensor, values: torch.Tensor, binning: Binning, opts: RasterOptions,
+                       grad_accum: torch.Tensor, grad_t: torch.Tensor, t_final_all: torch.Tensor,
+                       need_values_grad: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Gradients of Σ w·v and T_final w.r.t. geom (N,6) and values (N,C).
+
+    Per batch, the forward chunk loop is replayed to recover each chunk's starting transmittance,
+    then the chunks are visited back to front carrying Σ_{later} w·s (the reverse cumulative sum).
+    """
+    N, C = values.shape
+    P = binning.tile_size ** 2
+    device, dtype = geom.device, geom.dtype
+    chunk = opts.chunk
+    grad_geom = torch.zeros(N, GEOM_CHANNELS, device=device, dtype=dtype)
+    grad_values = torch.zeros(N, C, device=device, dtype=dtype) if need_values_grad else None
+    with torch.no_grad():
+        for tiles, k_max in tile_batches(binning, opts.batch_elements, chunk):
+            tg = TileGeometry(binning, tiles, dtype)
+            B = tiles.shape[0]
+            t_state = torch.ones(B, P, device=device, dtype=dtype)
+            done = torch.zeros(B, P, device=device, dtype=torch.bool)
+            starts = [(ch.rows, j0, t_start, d_start) for j0, (ch, t_start, d_start, *_) in
+                      zip(range(0, k_max, chunk), _chunks(geom, binning, tg, k_max, opts, chunk, t_state, done))]
+            g_all = grad_accum[tiles] if C else None  # (B,P,C)
+            # the T_final term of ∂L/∂α: every blended entry is followed by T_final·∂L/∂T_final
+            carry = t_state * grad_t[tiles]  # (B,P)
+            for rows, j0, t_start, d_start in reversed(starts):
+                ch = Chunk(geom, binning, tg, rows, j0, min(chunk, k_max - j0), opts)
+                t_excl, _, _, _ = ch.blend(t_start, d_start, opts)
+                alpha = ch.alpha
+                w = alpha * t_excl
+                if C:
+                    g = g_all[rows]
+                    vals = values[ch.gid].to(dtype)  # (b,K,C)
+                    s = torch.bmm(g, vals.transpose(1, 2))  # (b,P,K) ∂L/∂w
+                    if need_values_grad:
+                        grad_values.index_add_(0, ch.gid.reshape(-1), torch.bmm(w.transpose(1, 2), g).reshape(-1, C))
+                    ws = s * w
+                    cs = torch.cumsum(ws, dim=-1)
+                    total = cs[..., -1]
+                    suffix = cs.neg_().add_((total + carry[rows])[..., None])  # Σ_{k>i} w_k s_k (+ T_final term)
+                    carry[rows] += total
+                    d_alpha = s.mul_(t_excl)
+                else:
+                    suffix = carry[rows][..., None].expand_as(alpha)
+                    d_alpha = torch.zeros_like(alpha)
+                d_alpha.sub_(suffix / (1.0 - alpha))
+                d_power = d_alpha.mul_(alpha).mul_((alpha > 0) & ch.unclamped)  # ∂L/∂power, α = exp(power)
+                d_coef = torch.matmul(tg.phi.T, d_power)  # (b,6,K)
+                grads = _coef_to_geom_grads(ch, d_coef)
+                grads = torch.where(ch.valid[..., None], grads, torch.zeros_like(grads))
+                grad_geom.index_add_(0, ch.gid.reshape(-1), grads.reshape(-1, GEOM_CHANNELS))
+    return grad_geom, grad_values
+
+
+def _coef_to_geom_grads(ch: Chunk, d_coef: torch.Tensor) -> torch.Tensor:
+    """Chain ∂L/∂coef (b,6,K) to ∂L/∂(mx, my, a, b, c, o) (b,K,6); see :class:`Chunk` for coef."""
+    d0, d1, d2, d3, d4, d5 = d_coef.unbind(1)
+    ux, uy, ca, cb, cc = ch.ux, ch.uy, ch.ca, ch.cb, ch.cc
+    d_ca = -0.5 * d0 + ux * d3 - 0.5 * ux * ux * d5
+    d_cb = -d1 + uy * d3 + ux * d4 - ux * uy * d5
+    d_cc = -0.5 * d2 + uy * d4 - 0.5 * uy * uy * d5
+    d_ux = ca * d3 + cb * d4 - (ca * ux + cb * uy) * d5
+    d_uy = cb * d3 + cc * d4 - (cb * ux + cc * uy) * d5
+    d_o = d5 / ch.o
+    return torch.stack([d_ux, d_uy, d_ca, d_cb, d_cc, d_o], dim=-1)
+
+
+class RasterizeTiles(torch.autograd.Function):
+    """(geom (N,6), values (N,C)) -> (accum (n_tiles,P,C), T_final (n_tiles,P), median ids, weights)."""
+
+    @staticmethod
+    def forward(ctx, geom, values, binning, opts, want_median, want_weights):  # noqa: D401
+        res = rasterize_forward(geom, values, binning, opts, want_median, want_weights)
+        ctx.binning, ctx.opts = binning, opts
+        ctx.save_for_backward(geom, values, res.transmittance)
+        median = res.median_ids if res.median_ids is not None else torch.zeros(0, dtype=torch.int64)
+        if res.weights is not None:
+            pix, gid, wt = res.weights
+        else:
+            pix = gid = torch.zeros(0, dtype=torch.int64)
+            wt = torch.zeros(0, dtype=geom.dtype)
+        ctx.mark_non_differentiable(median, pix, gid, wt)
+        return res.accum, res.transmittance, median, pix, gid, wt
+
+    @staticmethod
+    def backward(ctx, grad_accum, grad_t, *_):
+        geom, values, t_final = ctx.saved_tensors
+        if grad_accum is None:
+            grad_accum = torch.zeros(ctx.binning.num_tiles, ctx.binning.tile_size ** 2, values.shape[1],
+                                     dtype=geom.dtype, device=geom.device)
+        if grad_t is None:
+            grad_t = torch.zeros_like(t_final)
+        grad_geom, grad_values = rasterize_backward(
+            geom, values, ctx.binning, ctx.opts, grad_accum.contiguous(), grad_t.contiguous(), t_final,
+            ctx.needs_input_grad[1])
+        if grad_values is not None:
+            grad_values = grad_values.to(values.dtype)
+        return grad_geom, grad_values, None, None, None, None
+
+
+def tiles_to_image(tiles: torch.Tensor, binning: Binning) -> torch.Tensor:
+    """(n_tiles, P, C) tile-major -> (H, W, C) image (differentiable)."""
+    ts, C = binning.tile_size, tiles.shape[-1]
+    img = tiles.reshape(binning.tiles_y, binning.tiles_x, ts, ts, C).permute(0, 2, 1, 3, 4)
+    img = img.reshape(binning.tiles_y * ts, binning.tiles_x * ts, C)
+    return img[:binning.height, :binning.width]

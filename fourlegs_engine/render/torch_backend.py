@@ -1,0 +1,66 @@
+"""The pure-torch backend: projection → tile binning → tile rasterizer with a hand-written backward."""
+from __future__ import annotations
+
+import torch
+
+from ..scene.camera import Camera
+from .binning import bin_gaussians
+from .options import BlendWeights, RasterOptions
+from .projection import project_gaussians
+from .rasterizer import RasterizeTiles, tiles_to_image
+
+#: alpha below this counts as empty for the expected depth (depth is 0 there)
+DEPTH_ALPHA_EPS = 1e-6
+
+
+def rasterize_torch(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Tensor,
+                    opacity_logits: torch.Tensor, camera: Camera, *, colors: torch.Tensor | None,
+                    features: torch.Tensor | None, bg_rgb: torch.Tensor | None, bg_feat: torch.Tensor | None,
+                    outputs: tuple[str, ...], options: RasterOptions, dtype: torch.dtype) -> dict:
+    """Inputs already checked by :func:`~fourlegs_engine.render.rasterize`; same outputs."""
+    proj = project_gaussians(means, rotations, log_scales, opacity_logits, camera, options, dtype)
+    binning = bin_gaussians(proj, camera.width, camera.height, options.tile_size)
+    geom = torch.cat([proj.means2d, proj.conics, proj.opacities[:, None]], dim=-1)
+    return composite(geom, proj.depths, binning, colors=colors, features=features, bg_rgb=bg_rgb,
+                     bg_feat=bg_feat, outputs=outputs, options=options, dtype=dtype)
+
+
+def composite(geom: torch.Tensor, depths: torch.Tensor, binning, *, colors, features, bg_rgb, bg_feat,
+              outputs: tuple[str, ...], options: RasterOptions, dtype: torch.dtype) -> dict:
+    """Blend the requested channels and assemble the output maps.
+
+    Args:
+        geom: (N,6) screen-space mx, my, conic a, b, c, opacity. depths: (N,) camera z.
+    """
+    N = geom.shape[0]
+    parts, slices, start = [], {}, 0
+    for name, tensor in (("rgb", colors), ("features", features), ("depth", depths[:, None])):
+        if name in outputs:
+            parts.append(tensor.to(dtype))
+            slices[name] = slice(start, start + tensor.shape[1])
+            start += tensor.shape[1]
+    values = torch.cat(parts, dim=-1) if parts else geom.new_zeros(N, 0)
+    accum_t, trans_t, median_t, pix, gid, wt = RasterizeTiles.apply(
+        geom, values, binning, options, "depth_median" in outputs, "weights" in outputs)
+    accum = tiles_to_image(accum_t, binning)
+    trans = tiles_to_image(trans_t[..., None], binning)  # (H,W,1)
+    alpha = 1.0 - trans
+    out: dict = {}
+    if "rgb" in outputs:
+        out["rgb"] = accum[..., slices["rgb"]] + trans * bg_rgb
+    if "features" in outputs:
+        out["features"] = accum[..., slices["features"]] + trans * bg_feat
+    if "depth" in outputs:
+        has = alpha > DEPTH_ALPHA_EPS
+        safe = torch.where(has, alpha, torch.ones_like(alpha))
+        out["depth"] = torch.where(has, accum[..., slices["depth"]] / safe, torch.zeros_like(alpha))
+    if "depth_median" in outputs:
+        ids = tiles_to_image(median_t[..., None], binning)
+        picked = depths.to(dtype)[ids.clamp_min(0)] if N else torch.zeros_like(alpha)
+        out["depth_median"] = torch.where(ids >= 0, picked, torch.zeros_like(picked))
+    if "alpha" in outputs:
+        out["alpha"] = alpha
+    if "weights" in outputs:
+        out["weights"] = BlendWeights(pixel=pix, gaussian=gid, weight=wt, width=binning.width,
+                                      height=binning.height)
+    return out

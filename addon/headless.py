@@ -43,6 +43,8 @@ def build_parser(parser: Optional[argparse.ArgumentParser] = None) -> argparse.A
                    help="scene: bundle dir, params.npz dir, .ply file or dir of .ply files (or --demo)")
     p.add_argument("query", help="what to find, e.g. \"a ball flying in the air\"")
     p.add_argument("--demo", action="store_true", help="use the synthetic demo scene (generated on first use)")
+    p.add_argument("--demo-size", default="demo", choices=("tiny", "demo", "bench", "full"),
+                   help="size of the synthetic demo scene (default demo: 30k Gaussians, 48 timesteps)")
     p.add_argument("--preset", default="broadcast", help="highlight preset name or .toml file (default broadcast)")
     p.add_argument("-o", "--output", required=True, help="output directory")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
@@ -103,7 +105,7 @@ def resolve_scene(args: argparse.Namespace):
     if args.demo:
         if args.scene is not None:
             raise errors.InputError("give either --demo or a scene path, not both", field="scene")
-        path = engine_module("eval.synthetic").ensure_demo_bundle("demo")
+        path = engine_module("eval.synthetic").ensure_demo_bundle(args.demo_size)
     elif args.scene is None:
         raise errors.InputError("no scene given (a path, or --demo)", field="scene")
     else:

@@ -154,7 +154,8 @@ def _set_attr(mesh: bpy.types.Mesh, name: str, kind: str, field: str, values: np
 
 def _splat_material(name: str) -> bpy.types.Material:
     mat = bpy.data.materials.new(f"{name} Splats")
-    mat.use_nodes = True
+    if mat.node_tree is None:  # Blender < 5.0: node materials are opt-in
+        mat.use_nodes = True
     nodes, links = mat.node_tree.nodes, mat.node_tree.links
     nodes.clear()
     attr = nodes.new("ShaderNodeAttribute")

@@ -28,6 +28,7 @@ CAMERA_ACTION_NAME = "4-LEGS Highlight Camera"
 LENS_ACTION_NAME = "4-LEGS Highlight Lens"
 SCENE_ACTION_NAME = "4-LEGS Scene Time"
 TIMESTEP_PATH = "fourlegs.timestep"
+ORBIT_EFFECTS = ("bullet_time",)  # planner effects whose camera circles the action centre
 
 
 class PlanError(ValueError):
@@ -246,7 +247,8 @@ def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object
         if not keys:
             continue
         sparse = any(int(b["frame"]) - int(a["frame"]) > 1 for a, b in zip(keys[:-1], keys[1:]))
-        is_orbit = "orbit" in str(shot.get("effect", "")) or "orbit" in (shot.get("params") or {})
+        effect = str(shot.get("effect", ""))
+        is_orbit = effect in ORBIT_EFFECTS or "orbit" in effect or "arc_deg" in (shot.get("params") or {})
         if sparse and is_orbit and centre is not None:
             keys = densify_orbit(keys, centre)
             sparse = False

@@ -34,11 +34,12 @@ PLAN_TEXT_NAME = "fourlegs_plan.json"
 EMPTY_DEPTH = 1e10
 
 #: per-frame statistics of the last render (the headless job reads and reports them)
-stats: dict[str, Any] = {"frames": 0, "relevancy_frames": [], "seconds": 0.0, "last_error": None}
+stats: dict[str, Any] = {"frames": 0, "relevancy_frames": [], "depth_frames": [], "seconds": 0.0,
+                         "last_error": None}
 
 
 def reset_stats() -> None:
-    stats.update(frames=0, relevancy_frames=[], seconds=0.0, last_error=None)
+    stats.update(frames=0, relevancy_frames=[], depth_frames=[], seconds=0.0, last_error=None)
 
 
 def plan_of(scene: bpy.types.Scene) -> Optional[dict[str, Any]]:
@@ -56,6 +57,14 @@ def plan_of(scene: bpy.types.Scene) -> Optional[dict[str, Any]]:
 def relevancy_frames(scene: bpy.types.Scene) -> list:
     plan = plan_of(scene)
     return list(((plan or {}).get("passes") or {}).get("relevancy") or [])
+
+
+def depth_wanted(scene: bpy.types.Scene, view_layer, frame: int) -> bool:
+    """Depth when the view layer has the Z pass on and the plan (if it lists depth frames) lists this one."""
+    if not view_layer.use_pass_z:
+        return False
+    ranges = ((plan_of(scene) or {}).get("passes") or {}).get("depth")
+    return not ranges or frames_in_ranges(ranges, frame)
 
 
 def wants_relevancy_pass(view_layer: bpy.types.ViewLayer) -> bool:
@@ -116,8 +125,12 @@ def gather_gaussians(scene: bpy.types.Scene, t: float, with_relevancy: bool) -> 
 
 
 def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *, frame: int,
-                  relevancy_pass: bool) -> dict[str, np.ndarray]:
-    """Rasterize the current state: returns top-down (H,W,·) float32 arrays rgba, depth, [relevancy]."""
+                  relevancy_pass: bool, depth: bool = True) -> dict[str, np.ndarray]:
+    """Rasterize the current state: returns top-down (H,W,·) float32 arrays rgba, depth, [relevancy].
+
+    ``depth=False`` skips the depth output (the pass is filled with "nothing hit"); relevancy is
+    computed only when ``relevancy_pass`` and ``frame`` is in the plan's relevancy ranges.
+    """
     import torch
 
     t = float(scene.fourlegs.timestep)
@@ -133,7 +146,7 @@ def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *,
         return out
     rasterize = engine_module("render").rasterize
     tens = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in data.items()}
-    outputs = ["rgb", "depth", "alpha"] + (["features"] if compute_rel else [])
+    outputs = ["rgb", "alpha"] + (["depth"] if depth else []) + (["features"] if compute_rel else [])
     with torch.no_grad():
         res = rasterize(tens["means"], tens["rotations"], tens["log_scales"], tens["opacity_logits"], camera,
                         colors=tens["colors"], features=tens["relevancy"][:, None] if compute_rel else None,
@@ -142,8 +155,10 @@ def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *,
     rgb = np.clip(np.nan_to_num(res["rgb"].numpy().astype(np.float32)), 0.0, None)
     a = alpha if scene.render.film_transparent else np.ones_like(alpha)
     out["rgba"] = np.concatenate([rgb, a], axis=2)
-    depth = res["depth"].numpy().astype(np.float32)
-    out["depth"] = np.where(alpha > 1e-3, depth, EMPTY_DEPTH).astype(np.float32)
+    if depth:
+        out["depth"] = np.where(alpha > 1e-3, res["depth"].numpy().astype(np.float32), EMPTY_DEPTH).astype(np.float32)
+    else:
+        out["depth"] = np.full((height, width, 1), EMPTY_DEPTH, np.float32)
     if relevancy_pass:
         if compute_rel:
             feat = res["features"].numpy().astype(np.float32)
@@ -187,7 +202,8 @@ class FourlegsRenderEngine(bpy.types.RenderEngine):
         result = self.begin_result(0, 0, width, height, layer=view_layer.name)
         try:
             arrays = render_arrays(scene, depsgraph, width, height, frame=scene.frame_current,
-                                   relevancy_pass=want_rel)
+                                   relevancy_pass=want_rel,
+                                   depth=depth_wanted(scene, view_layer, scene.frame_current))
         except Exception as exc:  # report, leave an empty (black) frame, let the caller see the error
             stats["last_error"] = f"{type(exc).__name__}: {exc}"
             self.report({"ERROR"}, f"4-LEGS Splats: {stats['last_error']}")
@@ -204,6 +220,8 @@ class FourlegsRenderEngine(bpy.types.RenderEngine):
                 rel_pass.rect = _to_rect(arrays["relevancy"])
         self.end_result(result)
         stats["frames"] += 1
+        if depth_wanted(scene, view_layer, scene.frame_current):
+            stats["depth_frames"].append(scene.frame_current)
         if bool(arrays.get("relevancy_computed", False)):
             stats["relevancy_frames"].append(scene.frame_current)
         stats["seconds"] += time.perf_counter() - start

@@ -56,6 +56,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except FourlegsError as exc:
         print(f"fourlegs: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # output piped into e.g. `head`
+        sys.stderr.close()
+        return 0
     except KeyboardInterrupt:
         print("fourlegs: cancelled; run the same command again to resume", file=sys.stderr)
         return 130

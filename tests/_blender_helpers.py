@@ -55,3 +55,60 @@ def hand_plan(desaturate: bool = True, width: int = 32, height: int = 24) -> dic
             "desaturate": ({"ranges": [[7, 12]], "fade_in": 2, "fade_out": 2, "strength": 1.0, "weights": {}}
                            if desaturate else None),
             "messages": []}
+
+
+# --------------------------------------------------------------------------------------------------
+# Blender session helpers (bpy is imported once per test process, by the first fixture that needs it)
+import importlib.util
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def ensure_addon_importable() -> Path | None:
+    """Make ``fourlegs_addon`` importable even when the editable install predates ``addon/``.
+
+    Returns a directory to put on PYTHONPATH for child processes (a symlink farm), or None.
+    """
+    if importlib.util.find_spec("fourlegs_addon") is not None:
+        return None
+    farm = Path(tempfile.mkdtemp(prefix="fourlegs-addon-path-"))
+    (farm / "fourlegs_addon").symlink_to(REPO / "addon", target_is_directory=True)
+    sys.path.insert(0, str(farm))
+    importlib.invalidate_caches()
+    return farm
+
+
+ADDON_PATH_FARM = ensure_addon_importable()
+
+
+def child_env(**extra: str) -> dict:
+    """Environment for a child Python that must import fourlegs_addon."""
+    env = dict(os.environ, **extra)
+    if ADDON_PATH_FARM is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(ADDON_PATH_FARM)] + [p for p in [env.get("PYTHONPATH")] if p])
+    return env
+
+
+@pytest.fixture(scope="module")
+def bpy_addon():
+    """bpy with the development add-on registered (once per process)."""
+    bpy = pytest.importorskip("bpy")
+    import fourlegs_addon
+    from fourlegs_addon import registration
+
+    if not hasattr(bpy.types.Scene, "fourlegs"):
+        registration.register()
+    return bpy
+
+
+@pytest.fixture
+def bl(bpy_addon):
+    """An empty Blender file for each test."""
+    bpy_addon.ops.wm.read_factory_settings(use_empty=True)
+    return bpy_addon

@@ -66,3 +66,37 @@ def orthonormal_setup(d: int = 8, D: int = 16, seed: int = 0):
     for i in range(min(d, D)):
         W[i] = dirs[i]
     return TableTextEncoder(table, D), W, dirs
+
+
+def two_cluster_scene(T: int = 4, n_per: int = 60, active=(1, 2), d: int = 8, D: int = 16, seed: int = 0,
+                      size: tuple[int, int] = (48, 32)):
+    """Two blobs of Gaussians: A at x=+0.6 ("a ball flying" at ``active`` timesteps, else "object"),
+    B at x=-0.6 (always "object"). Camera "wide" sees both; camera "close" looks at A from near by.
+
+    Returns (scene, field, encoder, dirs).
+    """
+    from fourlegs_engine.scene import Camera, CameraRig, GaussianSequence, Scene
+
+    enc, W, dirs = orthonormal_setup(d, D, seed)
+    rng = np.random.default_rng(seed)
+    N = 2 * n_per
+    base = np.concatenate([rng.normal(scale=0.12, size=(n_per, 3)) + [0.6, 0, 0],
+                           rng.normal(scale=0.12, size=(n_per, 3)) + [-0.6, 0, 0]]).astype(np.float32)
+    means = np.repeat(base[None], T, 0)
+    rot = np.zeros((T, N, 4), np.float32)
+    rot[..., 0] = 1
+    g = GaussianSequence(means=means, rotations=rot, log_scales=np.full((N, 3), np.log(0.08), np.float32),
+                         opacity_logits=np.full(N, 4.0, np.float32), colors=np.full((N, 3), 0.5, np.float32))
+    lat = np.zeros((T, N, d), np.float32)
+    lat[:, :, 0] = 1.0  # "object"
+    wiggle = rng.uniform(0.0, 0.5, size=n_per)
+    for t in active:
+        lat[t, :n_per] = 0
+        lat[t, :n_per, 4] = 1.0
+        lat[t, :n_per, 6] = wiggle
+    lat /= np.linalg.norm(lat, axis=-1, keepdims=True)
+    w, h = size
+    wide = Camera.look_at((0, -4, 0), (0, 0, 0), width=w, height=h, fov_y=0.6, name="wide")
+    close = Camera.look_at((0.6, -1.6, 0), (0.6, 0, 0), width=w, height=h, fov_y=0.6, name="close")
+    scene = Scene(gaussians=g, cameras=CameraRig.static([wide, close], [], T), name="clusters")
+    return scene, LinearField(lat.astype(np.float16), W), enc, dirs

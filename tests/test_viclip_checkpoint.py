@@ -1,6 +1,8 @@
 """Strict, pickle-free ViCLIP checkpoint loading in the official layout (.pth and -hf safetensors)."""
 from __future__ import annotations
 
+import sys
+import types
 from pathlib import Path
 
 import pytest
@@ -165,6 +167,40 @@ def test_pickled_code_is_refused_and_never_runs(tiny_model, tmp_path):
     with pytest.raises(InputError, match="refused: the file holds pickled Python objects"):
         load_viclip(path)
     assert not marker.exists()
+
+
+def _easydict_class():
+    """A stand-in of ``easydict.EasyDict`` (items mirrored as attributes), pickled under that name."""
+    class EasyDict(dict):
+        def __init__(self, d=None, **kwargs):
+            super().__init__()
+            for key, value in dict(d or {}, **kwargs).items():
+                setattr(self, key, value)
+
+        def __setattr__(self, name, value):
+            if isinstance(value, dict) and not isinstance(value, EasyDict):
+                value = EasyDict(value)
+            super().__setattr__(name, value)
+            super().__setitem__(name, value)
+
+        __setitem__ = __setattr__
+
+    EasyDict.__module__, EasyDict.__qualname__ = "easydict", "EasyDict"
+    return EasyDict
+
+
+def test_training_checkpoint_with_easydict_config_loads(tiny_model, tmp_path, monkeypatch):
+    easydict = types.ModuleType("easydict")
+    easydict.EasyDict = _easydict_class()
+    monkeypatch.setitem(sys.modules, "easydict", easydict)
+    config = easydict.EasyDict(model={"vision_encoder": {"name": "vit_l14"}}, max_txt_l=32, lr=1e-5)
+    path = tmp_path / "ViClip-InternVid-10M-FLT.pth"
+    torch.save({"model": _state(tiny_model), "config": config, "epoch": 9}, path)
+    monkeypatch.delitem(sys.modules, "easydict")  # the package is not needed to read the file
+    loaded = load_viclip(path)
+    for ours, theirs in zip(_outputs(loaded, tiny_model.config), _outputs(tiny_model, tiny_model.config)):
+        assert torch.equal(ours, theirs)
+    assert "easydict" not in sys.modules
 
 
 def test_torch_load_is_called_with_weights_only(tiny_model, tmp_path, monkeypatch):

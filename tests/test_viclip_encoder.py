@@ -11,7 +11,7 @@ from fourlegs_engine.language import encoders
 from fourlegs_engine.language.encoders import (CANONICAL_PHRASES, VideoTextEncoder, add_encoder_arguments,
                                                get_encoder, load_encoder_from_args)
 from fourlegs_engine.language.viclip import BPETokenizer, ViCLIPEncoder, ViCLIPModel, save_viclip
-from fourlegs_engine.language.viclip.model import CLIP_MEAN, CLIP_STD, IMAGENET_MEAN
+from fourlegs_engine.language.viclip.model import CLIP_MEAN, CLIP_STD, IMAGENET_MEAN, IMAGENET_STD
 
 from _viclip_helpers import randomize_, tiny_config, write_tiny_vocab
 
@@ -70,9 +70,29 @@ def test_normalization_statistics(files):
     grey = torch.full((1, 8, 3, 32, 32), 0.5)
     expected = (0.5 - torch.tensor(CLIP_MEAN)) / torch.tensor(CLIP_STD)
     torch.testing.assert_close(clip_enc.normalize(grey)[0, 3, :, 7, 9], expected)
-    assert imagenet_enc.normalize(torch.tensor(IMAGENET_MEAN)[:, None, None].expand(3, 2, 2)).abs().max() < 1e-6
+    torch.testing.assert_close(imagenet_enc.normalize(grey), clip_enc.normalize(grey))  # input is always CLIP
+    # "clip" feeds the CLIP-normalized pixels unchanged; "imagenet" feeds ImageNet-normalized ones
+    pixels = _clips(2, seed=7)
+    with torch.no_grad():
+        as_clip = model.encode_video(clip_enc.normalize(pixels))
+        as_imagenet = model.encode_video((pixels - torch.tensor(IMAGENET_MEAN)[:, None, None])
+                                         / torch.tensor(IMAGENET_STD)[:, None, None])
+    torch.testing.assert_close(clip_enc.encode_video(clip_enc.normalize(pixels)), as_clip, rtol=0, atol=1e-6)
+    torch.testing.assert_close(imagenet_enc.encode_video(clip_enc.normalize(pixels)), as_imagenet,
+                               rtol=0, atol=1e-5)
+    assert (as_clip - as_imagenet).abs().max() > 1e-4  # the choice matters
+    assert clip_enc.config()["normalization"] == "clip" and imagenet_enc.config()["normalization"] == "imagenet"
     with pytest.raises(InputError, match="unknown normalization"):
         ViCLIPEncoder(model, tok, normalization="none")
+
+
+def test_config_is_json_and_names_the_files(encoder, files):
+    import json
+    _, checkpoint, vocab = files
+    config = json.loads(json.dumps(encoder.config()))
+    assert config["checkpoint"] == checkpoint.name and config["vocab"] == vocab.name
+    assert config["checkpoint_bytes"] == checkpoint.stat().st_size
+    assert config["dim"] == 48 and config["num_frames"] == 8 and config["dtype"] == "float32"
 
 
 @pytest.mark.parametrize("bad, match", [
@@ -157,3 +177,17 @@ def test_cuda_matches_cpu(files):
     assert out.device.type == "cpu"  # results come back to the clips' device
     torch.testing.assert_close(out, cpu.encode_video(clips), rtol=0, atol=1e-4)
     torch.testing.assert_close(gpu.encode_text(["hello"]).cpu(), cpu.encode_text(["hello"]), rtol=0, atol=1e-4)
+
+
+def test_bench_reports_time_and_accuracy_per_knob(tmp_path):
+    from fourlegs_engine.language.viclip.bench import bench_viclip, write_report
+    report = bench_viclip(size=tiny_config(), dtypes=("float32", "bfloat16"), batch_sizes=(1, 2), clips=2,
+                          phrases=3, repeats=1, device="cpu")
+    rows = {(r["dtype"], r["batch_size"]): r for r in report["rows"]}
+    assert set(rows) == {("float32", 1), ("float32", 2), ("bfloat16", 1), ("bfloat16", 2)}
+    assert all(r["seconds_per_clip"] > 0 and r["seconds_per_phrase"] > 0 and r["finite"] for r in rows.values())
+    assert rows["float32", 1]["video_min_cosine"] > 1 - 1e-6  # float32 vs the float64 reference
+    assert 0.9 < rows["bfloat16", 1]["video_min_cosine"] < rows["float32", 1]["video_min_cosine"]
+    paths = write_report(report, tmp_path / "viclip")
+    assert [p.suffix for p in paths] == [".json", ".md", ".png"] and all(p.stat().st_size > 0 for p in paths)
+    assert "| bfloat16 | 2 |" in paths[1].read_text()

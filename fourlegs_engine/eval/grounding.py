@@ -152,7 +152,7 @@ def _summary(per_view: dict[str, dict[str, dict[str, float]]], queries: Sequence
 
 def build_context(scene: Scene, *, seed: int = 0, progress: bool = False,
                   cameras: Sequence[Camera] | None = None) -> BenchmarkContext:
-    from ..language.simulated import SimulatedTextEncoder, SimulatedVideoEncoder
+    from ..language.simulated import SimulatedTextEncoder, create_encoder
 
     labels = scene_labels(scene)
     queries = list(scene_queries(scene))
@@ -161,7 +161,7 @@ def build_context(scene: Scene, *, seed: int = 0, progress: bool = False,
     window = scene.num_timesteps if frame_bytes * scene.num_timesteps <= 400 * 2 ** 20 else 12
     videos = {c.name: CoverageVideo(scene, c, window=window) for c in cams}
     return BenchmarkContext(scene=scene, queries=queries, cameras=cams, text_encoder=SimulatedTextEncoder(),
-                            video_encoder=SimulatedVideoEncoder(labels, seed=seed), videos=videos,
+                            video_encoder=create_encoder(scene=scene, seed=seed), videos=videos,
                             progress=progress, seed=seed)
 
 

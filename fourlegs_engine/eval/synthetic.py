@@ -20,7 +20,7 @@ evaluated on the test cameras):
 ======  ==========  ===========  =====  =========
 size    Gaussians   cameras      T      image
 ======  ==========  ===========  =====  =========
-tiny    ~2k         4 + 2        12     64x36
+tiny    ~2k         4 + 2        12     96x54
 demo    ~30k        8 + 2        48     320x180
 bench   ~100k       12 + 3       60     320x180
 full    ~300k       27 + 4       150    640x360
@@ -46,7 +46,7 @@ from ..scene.camera import Camera, CameraRig
 from ..scene.gaussians import GaussianSequence
 from ..scene.scene import Scene
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 QUERIES_FILE = "queries.json"
 SCENE_SECONDS = 6.0
 
@@ -93,7 +93,7 @@ class SizeSpec:
 
 
 SIZES: dict[str, SizeSpec] = {
-    "tiny": SizeSpec(2_000, 4, 2, 12, 64, 36),
+    "tiny": SizeSpec(2_000, 4, 2, 12, 96, 54),
     "demo": SizeSpec(30_000, 8, 2, 48, 320, 180),
     "bench": SizeSpec(100_000, 12, 3, 60, 320, 180),
     "full": SizeSpec(300_000, 27, 4, 150, 640, 360),
@@ -106,7 +106,7 @@ ROOM_RADIUS = 5.5
 WALL_HEIGHT = 3.5
 DOME_RADIUS = 4.5
 LOOK_TARGET = (0.0, 0.0, 1.0)
-BALL_RADIUS = 0.12
+BALL_RADIUS = 0.16
 FOV_Y_DEG = 52.0
 
 # ----------------------------------------------------------------------------------- small math
@@ -491,7 +491,7 @@ def _ball_state(u: float, actors: dict[str, _Actor]) -> tuple[np.ndarray, str]:
         mid = 0.5 * (_hand(tr, "r") + _hand(tr, "l"))
         return mid + tr["torso"][0] @ np.array([0, BALL_RADIUS * 0.9, 0.02])
 
-    for (thrower, catcher, release, arrive, apex) in (("A", "B", _RELEASE_1, _ARRIVE_1, 0.6),
+    for (thrower, catcher, release, arrive, apex) in (("A", "B", _RELEASE_1, _ARRIVE_1, 0.5),
                                                       ("B", "A", _RELEASE_2, _ARRIVE_2, 0.9)):
         if release <= u < arrive:
             p0, p1 = held(actors[thrower], release - 1e-9), held(actors[catcher], arrive)

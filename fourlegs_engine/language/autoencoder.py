@@ -236,7 +236,7 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            total += float(loss) * idx.numel()
+            total += float(loss.detach()) * idx.numel()
             count += idx.numel()
         history.append(total / max(count, 1))
         with atomic_path(ckpt_path) as tmp:

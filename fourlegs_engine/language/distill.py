@@ -233,7 +233,7 @@ def view_operator(frame: Any, camera: Any) -> ViewOperator:
 def teacher_latents(encoder: FeatureEncoder, layout: PyramidLayout, crop_features: np.ndarray | torch.Tensor,
                     stride: int = 1) -> torch.Tensor:
     """Encoded per-pixel teacher of one view: (num_crops, D) crop features -> (H*W, d) unit latents."""
-    crops = torch.as_tensor(np.asarray(crop_features), dtype=torch.float32)
+    crops = torch.from_numpy(np.array(crop_features, dtype=np.float32))
     h = encoder.first_layer()(crops)                                  # (n, hidden) exact before interp.
     grid = pixel_features(layout, h, stride)                          # (h', w', hidden)
     z = encoder.after_first_layer(grid.reshape(-1, grid.shape[-1])).view(grid.shape[0], grid.shape[1], -1)
@@ -297,7 +297,7 @@ def optimize_latents(ops: Sequence[ViewOperator], teachers: Sequence[torch.Tenso
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        loss_value = float(loss)
+        loss_value = float(loss.detach())
         if progress is not None:
             progress.update(1)
     with torch.no_grad():
@@ -390,13 +390,13 @@ def distill_scene(scene: Scene, mode: str = "lift", iterations: int | None = Non
         latents_path.unlink(missing_ok=True)
         _forget_merged(out)
         merged_hash = None
-    store.open(overwrite=overwrite)
     result = DistillResult(config.mode, cfg, chash, str(out), None)
     steps = select_timesteps(scene.num_timesteps, timesteps, shard)
     if merged_hash == chash:
         result.skipped = list(steps)
         result.latents = str(latents_path)
         return result
+    store.open(overwrite=overwrite)
     todo = [t for t in steps if not store.is_done(t)]
     result.skipped = [t for t in steps if store.is_done(t)]
     encoder = load_encoder(root / ENCODER_FILE)
@@ -478,7 +478,7 @@ def check_distill(scene: Scene, out_dir: str | Path | None = None) -> dict[str, 
     merged = (out / "latents.npy").is_file()
     store = StepStore(out / "steps", "latents", {}, scene.num_timesteps)
     meta = store.read_manifest()
-    if merged and not (out / "steps").is_dir():
+    if merged and (meta is None or not store.done()):
         lat = load_npy(out / "latents.npy", field="latents")
         return {"stage": "latents", "merged": True, "shape": list(lat.shape), "missing": [], "complete": True}
     if meta is None:
@@ -489,3 +489,29 @@ def check_distill(scene: Scene, out_dir: str | Path | None = None) -> dict[str, 
     report["merged"] = merged
     report["missing_ranges"] = format_ranges(report["missing"])
     return report
+
+
+@torch.no_grad()
+def render_fidelity(scene: Scene, t: int, latents: torch.Tensor, encoder: FeatureEncoder, features: StepStore,
+                    split: str = "train", min_alpha: float = 0.5) -> dict[str, float]:
+    """How well latents (N,d) reproduce the encoded teacher (stride 1) over the views of timestep t.
+
+    Returns mean L1 (per channel) and mean cosine between rendered latents and teacher latents on
+    pixels with alpha > ``min_alpha``.
+    """
+    frame = scene.gaussians.at(t)
+    feats, layouts, offsets = load_step_features(scene, features, t)
+    l1s, coss = [], []
+    for cam, layout, off in zip(scene.cameras.cameras(t, split), layouts, offsets):
+        op = view_operator(frame, cam)
+        teacher = teacher_latents(encoder, layout, feats[off:off + layout.num_crops], 1)
+        rendered = op.render(latents)
+        alpha = op.A @ torch.ones(op.num_gaussians, 1)
+        covered = alpha[:, 0] > min_alpha
+        if not covered.any():
+            continue
+        r, e = rendered[covered], teacher[covered]
+        l1s.append(float((r - e).abs().mean()))
+        coss.append(float(torch.nn.functional.cosine_similarity(r, e, dim=-1, eps=1e-8).mean()))
+    return {"l1": float(np.mean(l1s)) if l1s else float("nan"),
+            "cosine": float(np.mean(coss)) if coss else float("nan")}

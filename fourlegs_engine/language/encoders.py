@@ -5,7 +5,7 @@ Every encoder maps 8-frame clips and texts into one joint space:
 - ``encode_video(clips (B, 8, C, h, w)) -> (B, D)`` and ``encode_text(list[str]) -> (n, D)``, both
   L2-normalized, batched, without gradients.
 - ``input_kind`` says what the clips hold: ``"rgb"`` (ViCLIP: C=3, h=w=224, pixels already
-  normalized with the encoder's ``pixel_mean``/``pixel_std``, see ``ViCLIPEncoder.normalize``) or
+  normalized with the CLIP mean/std, see ``ViCLIPEncoder.normalize``) or
   ``"labels"`` (the simulated encoder: per-pixel label coverage in [0, 1], any h, w).
 
 Names: ``"viclip"`` (needs ``checkpoint=`` and ``vocab=``; the size is read off the checkpoint),
@@ -137,8 +137,8 @@ def add_encoder_arguments(parser: argparse.ArgumentParser, *, default: str = "vi
     group.add_argument("--encoder-batch-size", type=int, default=16,
                        help="clips or texts per encoder forward pass (default 16)")
     group.add_argument("--pixel-normalization", default="clip", choices=("clip", "imagenet"),
-                       help="pixel statistics for ViCLIP clips: 'clip' (4-LEGS pipeline, default) or "
-                            "'imagenet' (ViCLIP's own training statistics)")
+                       help="pixel statistics ViCLIP sees: 'clip' (as the 4-LEGS pipeline describes, "
+                            "default) or 'imagenet' (the statistics ViCLIP was trained with)")
 
 
 def load_encoder_from_args(args: argparse.Namespace, **extra: Any) -> VideoTextEncoder:

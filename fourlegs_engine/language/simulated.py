@@ -23,9 +23,13 @@ Video (:class:`SimulatedVideoEncoder`)
     Input: clips (B, 8, C, h, w) of per-pixel label coverage in [0, 1] (channel c = the share of the
     pixel's colour contributed by Gaussians of label c, rendered with the rasterizer, see
     :func:`render_label_coverage`). Output: the coverage-weighted embedding of the labels in the crop
-    over the tube (the uncovered share weighs the "background" phrase), with three documented
-    corruptions, all deterministic given ``seed`` (randomness is drawn from a hash of the seed, the
-    camera and the clip's coverage, so the same input always gives the same output, as a real model):
+    over the tube (the uncovered share weighs the "background" phrase). Like a real video model, which
+    notices a person filling a tenth of a crop, foreground labels (people, the ball: every label not
+    in ``background_labels``) weigh ``foreground_salience`` (default 6) times their coverage;
+    background labels (floor, wall, props) and the uncovered share weigh just their coverage. Three
+    documented corruptions follow, all deterministic given ``seed`` (randomness is drawn from a
+    counter-based hash of the seed, the camera and the clip's coverage, so the same input always gives
+    the same output, as with a real model):
 
     * wrong-label frames: each of the 8 frames, with probability ``wrong_label_fraction`` (default
       0.1), has its label channels cyclically shifted (every label replaced by another one);
@@ -59,6 +63,7 @@ BACKGROUND_PHRASE = "background"
 DEFAULT_NOISE_COSINE = 0.8
 DEFAULT_CAMERA_BIAS = 0.25
 DEFAULT_WRONG_LABEL_FRACTION = 0.1
+DEFAULT_FOREGROUND_SALIENCE = 6.0
 
 STOP_WORDS = frozenset("""a an the in on of at to into onto with by from for and or is are was were be being
 his her their its this that these those some while up down it one who which as""".split())
@@ -188,6 +193,8 @@ class SimulatedVideoEncoder:
         camera_bias: weight of the per-camera bias vector (0 disables it).
         wrong_label_fraction: probability that a frame's labels are replaced by other labels.
         camera: the camera whose bias applies (see :meth:`bind_camera`); None = a shared bias.
+        background_labels: labels with salience 1 (default: none, i.e. every label is foreground).
+        foreground_salience: weight multiplier of the other labels' coverage.
     """
 
     name = "simulated"
@@ -196,7 +203,8 @@ class SimulatedVideoEncoder:
 
     def __init__(self, labels: Sequence[str], *, seed: int = 0, noise_cosine: float = DEFAULT_NOISE_COSINE,
                  camera_bias: float = DEFAULT_CAMERA_BIAS,
-                 wrong_label_fraction: float = DEFAULT_WRONG_LABEL_FRACTION, camera: str | None = None):
+                 wrong_label_fraction: float = DEFAULT_WRONG_LABEL_FRACTION, camera: str | None = None,
+                 background_labels: Sequence[str] = (), foreground_salience: float = DEFAULT_FOREGROUND_SALIENCE):
         labels = [str(x) for x in labels]
         if not labels:
             raise InputError("the label vocabulary is empty", field="labels")
@@ -207,7 +215,14 @@ class SimulatedVideoEncoder:
         if not 0.0 <= wrong_label_fraction <= 1.0:
             raise InputError(f"wrong_label_fraction must be in [0, 1], got {wrong_label_fraction}",
                              field="wrong_label_fraction")
+        if not (foreground_salience > 0 and math.isfinite(foreground_salience)):
+            raise InputError(f"foreground_salience must be > 0, got {foreground_salience}",
+                             field="foreground_salience")
         self.labels = labels
+        self.background_labels = [str(x) for x in background_labels if str(x) in labels]
+        self.foreground_salience = float(foreground_salience)
+        self._salience = torch.tensor([1.0 if name in self.background_labels else self.foreground_salience
+                                       for name in labels], dtype=torch.float64)
         self.seed = int(seed)
         self.noise_cosine = float(noise_cosine)
         self.camera_bias = float(camera_bias)
@@ -225,7 +240,8 @@ class SimulatedVideoEncoder:
         """JSON-serializable settings (for config hashes of cached features)."""
         return {"encoder": self.name, "labels": list(self.labels), "seed": self.seed,
                 "noise_cosine": self.noise_cosine, "camera_bias": self.camera_bias,
-                "wrong_label_fraction": self.wrong_label_fraction}
+                "wrong_label_fraction": self.wrong_label_fraction,
+                "background_labels": list(self.background_labels), "foreground_salience": self.foreground_salience}
 
     def bind_camera(self, camera: str | None) -> "SimulatedVideoEncoder":
         """The same encoder with ``camera``'s bias (tables are shared, nothing is recomputed)."""
@@ -237,7 +253,9 @@ class SimulatedVideoEncoder:
     def clean(self) -> "SimulatedVideoEncoder":
         """The same encoder without corruptions (the oracle the tests compare against)."""
         return SimulatedVideoEncoder(self.labels, seed=self.seed, noise_cosine=1.0, camera_bias=0.0,
-                                     wrong_label_fraction=0.0, camera=self.camera)
+                                     wrong_label_fraction=0.0, camera=self.camera,
+                                     background_labels=self.background_labels,
+                                     foreground_salience=self.foreground_salience)
 
     def encode_text(self, texts: Sequence[str]) -> torch.Tensor:
         return self.text.encode_text(texts)
@@ -274,8 +292,9 @@ class SimulatedVideoEncoder:
             shift = np.where(wrong, 1 + np.floor(_uniform(keys, np.arange(Fr) + 2_000) * (C - 1)), 0)
             src = (np.arange(C)[None, None, :] - shift[:, :, None].astype(np.int64)) % C    # roll by shift
             cov = torch.gather(cov, 2, torch.from_numpy(src))
-        weights = cov.mean(dim=1)                                          # (B, C)
-        background = (1.0 - weights.sum(dim=1)).clamp_min(0.0)           # (B,)
+        coverage = cov.mean(dim=1)                                         # (B, C)
+        background = (1.0 - coverage.sum(dim=1)).clamp_min(0.0)          # (B,) uncovered share
+        weights = coverage * self._salience[None]
         clean = weights @ self._label_emb + background[:, None] * self._background[None]
         clean = clean / clean.norm(dim=1, keepdim=True).clamp_min(1e-12)
         out = clean
@@ -339,14 +358,19 @@ def create_encoder(*, labels: Sequence[str] | None = None, scene: Any = None, se
                    **options: Any) -> SimulatedVideoEncoder:
     """Factory used by ``language.encoders.get_encoder("simulated", ...)``.
 
-    The vocabulary comes from ``labels`` or from ``scene.metadata["labels"]`` (synthetic scenes).
+    The vocabulary comes from ``labels`` or from ``scene.metadata["labels"]`` (synthetic scenes), the
+    background labels from ``scene.metadata["background_labels"]`` unless given.
     """
-    if labels is None and scene is not None:
-        labels = (getattr(scene, "metadata", None) or {}).get("labels")
+    meta = (getattr(scene, "metadata", None) or {}) if scene is not None else {}
+    if labels is None:
+        labels = meta.get("labels")
+    if "background_labels" not in options and meta.get("background_labels"):
+        options["background_labels"] = meta["background_labels"]
     if labels is None:
         raise InputError("the simulated encoder needs the scene's label vocabulary (a synthetic scene with "
                          "metadata['labels'])", field="encoder")
-    allowed = {"noise_cosine", "camera_bias", "wrong_label_fraction", "camera"}
+    allowed = {"noise_cosine", "camera_bias", "wrong_label_fraction", "camera", "background_labels",
+               "foreground_salience"}
     unknown = set(options) - allowed - {"device", "dtype", "batch_size"}
     if unknown:
         raise InputError(f"unknown option(s) for the simulated encoder: {', '.join(sorted(unknown))}",

@@ -87,6 +87,19 @@ def nearest(x: torch.Tensor, centroids: torch.Tensor, chunk: int = ASSIGN_CHUNK)
     return out
 
 
+def _update_centroids(x: torch.Tensor, idx: torch.Tensor, cent: torch.Tensor) -> None:
+    """In place: each centroid becomes the mean of its points (segment sums over sorted indices)."""
+    k = cent.shape[0]
+    counts = np.bincount(idx.numpy(), minlength=k)
+    filled = np.nonzero(counts)[0]
+    if len(filled) == 0:
+        return
+    order = np.argsort(idx.numpy(), kind="stable")
+    starts = (np.cumsum(counts) - counts)[filled]
+    sums = np.add.reduceat(x.numpy()[order], starts, axis=0)
+    cent[torch.from_numpy(filled)] = torch.from_numpy(sums / counts[filled, None]).to(cent.dtype)
+
+
 def kmeans(x: torch.Tensor, k: int, *, iters: int = 10, seed: int = 0) -> torch.Tensor:
     """Lloyd's k-means. (M,d) -> (k,d) centroids; k > M pads with repeated points (never chosen).
 
@@ -104,12 +117,54 @@ def kmeans(x: torch.Tensor, k: int, *, iters: int = 10, seed: int = 0) -> torch.
         return torch.cat([distinct, pad], 0).clone()
     cent = distinct[torch.randperm(len(distinct), generator=g)[:k]].clone()
     for _ in range(iters):
-        idx = nearest(x, cent)
-        sums = torch.zeros_like(cent).index_add_(0, idx, x)
-        cnt = torch.bincount(idx, minlength=k).to(x.dtype)
-        filled = cnt > 0
-        cent[filled] = sums[filled] / cnt[filled, None]
+        _update_centroids(x, nearest(x, cent), cent)
     return cent
+
+
+def kmeans_per_cell(x: torch.Tensor, cell: torch.Tensor, coarse: torch.Tensor, k2: int, *, iters: int = 8,
+                    seed: int = 0, batch_cells: int = 32) -> torch.Tensor:
+    """Batched Lloyd's k-means of ``k2`` codes inside every coarse cell.
+
+    Args:
+        x: (S,d) points; cell: (S,) their coarse cell; coarse: (K1,d) coarse centroids.
+    Returns:
+        (K1*k2, d) fine codes, code = cell * k2 + j (an empty cell repeats its coarse centroid).
+    """
+    k1, d = coarse.shape
+    fine = coarse.repeat_interleave(k2, 0).clone()
+    g = torch.Generator().manual_seed(seed)
+    order = torch.argsort(cell, stable=True)
+    counts = torch.bincount(cell, minlength=k1)
+    starts = torch.cumsum(counts, 0) - counts
+    for c0 in range(0, k1, batch_cells):
+        cells = torch.arange(c0, min(k1, c0 + batch_cells))
+        m = int(counts[cells].max()) if len(cells) else 0
+        if m == 0:
+            continue
+        # padded (B, m, d) members of each cell; padding rows repeat the cell's members
+        slot = torch.arange(m)[None, :]
+        n = counts[cells][:, None].clamp_min(1)
+        rows = order[(starts[cells][:, None] + slot % n).clamp_max(len(order) - 1)]
+        valid = (slot < counts[cells][:, None])
+        pts = x[rows]  # (B, m, d)
+        # init: k2 random members per cell (wrapping when a cell has fewer than k2 points)
+        perm = torch.argsort(torch.rand(len(cells), m, generator=g) + (~valid).float(), dim=1)
+        pick = perm[:, torch.arange(k2) % m]
+        pick = torch.where(torch.arange(k2)[None, :] < counts[cells][:, None], pick, pick[:, :1] * 0 +
+                           (torch.arange(k2)[None, :] % n))
+        cent = torch.gather(pts, 1, pick[..., None].expand(-1, -1, d)).clone()  # (B, k2, d)
+        for _ in range(iters):
+            dist = (cent * cent).sum(-1)[:, None, :] - 2 * torch.bmm(pts, cent.transpose(1, 2))
+            j = dist.argmin(-1)  # (B, m)
+            flat = (torch.arange(len(cells))[:, None] * k2 + j)[valid]
+            flat_cent = cent.reshape(-1, d)
+            _update_centroids(pts[valid], flat, flat_cent)
+            cent = flat_cent.reshape(len(cells), k2, d)
+        has = counts[cells] > 0
+        for b in torch.nonzero(has).reshape(-1).tolist():
+            c = int(cells[b])
+            fine[c * k2:(c + 1) * k2] = cent[b]
+    return fine
 
 
 def split_levels(k: int, num_points: int) -> tuple[int, int]:
@@ -135,12 +190,7 @@ def train(sample: torch.Tensor, k: int, *, num_points: int, seed: int = 0, iters
         return sample.mean(0, keepdim=True) if len(sample) else torch.zeros(1, sample.shape[1]), fine
     coarse = kmeans(sample, k1, iters=iters, seed=seed)
     cell = nearest(sample, coarse)
-    fine = coarse.repeat_interleave(k2, 0).clone()
-    for c in range(k1):
-        members = sample[cell == c]
-        if len(members):
-            fine[c * k2:(c + 1) * k2] = kmeans(members, k2, iters=max(4, iters - 2), seed=seed + 1 + c)
-    return coarse, fine
+    return coarse, kmeans_per_cell(sample, cell, coarse, k2, iters=max(4, iters - 2), seed=seed + 1)
 
 
 def assign(x: torch.Tensor, coarse: torch.Tensor, fine: torch.Tensor) -> torch.Tensor:

@@ -27,7 +27,7 @@ import torch
 from ..errors import InputError
 from ..scene.camera import Camera
 from ..scene.scene import Scene
-from . import spatial
+from . import spatial, viewpoint
 from .codebook import Codebook, ensure_codebook
 from .relevancy import RELEVANCY_SCALE, as_tensor, l2_normalize, relevancy
 from .results import CentreResult, Localization, TemporalResult, ViewResult
@@ -207,21 +207,35 @@ class QueryEngine:
     def temporal(self, query: str, *, stride: Optional[int] = None) -> TemporalResult:
         """When ``query`` happens: s_t, positive timesteps, segments, the longest one and its peak."""
         self.stats["temporal"] += 1
+        return self._temporal([query], stride)[0]
+
+    def temporal_many(self, queries: Sequence[str], *, stride: Optional[int] = None) -> list[TemporalResult]:
+        """:meth:`temporal` for several queries, decoding each latent once (exact path)."""
+        self.stats["temporal_many"] += 1
+        return self._temporal(list(queries), stride)
+
+    def _temporal(self, queries: list[str], stride: Optional[int]) -> list[TemporalResult]:
         T, N = self.scene.num_timesteps, self.scene.num_gaussians
         ts = sampled_timesteps(T, stride or self.temporal_stride)
+        Q = len(queries)
         if N == 0:
-            counts, r_avg, n_rel = np.zeros(len(ts), np.int64), 0.0, 0
+            stats = [(np.zeros(len(ts), np.int64), 0.0, 0)] * Q
         elif self.path == "codebook":
             hist = self.codebook.histogram[ts]
-            counts, r_avg, n_rel = counts_from_code_histogram(self._codes_scores(query).double().numpy(), hist)
+            stats = [counts_from_code_histogram(self._codes_scores(q).double().numpy(), hist) for q in queries]
         else:
-            q = self.embed_query(query)
-            scores = np.empty((len(ts), N), dtype=np.float32)
+            qs = [self.embed_query(q) for q in queries]
+            scores = np.empty((Q, len(ts), N), dtype=np.float32)
             for i, t in enumerate(ts):
-                scores[i] = self._score_latents(self._read_latents(int(t)), q).numpy()
-            counts, r_avg, n_rel = counts_from_relevancy(scores)
-        return localize_counts(counts, ts, T, dilation=self.dilation, r_avg=r_avg, num_relevant=n_rel,
-                               query=query, num_gaussians=N)
+                lat = self._read_latents(int(t))
+                for s in range(0, N, self.chunk):
+                    feats = self._decode(lat[s:s + self.chunk])
+                    for j, q in enumerate(qs):
+                        scores[j, i, s:s + self.chunk] = self._score(feats, q).numpy()
+                self.stats["decoded_latents"] += N
+            stats = [counts_from_relevancy(scores[j]) for j in range(Q)]
+        return [localize_counts(c, ts, T, dilation=self.dilation, r_avg=a, num_relevant=n, query=q,
+                                num_gaussians=N) for q, (c, a, n) in zip(queries, stats)]
 
     # ------------------------------------------------------------------ spatial
     def _camera(self, camera: Camera, scale: Optional[float]) -> Camera:
@@ -258,6 +272,20 @@ class QueryEngine:
             the (scaled) camera resolution.
         """
         self.stats["relevancy_map"] += 1
+        maps = self.relevancy_maps([query], camera, t, fast=fast, outputs=outputs, scale=scale)
+        if "relevancy" in maps:
+            maps["relevancy"] = maps["relevancy"][0]
+        return maps
+
+    def relevancy_maps(self, queries: Sequence[str], camera: Camera, t: int, fast: Optional[bool] = None,
+                       outputs: Iterable[str] = ("relevancy", "depth", "alpha"), *,
+                       scale: Optional[float] = None) -> dict[str, np.ndarray]:
+        """Like :meth:`relevancy_map` for several queries with one render and one per-pixel decode.
+
+        Returns:
+            "relevancy" (Q,H,W), "depth" (H,W), "alpha" (H,W) float32 (the requested ones).
+        """
+        self.stats["relevancy_maps"] += 1
         t = self.scene.gaussians.check_timestep(t)
         outputs = tuple(outputs)
         unknown = set(outputs) - {"relevancy", "depth", "alpha"}
@@ -265,30 +293,33 @@ class QueryEngine:
             raise InputError(f"unknown map outputs {sorted(unknown)} (relevancy, depth, alpha)", field="outputs")
         fast = (self.spatial == "fast") if fast is None else bool(fast)
         cam = self._camera(camera, scale)
-        H, W = cam.height, cam.width
-        q = self.embed_query(query)
-        r_bg = self.background_relevancy(query)
+        H, W, Q = cam.height, cam.width, len(queries)
+        qs = torch.stack([self.embed_query(q) for q in queries]) if Q else torch.zeros(0)
+        r_bg = torch.tensor([self.background_relevancy(q) for q in queries], dtype=torch.float32)
         if self.scene.num_gaussians == 0:
-            empty = {"relevancy": np.full((H, W), r_bg, np.float32), "depth": np.zeros((H, W), np.float32),
-                     "alpha": np.zeros((H, W), np.float32)}
+            empty = {"relevancy": r_bg[:, None, None].expand(Q, H, W).numpy().copy(),
+                     "depth": np.zeros((H, W), np.float32), "alpha": np.zeros((H, W), np.float32)}
             return {k: empty[k] for k in outputs}
         render_outputs = ("features", "alpha") + (("depth",) if "depth" in outputs else ())
         if fast:
-            per_gaussian = self._gaussian_relevancy(query, t).to(torch.float32)
-            out = self._rasterize(t, cam, per_gaussian[:, None], render_outputs)
+            per_gaussian = torch.stack([self._gaussian_relevancy(q, t).to(torch.float32) for q in queries], 1)
+            out = self._rasterize(t, cam, per_gaussian, render_outputs)
             self.stats["render_relevancy"] += 1
             alpha = out["alpha"].reshape(H, W)
-            rel = out["features"].reshape(H, W) + (1.0 - alpha).clamp(0.0, 1.0) * r_bg
+            rel = out["features"].reshape(H, W, Q).permute(2, 0, 1) + \
+                (1.0 - alpha).clamp(0.0, 1.0)[None] * r_bg[:, None, None]
         else:
             lat = torch.from_numpy(self._read_latents(t).astype(np.float32, copy=False))
             out = self._rasterize(t, cam, lat, render_outputs)
             self.stats["render_features"] += 1
             pix = out["features"].reshape(H * W, -1)
-            rel = torch.empty(H * W, dtype=torch.float32)
+            rel = torch.empty(Q, H * W, dtype=torch.float32)
             for s in range(0, H * W, self.chunk):
-                rel[s:s + self.chunk] = self._score(self._decode(pix[s:s + self.chunk]), q)
+                feats = self._decode(pix[s:s + self.chunk])
+                for i in range(Q):
+                    rel[i, s:s + self.chunk] = self._score(feats, qs[i])
             self.stats["decoded_pixels"] += H * W
-            rel = rel.reshape(H, W)
+            rel = rel.reshape(Q, H, W)
             alpha = out["alpha"].reshape(H, W)
         result = {"relevancy": rel.clamp(0.0, 1.0), "alpha": alpha}
         if "depth" in outputs:
@@ -302,15 +333,8 @@ class QueryEngine:
         """The camera with the highest mean relevancy at timestep ``t`` (paper §6.1)."""
         self.stats["best_view"] += 1
         cams = list(cameras) if cameras is not None else self.cameras_at(t)
-        scores: dict[str, float] = {}
-        for i, cam in enumerate(cams):
-            m = self.relevancy_map(query, cam, t, outputs=("relevancy",))["relevancy"]
-            scores[camera_name(cam, i)] = float(m.mean()) if m.size else 0.0
-        if not scores:
-            return ViewResult(best=None, index=None, scores={}, t=t)
-        names = list(scores)
-        idx = int(np.argmax([scores[n] for n in names]))
-        return ViewResult(best=names[idx], index=idx, scores=scores, t=t)
+        return viewpoint.best_view(
+            cams, lambda cam: self.relevancy_map(query, cam, t, outputs=("relevancy",))["relevancy"], t)
 
     def action_centre(self, query: str, t: int, camera: Camera) -> CentreResult:
         """2D centre of mass of the relevancy map, lifted to 3D with the rendered depth; plus the bbox."""
@@ -377,10 +401,6 @@ class QueryEngine:
             if centre.message:
                 loc.messages.append(centre.message)
         return loc
-
-
-def camera_name(camera: Camera, index: int) -> str:
-    return camera.name or f"camera{index:02d}"
 
 
 def _scale_box(box: tuple[int, int, int, int], scale: float) -> tuple[int, int, int, int]:

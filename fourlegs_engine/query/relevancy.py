@@ -7,7 +7,7 @@ canonical phrase embeddings c::
 
 with all vectors L2-normalized and the dot products scaled by s = 10 as in the public
 implementations. Because the sigmoid is monotonic the minimum over c is the sigmoid of the smallest
-margin, ``sigmoid(s (φ·q − max_c φ·c))``; it is evaluated as ``exp(logsigmoid(·))`` (softplus form),
+margin, ``sigmoid(s min_c φ·(q − c))``; it is evaluated as ``exp(logsigmoid(·))`` (softplus form),
 which never overflows however large the logits. Scene-specific negative phrases (the paper's suggested
 fix for queries absent from a scene, §4.5) simply join the canonical set.
 """
@@ -73,8 +73,8 @@ def relevancy_margin(features, query, canon, negatives=None, *, scale: float = R
                          field="canonical_phrases")
     if normalize_features:
         feats = l2_normalize(feats)
-    dots = feats @ torch.cat([q[None], refs], 0).T  # (M, 1+K)
-    return scale * (dots[:, 0] - dots[:, 1:].max(dim=1).values)
+    # φ·(q − c) rather than φ·q − φ·c: a query equal to a reference phrase gives exactly 0, not ±1 ulp
+    return scale * (feats @ (q[None] - refs).T).min(dim=1).values
 
 
 def relevancy(features, query, canon, negatives=None, *, scale: float = RELEVANCY_SCALE,

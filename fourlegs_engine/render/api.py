@@ -50,7 +50,8 @@ def rasterize(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Te
     camera.validate()
     dtype = means.dtype if means.dtype in (torch.float32, torch.float64) else torch.float32
     if options.validate:
-        _check_inputs(means, rotations, log_scales, opacity_logits, colors, features)
+        _check_inputs(means, rotations, log_scales, opacity_logits,
+                      colors if "rgb" in outputs else None, features if "features" in outputs else None)
     device = means.device
     bg_rgb, bg_feat = _backgrounds(background, feature_background, outputs, colors, features, dtype, device)
     impl = select_backend(backend, device, outputs)
@@ -105,14 +106,25 @@ def _check_inputs(means, rotations, log_scales, opacity_logits, colors, features
                                  or features.shape[0] != N or features.shape[1] < 1):
         raise InputError(f"must have shape ({N}, C) with C >= 1, got {_shape(features)}", field="features")
     for name, t in (("means", means), ("rotations", rotations), ("colors", colors), ("features", features)):
-        if t is not None and not torch.isfinite(t).all():
+        if t is not None and not _all_finite(t):
             raise InputError("contains NaN or Inf", field=name)
-    if torch.isnan(log_scales).any() or (log_scales == float("inf")).any():
-        raise InputError("contains NaN or +Inf (an infinite scale); −Inf (scale 0) is allowed", field="log_scales")
+    if log_scales.numel():
+        lo, hi = torch.aminmax(log_scales.detach())
+        if torch.isnan(hi) or hi == float("inf"):
+            raise InputError("contains NaN or +Inf (an infinite scale); −Inf (scale 0) is allowed",
+                             field="log_scales")
     if torch.isnan(opacity_logits).any():
         raise InputError("contains NaN", field="opacity_logits")
     if N and (rotations.detach().norm(dim=-1) <= 1e-12).any():
         raise InputError("contains a zero-length quaternion; the rotation is undefined", field="rotations")
+
+
+def _all_finite(t: torch.Tensor) -> bool:
+    """One pass, no temporaries: min and max propagate NaN, and are finite iff every entry is."""
+    if t.numel() == 0:
+        return True
+    lo, hi = torch.aminmax(t.detach())
+    return bool(torch.isfinite(lo) & torch.isfinite(hi))
 
 
 def _shape(t) -> str:

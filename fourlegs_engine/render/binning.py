@@ -19,6 +19,7 @@ class Binning:
     Attributes:
         gaussian_ids: (M,) int64 Gaussian index of each (tile, Gaussian) pair, grouped by tile and
             front to back inside a tile (ties in depth broken by index).
+        pair_tiles: (M,) int32 tile of each pair (non-decreasing).
         tile_offsets: (n_tiles + 1,) int64: tile t owns ``gaussian_ids[tile_offsets[t]:tile_offsets[t+1]]``.
         tiles_x, tiles_y: tile grid size; tile t covers pixels x in [tx·s, tx·s + s), y likewise,
             with t = ty·tiles_x + tx.
@@ -27,6 +28,7 @@ class Binning:
     """
 
     gaussian_ids: torch.Tensor
+    pair_tiles: torch.Tensor
     tile_offsets: torch.Tensor
     tiles_x: int
     tiles_y: int
@@ -55,8 +57,8 @@ def bin_gaussians(proj: Projected, width: int, height: int, tile_size: int) -> B
     n_tiles = tiles_x * tiles_y
     with torch.no_grad():
         vis = torch.nonzero(proj.visible).squeeze(1)
-        order = vis[torch.sort(proj.depths.detach()[vis], stable=True).indices]  # front to back
-        b = proj.bounds[order]
+        order = vis.index_select(0, torch.sort(proj.depths.detach().index_select(0, vis), stable=True).indices)  # front to back
+        b = proj.bounds.index_select(0, order)
         tx0, tx1 = b[:, 0] // tile_size, b[:, 1] // tile_size
         ty0, ty1 = b[:, 2] // tile_size, b[:, 3] // tile_size
         span_x = tx1 - tx0 + 1
@@ -64,14 +66,17 @@ def bin_gaussians(proj: Projected, width: int, height: int, tile_size: int) -> B
         n_vis = int(order.shape[0])
         rank = torch.repeat_interleave(torch.arange(n_vis, device=device), counts)
         starts = torch.cumsum(counts, 0) - counts
-        local = torch.arange(rank.shape[0], device=device) - starts[rank]
-        sx = span_x[rank]
-        tile = (ty0[rank] + local // sx) * tiles_x + (tx0[rank] + local % sx)
-        key = tile * max(n_vis, 1) + rank  # unique: sorts by tile, then depth rank
-        key = torch.sort(key).values
-        gaussian_ids = order[key % max(n_vis, 1)]
-        per_tile = torch.bincount(key // max(n_vis, 1), minlength=n_tiles)
+        local = torch.arange(rank.shape[0], device=device) - starts.index_select(0, rank)
+        sx = span_x.index_select(0, rank)
+        # local // sx in float64 (exact for these small integers; int64 division is slow)
+        row = torch.floor(local.to(torch.float64) / sx.to(torch.float64)).to(torch.int64)
+        col = local - row * sx
+        tile = ((ty0.index_select(0, rank) + row) * tiles_x + (tx0.index_select(0, rank) + col)).to(torch.int32)
+        # pairs are generated front to back, so a stable sort by tile keeps the depth order inside tiles
+        pair_tiles, perm = torch.sort(tile, stable=True)
+        gaussian_ids = order.index_select(0, rank.index_select(0, perm))
+        per_tile = torch.bincount(pair_tiles, minlength=n_tiles)
         offsets = torch.zeros(n_tiles + 1, dtype=torch.int64, device=device)
         offsets[1:] = torch.cumsum(per_tile, 0)
-    return Binning(gaussian_ids=gaussian_ids, tile_offsets=offsets, tiles_x=tiles_x, tiles_y=tiles_y,
+    return Binning(gaussian_ids=gaussian_ids, pair_tiles=pair_tiles, tile_offsets=offsets, tiles_x=tiles_x, tiles_y=tiles_y,
                    tile_size=tile_size, width=width, height=height)

@@ -61,6 +61,12 @@ def tile_batches(binning: Binning, budget: int, chunk: int) -> Iterator[tuple[to
         yield tiles[i:i + step], c_list[i]
 
 
+def _below(x: float, dtype: torch.dtype) -> float:
+    """The largest ``dtype`` number smaller than ``x``."""
+    t = torch.tensor(x, dtype=dtype)
+    return float(torch.nextafter(t, torch.zeros_like(t)))
+
+
 class TileGeometry:
     """Per-batch constants: tile origins, list starts/lengths, and the pixel basis Φ.
 
@@ -85,28 +91,56 @@ class TileGeometry:
         self.py_int = (tiles // binning.tiles_x)[:, None] * ts + p // ts
 
 
+def pair_coefficients(geom: torch.Tensor, binning: Binning) -> tuple[torch.Tensor, torch.Tensor]:
+    """Exponent coefficients of every (tile, Gaussian) pair, plus a sentinel row.
+
+    Returns:
+        coef: (M+1, 6) [−a/2, −b, −c/2, a·ux + b·uy, b·ux + c·uy, −½(a ux² + 2b ux uy + c uy²) + ln o] with
+            (ux, uy) the mean relative to the pair's tile origin; row M is the sentinel (exponent −inf,
+            i.e. α = 0) used to pad lists.
+        gids: (M+1,) Gaussian ids with the sentinel mapped to 0.
+    """
+    ts = binning.tile_size
+    gids = binning.gaussian_ids
+    tile = binning.pair_tiles.to(torch.int64)
+    mx, my, ca, cb, cc, o = geom.index_select(0, gids).unbind(-1)
+    ux = mx - ((tile % binning.tiles_x) * ts).to(geom.dtype)
+    uy = my - ((tile // binning.tiles_x) * ts).to(geom.dtype)
+    M = gids.shape[0]
+    coef = torch.empty(M + 1, 6, dtype=geom.dtype, device=geom.device)
+    torch.mul(ca, -0.5, out=coef[:M, 0])
+    torch.neg(cb, out=coef[:M, 1])
+    torch.mul(cc, -0.5, out=coef[:M, 2])
+    torch.addcmul(ca * ux, cb, uy, out=coef[:M, 3])
+    torch.addcmul(cb * ux, cc, uy, out=coef[:M, 4])
+    # −½(a ux² + c uy²) − b ux uy + ln o  =  −½ ux·coef3 − ½ uy·coef4 + ln o
+    coef[:M, 5] = torch.log(o) - 0.5 * (ux * coef[:M, 3] + uy * coef[:M, 4])
+    coef[M] = torch.tensor([0, 0, 0, 0, 0, -torch.inf], dtype=geom.dtype, device=geom.device)
+    gid_table = torch.zeros(M + 1, dtype=gids.dtype, device=gids.device)
+    gid_table[:M] = gids
+    return coef, gid_table
+
+
 class Chunk:
     """List entries [j0, j0+K) of the tiles ``rows`` (indices into the batch) and their α."""
 
-    def __init__(self, geom: torch.Tensor, binning: Binning, tg: TileGeometry, rows: torch.Tensor,
-                 j0: int, k: int, opts: RasterOptions):
-        ar = torch.arange(j0, j0 + k, device=geom.device)
+    def __init__(self, tables: tuple[torch.Tensor, torch.Tensor], tg: TileGeometry, rows: torch.Tensor,
+                 j0: int, k: int, opts: RasterOptions, for_backward: bool = False):
+        coef_table, gid_table = tables
+        sentinel = coef_table.shape[0] - 1
+        ar = torch.arange(j0, j0 + k, device=coef_table.device)
         self.rows = rows
         self.valid = ar[None, :] < tg.count[rows, None]  # (b,K)
-        pos = torch.where(self.valid, tg.start[rows, None] + ar[None, :], torch.zeros_like(ar)[None, :])
-        self.gid = binning.gaussian_ids[pos]  # (b,K)
-        mx, my, ca, cb, cc, o = geom[self.gid].unbind(-1)
-        self.ux = mx - tg.x0[rows, None]  # tile-local mean
-        self.uy = my - tg.y0[rows, None]
-        self.ca, self.cb, self.cc, self.o = ca, cb, cc, o
-        ux, uy = self.ux, self.uy
-        const = -0.5 * (ca * ux * ux + cc * uy * uy) - cb * ux * uy + torch.log(o)
-        const = torch.where(self.valid, const, torch.full_like(const, -torch.inf))
-        coef = torch.stack([-0.5 * ca, -cb, -0.5 * cc, ca * ux + cb * uy, cb * ux + cc * uy, const], dim=1)
-        alpha = torch.matmul(tg.phi, coef).exp_()  # (b,P,K) o·G
-        self.unclamped = alpha < opts.alpha_max
+        pos = torch.where(self.valid, tg.start[rows, None] + ar[None, :], torch.full_like(ar, sentinel)[None, :])
+        self.pos = pos.reshape(-1)
+        self.gid = gid_table.index_select(0, self.pos).view(pos.shape)  # (b,K)
+        coef = coef_table.index_select(0, self.pos).view(pos.shape + (6,))
+        alpha = torch.matmul(tg.phi, coef.transpose(1, 2)).exp_()  # (b,P,K) = o·G
+        if for_backward:
+            self.unclamped = alpha < opts.alpha_max
         alpha.clamp_(max=opts.alpha_max)
-        alpha.masked_fill_(alpha < opts.alpha_min, 0.0)
+        # α < alpha_min → 0 in one fused pass (threshold keeps x > t; t = the float just below alpha_min)
+        torch.nn.functional.threshold_(alpha, _below(opts.alpha_min, alpha.dtype), 0.0)
         self.alpha = alpha
 
     def blend(self, t_start: torch.Tensor, done: torch.Tensor, opts: RasterOptions
@@ -128,18 +162,18 @@ class Chunk:
         return t_excl, t_end, done, t_incl
 
 
-def _chunks(geom: torch.Tensor, binning: Binning, tg: TileGeometry, k_max: int, opts: RasterOptions,
-            chunk: int, t_state: torch.Tensor, done: torch.Tensor):
+def _chunks(tables, tg: TileGeometry, k_max: int, opts: RasterOptions, chunk: int, t_state: torch.Tensor,
+            done: torch.Tensor):
     """Run the batch front to back, yielding (Chunk, t_start, done_start, t_excl, t_end, t_incl)
     per chunk; ``t_state``/``done`` (B,P) are updated in place. Tiles whose pixels are all done, or
     whose lists are exhausted, leave the loop early."""
-    rows = torch.arange(tg.tiles.shape[0], device=geom.device)
+    rows = torch.arange(tg.tiles.shape[0], device=t_state.device)
     for j0 in range(0, k_max, chunk):
         alive = (tg.count[rows] > j0) & ~done[rows].all(dim=-1)
         rows = rows[alive]
         if rows.numel() == 0:
             return
-        ch = Chunk(geom, binning, tg, rows, j0, min(chunk, k_max - j0), opts)
+        ch = Chunk(tables, tg, rows, j0, min(chunk, k_max - j0), opts)
         t_start, d_start = t_state[rows], done[rows]
         t_excl, t_end, d_end, t_incl = ch.blend(t_start, d_start, opts)
         t_state[rows] = t_end
@@ -164,16 +198,18 @@ def rasterize_forward(geom: torch.Tensor, values: torch.Tensor, binning: Binning
     median = torch.full((n_tiles, P), -1, device=device, dtype=torch.int64) if want_median else None
     rows_out: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
     with torch.no_grad():
+        tables = pair_coefficients(geom, binning)
         for tiles, k_max in tile_batches(binning, opts.batch_elements, chunk):
             tg = TileGeometry(binning, tiles, dtype)
             B = tiles.shape[0]
             t_state = torch.ones(B, P, device=device, dtype=dtype)
             done = torch.zeros(B, P, device=device, dtype=torch.bool)
             acc = torch.zeros(B, P, C, device=device, dtype=dtype)
-            for ch, _, _, t_excl, _, _ in _chunks(geom, binning, tg, k_max, opts, chunk, t_state, done):
+            for ch, _, _, t_excl, _, _ in _chunks(tables, tg, k_max, opts, chunk, t_state, done):
                 w = ch.alpha.mul_(t_excl)
                 if C:
-                    acc[ch.rows] += torch.bmm(w, values[ch.gid].to(dtype))
+                    vals = values.index_select(0, ch.gid.reshape(-1)).view(ch.gid.shape + (C,))
+                    acc[ch.rows] += torch.bmm(w, vals.to(dtype))
                 if want_weights:
                     inside = (tg.px_int[ch.rows] < binning.width) & (tg.py_int[ch.rows] < binning.height)
                     b, p, kk = torch.nonzero((w > 0) & inside[..., None], as_tuple=True)
@@ -182,7 +218,7 @@ def rasterize_forward(geom: torch.Tensor, values: torch.Tensor, binning: Binning
             accum[tiles] = acc
             t_final_all[tiles] = t_state
             if want_median:
-                median[tiles] = _median_ids(geom, binning, tg, k_max, opts, chunk, t_state)
+                median[tiles] = _median_ids(tables, tg, k_max, opts, chunk, t_state)
     weights = None
     if want_weights:
         if rows_out:
@@ -197,17 +233,17 @@ def rasterize_forward(geom: torch.Tensor, values: torch.Tensor, binning: Binning
     return RasterResult(accum=accum, transmittance=t_final_all, median_ids=median, weights=weights)
 
 
-def _median_ids(geom, binning, tg, k_max, opts, chunk, t_final) -> torch.Tensor:
+def _median_ids(tables, tg, k_max, opts, chunk, t_final) -> torch.Tensor:
     """(B,P) id of the first Gaussian where the accumulated weight 1 − T reaches half of the pixel's
     alpha, i.e. T_incl ≤ (1 + T_final)/2; −1 where nothing is drawn (a second pass over the batch)."""
     B, P = t_final.shape
-    device = geom.device
+    device = t_final.device
     thresh = 0.5 * (1.0 + t_final)
     ids = torch.full((B, P), -1, dtype=torch.int64, device=device)
     found = t_final >= 1.0  # nothing drawn: never search
     t_state = torch.ones_like(t_final)
     done = torch.zeros_like(found)
-    for ch, _, _, _, _, t_incl in _chunks(geom, binning, tg, k_max, opts, chunk, t_state, done):
+    for ch, _, _, _, _, t_incl in _chunks(tables, tg, k_max, opts, chunk, t_state, done):
         hit = (t_incl <= thresh[ch.rows, :, None]) & (ch.alpha > 0) & ~found[ch.rows, :, None]
         any_hit = hit.any(-1)
         first = hit.to(torch.int8).argmax(dim=-1)
@@ -233,30 +269,31 @@ def rasterize_backward(geom: torch.Tensor, values: torch.Tensor, binning: Binnin
     grad_geom = torch.zeros(N, GEOM_CHANNELS, device=device, dtype=dtype)
     grad_values = torch.zeros(N, C, device=device, dtype=dtype) if need_values_grad else None
     with torch.no_grad():
+        tables = pair_coefficients(geom, binning)
         for tiles, k_max in tile_batches(binning, opts.batch_elements, chunk):
             tg = TileGeometry(binning, tiles, dtype)
             B = tiles.shape[0]
             t_state = torch.ones(B, P, device=device, dtype=dtype)
             done = torch.zeros(B, P, device=device, dtype=torch.bool)
             starts = [(ch.rows, j0, t_start, d_start) for j0, (ch, t_start, d_start, *_) in
-                      zip(range(0, k_max, chunk), _chunks(geom, binning, tg, k_max, opts, chunk, t_state, done))]
+                      zip(range(0, k_max, chunk), _chunks(tables, tg, k_max, opts, chunk, t_state, done))]
             g_all = grad_accum[tiles] if C else None  # (B,P,C)
             # the T_final term of ∂L/∂α: every blended entry is followed by T_final·∂L/∂T_final
             carry = t_state * grad_t[tiles]  # (B,P)
             for rows, j0, t_start, d_start in reversed(starts):
-                ch = Chunk(geom, binning, tg, rows, j0, min(chunk, k_max - j0), opts)
+                ch = Chunk(tables, tg, rows, j0, min(chunk, k_max - j0), opts, for_backward=True)
                 t_excl, _, _, _ = ch.blend(t_start, d_start, opts)
                 alpha = ch.alpha
                 w = alpha * t_excl
                 if C:
                     g = g_all[rows]
-                    vals = values[ch.gid].to(dtype)  # (b,K,C)
+                    vals = values.index_select(0, ch.gid.reshape(-1)).view(ch.gid.shape + (C,)).to(dtype)
                     s = torch.bmm(g, vals.transpose(1, 2))  # (b,P,K) ∂L/∂w
                     if need_values_grad:
                         grad_values.index_add_(0, ch.gid.reshape(-1), torch.bmm(w.transpose(1, 2), g).reshape(-1, C))
                     ws = s * w
                     cs = torch.cumsum(ws, dim=-1)
-                    total = cs[..., -1]
+                    total = cs[..., -1].clone()
                     suffix = cs.neg_().add_((total + carry[rows])[..., None])  # Σ_{k>i} w_k s_k (+ T_final term)
                     carry[rows] += total
                     d_alpha = s.mul_(t_excl)
@@ -266,22 +303,24 @@ def rasterize_backward(geom: torch.Tensor, values: torch.Tensor, binning: Binnin
                 d_alpha.sub_(suffix / (1.0 - alpha))
                 d_power = d_alpha.mul_(alpha).mul_((alpha > 0) & ch.unclamped)  # ∂L/∂power, α = exp(power)
                 d_coef = torch.matmul(tg.phi.T, d_power)  # (b,6,K)
-                grads = _coef_to_geom_grads(ch, d_coef)
+                grads = _coef_to_geom_grads(ch, d_coef, geom, tg)
                 grads = torch.where(ch.valid[..., None], grads, torch.zeros_like(grads))
                 grad_geom.index_add_(0, ch.gid.reshape(-1), grads.reshape(-1, GEOM_CHANNELS))
     return grad_geom, grad_values
 
 
-def _coef_to_geom_grads(ch: Chunk, d_coef: torch.Tensor) -> torch.Tensor:
-    """Chain ∂L/∂coef (b,6,K) to ∂L/∂(mx, my, a, b, c, o) (b,K,6); see :class:`Chunk` for coef."""
+def _coef_to_geom_grads(ch: Chunk, d_coef: torch.Tensor, geom: torch.Tensor, tg: TileGeometry) -> torch.Tensor:
+    """Chain ∂L/∂coef (b,6,K) to ∂L/∂(mx, my, a, b, c, o) (b,K,6); see :func:`pair_coefficients`."""
     d0, d1, d2, d3, d4, d5 = d_coef.unbind(1)
-    ux, uy, ca, cb, cc = ch.ux, ch.uy, ch.ca, ch.cb, ch.cc
+    mx, my, ca, cb, cc, o = geom.index_select(0, ch.gid.reshape(-1)).view(ch.gid.shape + (6,)).unbind(-1)
+    ux = mx - tg.x0[ch.rows, None]
+    uy = my - tg.y0[ch.rows, None]
     d_ca = -0.5 * d0 + ux * d3 - 0.5 * ux * ux * d5
     d_cb = -d1 + uy * d3 + ux * d4 - ux * uy * d5
     d_cc = -0.5 * d2 + uy * d4 - 0.5 * uy * uy * d5
     d_ux = ca * d3 + cb * d4 - (ca * ux + cb * uy) * d5
     d_uy = cb * d3 + cc * d4 - (cb * ux + cc * uy) * d5
-    d_o = d5 / ch.o
+    d_o = d5 / o
     return torch.stack([d_ux, d_uy, d_ca, d_cb, d_cc, d_o], dim=-1)
 
 

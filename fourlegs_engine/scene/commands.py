@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import sys
 from typing import Any
 
 from ..errors import InputError
@@ -27,7 +29,10 @@ def run_info(args: argparse.Namespace) -> int:
         raise InputError("give either a scene PATH or --demo (exactly one)", field="info")
     path = demo_bundle_path() if args.demo else args.path
     summary = load_scene(path).summary()
-    print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
+    try:
+        print(json.dumps(summary, indent=2) if args.json else format_summary(summary), flush=True)
+    except BrokenPipeError:  # e.g. `fourlegs info --demo | head -3`: the reader left, not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0
 
 

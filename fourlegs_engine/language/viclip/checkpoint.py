@@ -4,7 +4,8 @@ Accepted inputs (nothing is ever downloaded):
 
 - ``ViClip-InternVid-10M-FLT.pth`` (and other ``.pth``/``.pt``/``.bin`` files): read with
   ``torch.load(weights_only=True)``, so no pickled code can run; the state dict is the ``"model"``
-  entry (a bare state dict is accepted too).
+  entry (a bare state dict is accepted too). A run configuration stored beside it as an
+  ``easydict.EasyDict`` (InternVideo training checkpoints) is read as a plain OrderedDict.
 - ``model.safetensors`` of ``OpenGVLab/ViCLIP-L-14-hf`` / ``ViCLIP-B-16-hf`` (or the directory that
   holds it): the same keys, stored flat.
 
@@ -15,6 +16,8 @@ saved from a DistributedDataParallel wrapper) is removed first; nothing else is 
 from __future__ import annotations
 
 import pickle
+import zipfile
+from collections import OrderedDict
 from pathlib import Path
 from typing import Mapping
 
@@ -67,14 +70,33 @@ def _read_safetensors(path: Path) -> dict[str, torch.Tensor]:
         raise InputError(f"not a readable safetensors file ({exc})", file=path) from None
 
 
+# Training checkpoints of the InternVideo family keep their run configuration next to the weights as
+# an ``easydict.EasyDict``. Its pickle only creates the object, fills its items and sets its
+# attributes; a plain OrderedDict accepts exactly those steps, so the name is mapped to OrderedDict
+# (no code from the easydict package, installed or not, is ever involved).
+_INERT_STAND_INS = [(OrderedDict, "easydict.EasyDict")]
+
+
+def _torch_load(path: Path):
+    """``torch.load(weights_only=True)``, memory-mapped for zip archives (reading them costs nothing)."""
+    mmap = zipfile.is_zipfile(path)
+    safe_globals = getattr(torch.serialization, "safe_globals", None)
+    if safe_globals is None:  # torch < 2.5: no stand-ins, EasyDict entries are refused
+        return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+    with safe_globals(_INERT_STAND_INS):
+        return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+
+
 def _read_torch(path: Path) -> dict[str, torch.Tensor]:
     try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
+        obj = _torch_load(path)
     except pickle.UnpicklingError as exc:
         detail = _unpickler_detail(str(exc))
         if "global" in detail.lower():
             raise InputError("refused: the file holds pickled Python objects beyond tensors, which are "
-                             f"never executed (torch.load weights_only=True: {detail})", file=path) from None
+                             f"never executed (torch.load weights_only=True: {detail}). If the file comes "
+                             "from a source you trust, re-save its 'model' entry alone with torch.save "
+                             "once and load that", file=path) from None
         raise InputError(f"not a readable torch checkpoint ({detail})", file=path) from None
     except (RuntimeError, OSError, EOFError, ValueError) as exc:
         raise InputError(f"not a readable torch checkpoint ({exc})", file=path) from None
@@ -158,7 +180,9 @@ def load_viclip(path: str | Path, *, size: str | ViCLIPConfig | None = "auto",
     with torch.device("meta"):
         model = ViCLIPModel(config)
     target = torch.device(device)
-    converted = {key: value.to(device=target, dtype=dtype if value.is_floating_point() else value.dtype)
+    # copy=True: never keep a view of the (memory-mapped) file inside the model
+    converted = {key: value.to(device=target, dtype=dtype if value.is_floating_point() else value.dtype,
+                               copy=True)
                  for key, value in state.items()}
     model.load_state_dict(converted, strict=True, assign=True)
     model.requires_grad_(False)

@@ -7,7 +7,7 @@ from typing import Sequence
 import torch
 
 from ...errors import InputError
-from .checkpoint import load_viclip
+from .checkpoint import load_viclip, resolve_checkpoint_path
 from .model import CLIP_MEAN, CLIP_STD, IMAGENET_MEAN, IMAGENET_STD, ViCLIPModel
 from .tokenizer import BPETokenizer
 
@@ -17,16 +17,17 @@ NORMALIZATIONS = {"clip": (CLIP_MEAN, CLIP_STD), "imagenet": (IMAGENET_MEAN, IMA
 class ViCLIPEncoder:
     """Video and text embeddings in ViCLIP's joint space, L2-normalized, batched, without gradients.
 
-    ``encode_video`` takes clips that are ALREADY normalized with ``pixel_mean``/``pixel_std``
-    (``normalize`` does that for clips in [0, 1]). ``normalization="clip"`` (the default) gives the
-    CLIP statistics named by the 4-LEGS feature pipeline; ``"imagenet"`` gives the statistics ViCLIP
-    itself was trained and demonstrated with.
+    ``encode_video`` takes clips normalized with the CLIP statistics (``pixel_mean``/``pixel_std``;
+    ``normalize`` does that for clips in [0, 1]), as the contract of ``language`` says.
+    ``normalization`` chooses what the model then sees: ``"clip"`` (default) feeds them unchanged, as
+    the 4-LEGS feature pipeline describes; ``"imagenet"`` re-expresses them with the ImageNet
+    statistics that ViCLIP itself was trained and demonstrated with (an exact per-channel affine map).
     """
 
     input_kind = "rgb"
 
     def __init__(self, model: ViCLIPModel, tokenizer: BPETokenizer, *, batch_size: int = 16,
-                 normalization: str = "clip", name: str | None = None):
+                 normalization: str = "clip", name: str | None = None, source: dict | None = None):
         config = model.config
         if tokenizer.vocab_size != config.vocab_size:
             raise InputError(f"the vocabulary has {tokenizer.vocab_size} ids but the model's text tower "
@@ -38,18 +39,30 @@ class ViCLIPEncoder:
             raise InputError(f"batch size must be at least 1, got {batch_size}", field="batch_size")
         self.model = model.eval().requires_grad_(False)
         self.tokenizer = tokenizer
-        self.config = config
+        self.model_config = config
         self.batch_size = int(batch_size)
         self.normalization = normalization
-        mean, std = NORMALIZATIONS[normalization]
-        self.pixel_mean = torch.tensor(mean)
-        self.pixel_std = torch.tensor(std)
+        self.pixel_mean = torch.tensor(CLIP_MEAN)
+        self.pixel_std = torch.tensor(CLIP_STD)
+        # model input = clips * scale + shift, per channel (identity for "clip")
+        mean, std = (torch.tensor(v, dtype=torch.float64) for v in NORMALIZATIONS[normalization])
+        clip_mean, clip_std = self.pixel_mean.double(), self.pixel_std.double()
+        self._scale = (clip_std / std).float()
+        self._shift = ((clip_mean - mean) / std).float()
         self.dim = config.embed_dim
         self.num_frames = config.num_frames
         self.image_size = config.image_size
         self.context_length = config.context_length
+        self.source = dict(source or {})
         self.name = name or ("viclip" if config.size_name == "L/14" else
                              "viclip-b16" if config.size_name == "B/16" else "viclip-custom")
+
+    def config(self) -> dict:
+        """JSON-serializable settings that change the embeddings (for config hashes of cached features)."""
+        return {"encoder": self.name, "size": self.model_config.size_name, "dim": self.dim,
+                "num_frames": self.num_frames, "image_size": self.image_size,
+                "context_length": self.context_length, "normalization": self.normalization,
+                "dtype": str(self.model.temp.dtype).replace("torch.", ""), **self.source}
 
     @classmethod
     def from_files(cls, checkpoint: str | Path, vocab: str | Path, *, size: str | None = "auto",
@@ -57,15 +70,18 @@ class ViCLIPEncoder:
                    batch_size: int = 16, normalization: str = "clip") -> "ViCLIPEncoder":
         """Tokenizer first (cheap, fails fast on a wrong path), then the strict checkpoint load."""
         tokenizer = BPETokenizer(vocab)
-        model = load_viclip(checkpoint, size=size, device=device, dtype=dtype)
-        return cls(model, tokenizer, batch_size=batch_size, normalization=normalization)
+        checkpoint_file = resolve_checkpoint_path(checkpoint)
+        model = load_viclip(checkpoint_file, size=size, device=device, dtype=dtype)
+        source = {"checkpoint": checkpoint_file.name, "checkpoint_bytes": checkpoint_file.stat().st_size,
+                  "vocab": tokenizer.path.name}
+        return cls(model, tokenizer, batch_size=batch_size, normalization=normalization, source=source)
 
     @property
     def device(self) -> torch.device:
         return self.model.temp.device
 
     def normalize(self, clips: torch.Tensor) -> torch.Tensor:
-        """clips (..., 3, H, W) in [0, 1] -> normalized with ``pixel_mean``/``pixel_std``."""
+        """clips (..., 3, H, W) in [0, 1] -> CLIP-normalized (``pixel_mean``/``pixel_std``)."""
         mean = self.pixel_mean.to(clips.device, clips.dtype)[:, None, None]
         std = self.pixel_std.to(clips.device, clips.dtype)[:, None, None]
         return (clips - mean) / std
@@ -86,13 +102,19 @@ class ViCLIPEncoder:
 
     @torch.inference_mode()
     def encode_video(self, clips: torch.Tensor) -> torch.Tensor:
-        """clips (B, 8, 3, 224, 224) normalized -> (B, D) float32, on the clips' device."""
+        """clips (B, 8, 3, 224, 224) CLIP-normalized -> (B, D) float32, on the clips' device."""
         self._check_clips(clips)
         if clips.shape[0] == 0:
             return torch.zeros(0, self.dim, device=clips.device)
         model_dtype = self.model.temp.dtype
-        out = [self.model.encode_video(chunk.to(self.device, model_dtype, non_blocking=True)).float()
-               for chunk in clips.split(self.batch_size)]
+        out = []
+        for chunk in clips.split(self.batch_size):
+            chunk = chunk.to(self.device, non_blocking=True)
+            if self.normalization != "clip":
+                scale = self._scale.to(chunk.device, chunk.dtype)[:, None, None]
+                shift = self._shift.to(chunk.device, chunk.dtype)[:, None, None]
+                chunk = chunk * scale + shift
+            out.append(self.model.encode_video(chunk.to(model_dtype)).float())
         return torch.cat(out).to(clips.device)
 
     @torch.inference_mode()
@@ -108,5 +130,5 @@ class ViCLIPEncoder:
         return torch.cat(out)
 
     def __repr__(self) -> str:
-        return (f"ViCLIPEncoder({self.config.size_name}, dim={self.dim}, device={self.device}, "
+        return (f"ViCLIPEncoder({self.model_config.size_name}, dim={self.dim}, device={self.device}, "
                 f"normalization={self.normalization!r})")

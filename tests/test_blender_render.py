@@ -1,0 +1,115 @@
+"""The "4-LEGS Splats" render engine (Combined, Depth, Relevancy passes; relevancy only on planned
+frames), the compositor's desaturation in the final image, and the video writer."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from _blender_helpers import bl, bpy_addon, hand_plan, tiny_scene  # noqa: F401
+
+pytestmark = pytest.mark.blender
+OpenEXR = pytest.importorskip("OpenEXR")
+
+
+@pytest.fixture
+def highlight(bl):
+    """Tiny scene + hand-made plan with desaturation; relevancy 1 for x < 0 Gaussians, 0 elsewhere."""
+    from fourlegs_addon import importer, operators, render_engine
+
+    scene = tiny_scene(N=400)
+    obj = importer.import_scene(bl.context.scene, scene)
+    calls = []
+
+    def provider(t):
+        calls.append(t)
+        return (scene.gaussians.means[t][:, 0] < 0.1 * t).astype(np.float32)
+
+    importer.set_relevancy_provider(obj, provider)
+    operators.generate_highlight(bl.context.scene, hand_plan(desaturate=True))
+    render_engine.reset_stats()
+    return bl.context.scene, scene, calls
+
+
+def _render_passes(bl, frame: int, path) -> dict[str, np.ndarray]:
+    scene = bl.context.scene
+    scene.frame_set(frame)
+    bl.ops.render.render()
+    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    bl.data.images["Render Result"].save_render(str(path))
+    out = {}
+    for part in OpenEXR.File(str(path)).parts:
+        for name, channel in part.channels.items():
+            out[name] = np.asarray(channel.pixels, dtype=np.float32)
+    return out
+
+
+def test_passes_are_written_and_relevancy_only_on_planned_frames(highlight, bl, tmp_path):
+    from fourlegs_addon import render_engine
+
+    scene, src, calls = highlight
+    planned = _render_passes(bl, 9, tmp_path / "f9.exr")  # frame 9 is in the plan's relevancy range
+    rgba = planned["ViewLayer.Combined"]
+    depth = planned["ViewLayer.Depth.Z"]
+    rel = planned["ViewLayer.Relevancy.X"]
+    assert rgba.shape == (24, 32, 4)
+    hit = depth < 1e9
+    assert 20 < hit.sum() < hit.size  # the cube covers part of the frame
+    assert rgba[..., :3][hit].max() > 0.2 and rgba[..., :3][~hit].max() < 0.05
+    cam_dist = np.linalg.norm(np.array(scene.camera.matrix_world.translation))
+    assert depth[hit].min() > cam_dist - 1.5 and depth[hit].max() < cam_dist + 1.5
+    assert 0.0 <= rel.min() and rel.max() <= 1.0 and rel[hit].max() > 0.9 and rel[hit].min() < 0.1
+    assert calls == [2]  # the scene timestep held at frame 9 is 2.0: relevancy of timestep 2, once
+    assert render_engine.stats["relevancy_frames"] == [9]
+
+    unplanned = _render_passes(bl, 3, tmp_path / "f3.exr")  # outside the relevancy range
+    assert calls == [2] and render_engine.stats["relevancy_frames"] == [9]
+    assert np.all(unplanned["ViewLayer.Relevancy.X"] == 0.0)
+    assert unplanned["ViewLayer.Combined"][..., :3].max() > 0.2
+    assert render_engine.stats["frames"] == 2 and render_engine.stats["last_error"] is None
+
+
+def test_compositor_desaturates_the_irrelevant_background(highlight, bl, tmp_path):
+    passes = _render_passes(bl, 9, tmp_path / "f9.exr")  # desaturation weight 1 at frame 9
+    combined, final = passes["ViewLayer.Combined"][..., :3], passes["Composite.Combined"][..., :3]
+    rel = passes["ViewLayer.Relevancy.X"]
+    hit = passes["ViewLayer.Depth.Z"] < 1e9
+    saturation = lambda img: img.max(-1) - img.min(-1)  # noqa: E731
+    irrelevant = hit & (rel < 0.2) & (saturation(combined) > 0.1)
+    relevant = hit & (rel > 0.8) & (saturation(combined) > 0.1)
+    assert irrelevant.sum() > 3 and relevant.sum() > 3
+    assert saturation(final)[irrelevant].max() < 0.02  # grey
+    np.testing.assert_allclose(final[relevant], combined[relevant], atol=0.02)  # untouched
+    passes = _render_passes(bl, 3, tmp_path / "f3.exr")  # weight 0 outside the range: unchanged
+    np.testing.assert_allclose(passes["Composite.Combined"][..., :3], passes["ViewLayer.Combined"][..., :3],
+                               atol=0.02)
+
+
+def test_render_engine_reports_errors_instead_of_crashing(highlight, bl, tmp_path):
+    from fourlegs_addon import render_engine
+
+    scene, _, _ = highlight
+    scene.camera.data.type = "ORTHO"
+    scene.frame_set(2)
+    with pytest.raises(RuntimeError, match="needs a perspective camera"):
+        bl.ops.render.render()
+    assert "perspective" in render_engine.stats["last_error"]
+
+
+def test_video_is_written_decodable_and_never_overwritten(highlight, bl, tmp_path):
+    from fourlegs_addon import render_engine, video
+
+    scene, _, calls = highlight
+    done = []
+    out = video.render_animation(scene, tmp_path / "clip.mp4", on_frame=lambda d, n: done.append((d, n)))
+    assert out.is_file() and out.stat().st_size > 0
+    assert video.movie_frame_count(out) == 12
+    assert done[-1] == (12, 12) and len(done) == 12
+    assert render_engine.stats["relevancy_frames"] == list(range(7, 13))
+    assert sorted(set(calls)) == [2]  # cached: one relevancy evaluation for the held timestep
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left behind
+    mtime = out.stat().st_mtime_ns
+    with pytest.raises(FileExistsError):
+        video.render_animation(scene, out)
+    assert out.stat().st_mtime_ns == mtime
+    frames = video.render_animation(scene, tmp_path / "frames", fmt="PNG")
+    assert sorted(p.name for p in frames.iterdir()) == [f"frame_{i:04d}.png" for i in range(1, 13)]

@@ -1,0 +1,232 @@
+"""Extraction, autoencoder training and distillation on a micro scene: lift vs least squares, the
+sparse rendering map vs the rasterizer, determinism, resume after a real kill, config-change refusal,
+sharding and the LanguageField."""
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from _language_helpers import micro_bundle
+from fourlegs_engine.cli import main
+from fourlegs_engine.errors import ConfigMismatchError, InputError
+from fourlegs_engine.language.autoencoder import AETrainConfig, train_autoencoder
+from fourlegs_engine.language.distill import (DistillConfig, ViewOperator, distill_scene, lift_latents,
+                                              optimize_latents, view_operator)
+from fourlegs_engine.language.encoders import get_encoder
+from fourlegs_engine.language.extract import ExtractConfig, check_features, extract_features
+from fourlegs_engine.language.field import LanguageField
+from fourlegs_engine.render import rasterize
+from fourlegs_engine.scene.bundle import load_bundle
+from fourlegs_engine.scene.camera import Camera
+from fourlegs_engine.scene.gaussians import GaussianFrame
+
+AE_ARGS = ["--epochs", "2", "--samples", "2048", "--ae-batch-size", "256"]
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def prepared(tmp_path_factory) -> Path:
+    """Micro bundle with features extracted and the autoencoder trained (through the CLI)."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    path = micro_bundle(tmp_path_factory.mktemp("lang") / "micro")
+    assert main(["extract", str(path), "--no-progress"]) == 0
+    assert main(["train-ae", str(path), *AE_ARGS]) == 0
+    torch.set_num_threads(old)
+    return path
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+# ------------------------------------------------------------------------------ rendering map
+def _separated_frame(n: int = 5) -> tuple[GaussianFrame, Camera]:
+    means = torch.tensor([[x, 0.0, 0.0] for x in np.linspace(-1.6, 1.6, n)], dtype=torch.float32)
+    frame = GaussianFrame(means=means, rotations=torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+                          log_scales=torch.full((n, 3), math.log(0.08)),
+                          opacity_logits=torch.linspace(0.5, 4.0, n))
+    cam = Camera.look_at((0, -4.0, 0), (0, 0, 0), width=64, height=24, fov_y=math.radians(30))
+    return frame, cam
+
+
+def test_lift_equals_least_squares_when_each_pixel_sees_one_gaussian():
+    frame, cam = _separated_frame()
+    n = frame.num_gaussians
+    args = (frame.means, frame.rotations, frame.log_scales, frame.opacity_logits, cam)
+    op = view_operator(frame, cam)
+    per_pixel = torch.bincount(op.A.crow_indices().diff(), minlength=3)
+    assert per_pixel[2:].sum() == 0 and per_pixel[1] > 20     # precondition: <= 1 Gaussian per pixel
+    # the rendering matrix from the rasterizer's feature output (an independent path)
+    A = rasterize(*args, features=torch.eye(n, dtype=torch.float64), outputs=("features",))["features"]
+    A = A.reshape(-1, n).double()
+    rng = np.random.default_rng(0)
+    teacher = torch.from_numpy(rng.normal(size=(A.shape[0], 8)))
+    ls = torch.linalg.lstsq(A, teacher).solution
+    ls = ls / ls.norm(dim=1, keepdim=True)
+    lift = lift_latents([op], [teacher.float()]).double()
+    torch.testing.assert_close(lift, ls, atol=2e-5, rtol=1e-4)
+
+
+def test_view_operator_matches_the_rasterizer_values_and_gradients(prepared):
+    scene = load_bundle(prepared)
+    frame = scene.gaussians.at(1)
+    cam = scene.cameras.cameras(1)[0]
+    op = view_operator(frame, cam)
+    feats = torch.randn(frame.num_gaussians, 6, requires_grad=True)
+    ras = rasterize(frame.means, frame.rotations, frame.log_scales, frame.opacity_logits, cam,
+                    features=feats, outputs=("features",))["features"].reshape(-1, 6)
+    mine = op.render(feats)
+    torch.testing.assert_close(mine, ras, atol=1e-5, rtol=1e-5)
+    g = torch.randn_like(ras)
+    (gr,) = torch.autograd.grad((ras * g).sum(), feats)
+    (gm,) = torch.autograd.grad((mine * g).sum(), feats)
+    torch.testing.assert_close(gm, gr, atol=1e-5, rtol=1e-5)
+    # background pixels render zero; weights per pixel sum to alpha <= 1
+    alpha = op.A @ torch.ones(frame.num_gaussians, 1)
+    assert float(alpha.max()) <= 1.0 + 1e-6
+
+
+def test_optimize_decreases_the_loss_and_is_deterministic():
+    frame, cam = _separated_frame()
+    op = view_operator(frame, cam)
+    teacher = torch.nn.functional.normalize(torch.randn(64 * 24, 16), dim=1)
+    nbr = torch.arange(5)[:, None].repeat(1, 2)
+    nbr[:, 1] = (nbr[:, 0] + 1) % 5
+    cfg = DistillConfig(mode="optimize", iterations=60, lr_latents=0.05).check()
+    a, loss_a = optimize_latents([op], [teacher], nbr, cfg, seed=3)
+    b, loss_b = optimize_latents([op], [teacher], nbr, cfg, seed=3)
+    assert torch.equal(a, b) and loss_a == loss_b
+    first = float((op.render(torch.zeros(5, 16)) - teacher).abs().mean())
+    assert loss_a < first
+    for smoothing in ("none", "blur"):
+        c, _ = optimize_latents([op], [teacher], nbr, DistillConfig(mode="optimize", iterations=5,
+                                                                   smoothing=smoothing).check(), seed=3)
+        assert c.shape == (5, 16) and torch.isfinite(c).all()
+
+
+# ------------------------------------------------------------------------------- the pipeline
+def test_pipeline_outputs_and_language_field(prepared, tmp_path):
+    path = _copy(prepared, tmp_path / "b")
+    report = check_features(load_bundle(path))
+    assert report["complete"] and report["missing"] == []
+    assert main(["distill", str(path), "--no-progress"]) == 0
+    scene = load_bundle(path)
+    lang = scene.language
+    assert lang["mode"] == "lift" and lang["encoder"] == "simulated" and lang["latent_dim"] == 128
+    assert lang["canonical_phrases"] == ["object", "things", "stuff", "texture"]
+    assert scene.gaussians.latents.shape == (4, scene.num_gaussians, 128)
+    assert scene.gaussians.latents.dtype == np.float16
+    field = LanguageField.open(path)
+    assert field.latent_dim == 128 and field.encoder_name == "simulated"
+    z = field.latents_at(2)
+    seen = z.norm(dim=1) > 0
+    assert seen.float().mean() > 0.5
+    torch.testing.assert_close(z[seen].norm(dim=1), torch.ones(int(seen.sum())), atol=2e-3, rtol=0)
+    out = field.decode(z[:10])
+    assert out.shape == (10, 768)
+    torch.testing.assert_close(out.norm(dim=1), torch.ones(10))
+    assert torch.isfinite(field.decode(torch.full((2, 128), float("nan")))).all()
+    # the lifted field separates the labels: the decoded latents are closest to their own label text
+    enc = get_encoder("simulated", scene=scene)
+    text = enc.encode_text(scene.metadata["labels"])
+    labels = torch.as_tensor(np.asarray(scene.gaussians.labels[2]), dtype=torch.long)
+    pred = (field.decode(z[seen]) @ text.T).argmax(1)
+    assert float((pred == labels[seen]).float().mean()) > 0.6
+
+
+def test_shards_merge_to_the_single_worker_result(prepared, tmp_path):
+    single = _copy(prepared, tmp_path / "single")
+    split = _copy(prepared, tmp_path / "split")
+    distill_scene(load_bundle(single), mode="lift")
+    assert main(["distill", str(split), "--shard", "0/2", "--no-progress"]) == 0
+    assert not (split / "language" / "latents.npy").exists()
+    assert main(["distill", str(split), "--check"]) == 1            # timesteps 1, 3 missing
+    assert main(["distill", str(split), "--timesteps", "1:4", "--shard", "0/2", "--no-progress"]) == 0
+    assert main(["distill", str(split), "--timesteps", "3", "--no-progress"]) == 0
+    np.testing.assert_array_equal(np.load(split / "language" / "latents.npy"),
+                                  np.load(single / "language" / "latents.npy"))
+    assert main(["distill", str(split), "--check"]) == 0
+
+
+def test_config_changes_are_refused_unless_overwrite(prepared, tmp_path, capsys):
+    path = _copy(prepared, tmp_path / "b")
+    scene = load_bundle(path)
+    distill_scene(scene, mode="lift", timesteps="0:2")
+    with pytest.raises(ConfigMismatchError, match="teacher_stride"):
+        distill_scene(scene, mode="lift", teacher_stride=1, timesteps="0:2")
+    assert main(["distill", str(path), "--teacher-stride", "1"]) == 2  # one-line error from the CLI
+    assert "another configuration" in capsys.readouterr().err
+    res = distill_scene(scene, mode="lift", teacher_stride=1, overwrite=True)
+    assert res.latents is not None and len(res.timings) == 4
+    with pytest.raises(ConfigMismatchError):
+        distill_scene(load_bundle(path), mode="lift")                  # merged latents of stride 1
+    enc = get_encoder("simulated", scene=scene)
+    with pytest.raises(ConfigMismatchError, match="ratios"):
+        extract_features(scene, enc, ExtractConfig(ratios=(0.2, 0.5)))
+    with pytest.raises(ConfigMismatchError):
+        train_autoencoder(scene, AETrainConfig(epochs=3, samples=2048, batch_size=256))
+    with pytest.raises(InputError, match="--mode"):
+        DistillConfig(mode="magic").check()
+
+
+def test_autoencoder_resumes_from_its_checkpoint(prepared, tmp_path):
+    a = _copy(prepared, tmp_path / "a")
+    b = _copy(prepared, tmp_path / "b")
+    cfg = AETrainConfig(epochs=2, samples=1024, heldout_samples=256, batch_size=256)
+    full = train_autoencoder(load_bundle(a), cfg, overwrite=True)
+    assert train_autoencoder(load_bundle(b), cfg, overwrite=True, stop_after_epoch=1) == {"stopped_after_epoch": 1}
+    resumed = train_autoencoder(load_bundle(b), cfg)
+    assert resumed["loss_history"] == full["loss_history"]
+    assert resumed["heldout_cosine"] == full["heldout_cosine"]
+    assert full["heldout_camera"] == 2 and 0.0 < full["heldout_cosine"] <= 1.0
+
+
+def test_resume_after_a_real_kill_gives_the_uninterrupted_result(prepared, tmp_path):
+    reference = _copy(prepared, tmp_path / "ref")
+    killed = _copy(prepared, tmp_path / "killed")
+    args = ["--mode", "optimize", "--iterations", "80", "--no-progress"]
+    assert main(["distill", str(reference), *args]) == 0
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    code = ("import sys, torch; torch.set_num_threads(1); from fourlegs_engine.cli import main; "
+            "sys.exit(main(sys.argv[1:]))")
+    proc = subprocess.Popen([sys.executable, "-c", code, "distill", str(killed), *args], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    steps = killed / "language" / "steps"
+    deadline = time.time() + 240
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            if steps.is_dir() and any(p.suffix == ".npy" and not p.name.startswith(".") for p in steps.iterdir()):
+                break
+            time.sleep(0.01)
+        assert proc.poll() is None, "the run finished before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    done = [p for p in steps.iterdir() if p.suffix == ".npy" and not p.name.startswith(".")]
+    assert 1 <= len(done) < 4
+    assert not (killed / "language" / "latents.npy").exists()
+    assert main(["distill", str(killed), *args]) == 0
+    np.testing.assert_array_equal(np.load(killed / "language" / "latents.npy"),
+                                  np.load(reference / "language" / "latents.npy"))
+    assert not any(p.name.endswith(".part.npy") for p in (killed / "language").rglob("*"))

@@ -1,0 +1,155 @@
+"""QueryEngine on a small real scene: exact vs codebook vs float64 oracle, spatial answers, stats."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from fourlegs_engine.errors import InputError
+from fourlegs_engine.query.engine import QueryEngine
+from fourlegs_engine.query.relevancy import relevancy_reference
+from fourlegs_engine.query.temporal import localize_relevancy
+
+from _query_helpers import CANON, two_cluster_scene
+
+Q = "a ball flying"
+
+
+@pytest.fixture(scope="module")
+def setup():
+    return two_cluster_scene()
+
+
+def oracle_relevancy(field, enc, text):
+    lat = np.asarray(field.latents, dtype=np.float64)
+    T, N, d = lat.shape
+    feats = field.decode64(lat.reshape(-1, d))
+    q = enc.encode_text([text])[0].double().numpy()
+    canon = enc.encode_text(list(CANON)).double().numpy()
+    return relevancy_reference(feats, q, canon).reshape(T, N)
+
+
+def test_exact_temporal_matches_float64_oracle(setup):
+    scene, field, enc, _ = setup
+    eng = QueryEngine(scene, field, enc, dilation=0, chunk=17)
+    res = eng.temporal(Q)
+    ref = localize_relevancy(oracle_relevancy(field, enc, Q), dilation=0)
+    np.testing.assert_allclose(res.scores, ref.scores, atol=1e-12)
+    assert res.segment == ref.segment == (1, 2) and res.peak == 1 and res.found
+    assert eng.stats["decoded_latents"] == scene.num_timesteps * scene.num_gaussians
+    np.testing.assert_allclose(eng.gaussian_relevancy(Q, 1).numpy(), oracle_relevancy(field, enc, Q)[1],
+                               atol=2e-3)
+
+
+def test_codebook_path_equals_exact_and_never_decodes_latents(setup, tmp_path):
+    scene, field, enc, _ = setup
+    exact = QueryEngine(scene, field, enc).temporal(Q)
+    eng = QueryEngine(scene, field, enc, path="codebook", codebook_size=256, codebook_dir=tmp_path)
+    res = eng.temporal(Q)
+    np.testing.assert_allclose(res.scores, exact.scores, atol=1e-12)
+    assert res.segment == exact.segment == (0, 3)  # dilation 1 reaches both ends
+    assert eng.stats["decoded_latents"] == 0 and eng.stats["decoded_codes"] == 256
+    assert (tmp_path / "codebook_256.npz").is_file() and (tmp_path / "codes_256.npy").is_file()
+    again = QueryEngine(scene, field, enc, path="codebook", codebook_size=256, codebook_dir=tmp_path)
+    again.temporal(Q)
+    assert np.array_equal(np.asarray(again.codebook.codes), np.asarray(eng.codebook.codes))
+
+
+def test_temporal_stride_and_many_queries(setup):
+    scene, field, enc, _ = setup
+    eng = QueryEngine(scene, field, enc, dilation=0)
+    many = eng.temporal_many([Q, "a person jumping", "object"])
+    assert eng.stats["decoded_latents"] == scene.num_timesteps * scene.num_gaussians
+    np.testing.assert_allclose(many[0].scores, eng.temporal(Q).scores)
+    assert not many[2].found and "not found" in many[2].message  # the query is a canonical phrase
+    strided = eng.temporal(Q, stride=2)
+    assert list(strided.timesteps) == [0, 2] and len(strided.scores) == 4
+
+
+def test_not_found_is_finite(setup):
+    scene, field, enc, _ = setup
+    res = QueryEngine(scene, field, enc).temporal("texture")
+    assert not res.found and res.segment is None and np.all(res.scores == 0)
+    assert res.to_dict()["peak"] is None
+
+
+def test_spatial_maps_centre_view_and_stats(setup):
+    scene, field, enc, _ = setup
+    for spatial in ("exact", "fast"):
+        eng = QueryEngine(scene, field, enc, spatial=spatial)
+        wide = scene.cameras.find("wide")
+        maps = eng.relevancy_map(Q, wide, 1)
+        rel = maps["relevancy"]
+        assert rel.shape == (32, 48) and np.all(np.isfinite(rel)) and rel.min() >= 0 and rel.max() <= 1
+        # cluster A (x=+0.6) projects to the right half of the wide view
+        uv, _ = wide.project(np.array([[0.6, 0, 0]]))
+        centre = eng.action_centre(Q, 1, wide)
+        assert abs(centre.centre_px[0] - uv[0, 0]) < 4 and abs(centre.centre_px[1] - uv[0, 1]) < 4
+        assert np.linalg.norm(centre.centre_3d - [0.6, 0, 0]) < 0.3
+        x0, y0, x1, y1 = centre.bbox
+        assert x0 <= uv[0, 0] <= x1 + 1 and x0 > 17  # cluster B (u ~ 16) is not in the box
+        view = eng.best_view(Q, 1)
+        assert view.best == "close" and view.scores["close"] > view.scores["wide"]
+        assert eng.stats["render_features" if spatial == "exact" else "render_relevancy"] == 4  # map, centre, 2 views
+        assert eng.stats["render_relevancy" if spatial == "exact" else "render_features"] == 0
+    # at a timestep where nothing is relevant the fast and exact maps both stay low
+    low = QueryEngine(scene, field, enc, spatial="exact").relevancy_map(Q, wide, 0)["relevancy"]
+    assert low.max() <= 0.5  # background decodes to the zero vector: exactly 0.5, not relevant
+
+
+def test_fast_and_exact_maps_agree_on_the_relevant_region(setup):
+    scene, field, enc, _ = setup
+    cam = scene.cameras.find("close")
+    ex = QueryEngine(scene, field, enc).relevancy_map(Q, cam, 2)
+    fa = QueryEngine(scene, field, enc, spatial="fast").relevancy_map(Q, cam, 2)
+    np.testing.assert_allclose(ex["alpha"], fa["alpha"], atol=1e-6)
+    solid = ex["alpha"] > 0.95
+    assert solid.any()
+    assert np.mean(np.abs(ex["relevancy"] - fa["relevancy"])[solid]) < 0.1
+    half = QueryEngine(scene, field, enc, resolution_scale=0.5).relevancy_map(Q, cam, 2)
+    assert half["relevancy"].shape == (16, 24)
+
+
+def test_localize_computes_only_what_is_needed(setup):
+    scene, field, enc, _ = setup
+    eng = QueryEngine(scene, field, enc, spatial="fast")
+    loc = eng.localize(Q, {"temporal"})
+    assert loc.temporal.found and loc.best_view is None and loc.action_centre is None
+    assert eng.stats["relevancy_map"] == 0 and eng.stats["best_view"] == 0
+    eng.stats.clear()
+    loc = eng.localize(Q, {"best_view"}, t=2)
+    assert loc.temporal is None and loc.best_view == "close" and loc.action_centre is None
+    assert eng.stats["temporal"] == 0 and eng.stats["action_centre"] == 0 and eng.stats["best_view"] == 1
+    eng.stats.clear()
+    loc = eng.localize(Q, {"temporal", "best_view", "action_centre"})
+    assert loc.t == loc.temporal.peak and loc.best_view == "close" and loc.action_centre is not None
+    d = loc.to_dict()
+    import json
+    json.dumps(d, allow_nan=False)
+    with pytest.raises(InputError):
+        eng.localize(Q, {"everything"})
+
+
+def test_empty_scene_and_single_timestep():
+    scene, field, enc, _ = two_cluster_scene(T=1, active=(0,))
+    res = QueryEngine(scene, field, enc).temporal(Q)
+    assert res.found and res.segment == (0, 0) and res.scores.tolist() == [1.0]
+    empty, efield, enc, _ = two_cluster_scene(T=3, n_per=0)
+    eng = QueryEngine(empty, efield, enc, spatial="fast")
+    res = eng.temporal(Q)
+    assert not res.found and "no Gaussians" in res.message and np.all(res.scores == 0)
+    m = eng.relevancy_map(Q, empty.cameras.find("wide"), 0)
+    assert np.all(np.isfinite(m["relevancy"])) and np.all(m["alpha"] == 0)
+    loc = eng.localize(Q, {"temporal", "best_view", "action_centre"})
+    assert loc.best_view is None and loc.messages
+    cb = QueryEngine(empty, efield, enc, path="codebook", codebook_size=16, codebook_dir=None)
+    assert not cb.temporal(Q).found
+
+
+def test_negative_phrases_suppress_an_absent_query(setup):
+    scene, field, enc, dirs = setup
+    enc.table["a dog"] = 0.6 * dirs[4] + 0.8 * dirs[7]  # close to the ball, but not it
+    plain = QueryEngine(scene, field, enc).gaussian_relevancy("a dog", 1)
+    enc.table["a ball"] = dirs[4]
+    neg = QueryEngine(scene, field, enc, negatives=["a ball"]).gaussian_relevancy("a dog", 1)
+    assert plain.max() > 0.5 and neg.max() < 0.5

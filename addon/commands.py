@@ -40,7 +40,9 @@ def headless_argv(args: argparse.Namespace) -> list[str]:
     """Re-create the command line of the headless job from parsed ``fourlegs highlight`` arguments."""
     argv = [] if args.scene is None else [args.scene]
     argv += [args.query, "--demo-size", args.demo_size, "--preset", args.preset, "-o", args.output, "--format", args.format,
-             "--query-path", args.query_path, "--encoder", args.encoder]
+             "--query-path", args.query_path]
+    if args.encoder != "auto":  # "auto" is the default, not one of the encoder choices
+        argv += ["--encoder", args.encoder]
     if args.demo:
         argv.append("--demo")
     if args.overwrite:

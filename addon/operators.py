@@ -133,11 +133,11 @@ class FOURLEGS_OT_run_query(bpy.types.Operator):
         threading.Thread(target=self._job.run, name="fourlegs-query", daemon=True).start()
         props.running, props.progress, props.status = True, 0.0, "starting"
         wm = context.window_manager
-        if context.window is not None:
+        if context.window is not None and not bpy.app.background:
             self._timer = wm.event_timer_add(0.2, window=context.window)
             wm.modal_handler_add(self)
             return {"RUNNING_MODAL"}
-        # no window (background mode): wait here
+        # background mode has no event loop: wait here
         while not self._job.done:
             threading.Event().wait(0.05)
         return self._finish(context)

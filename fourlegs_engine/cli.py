@@ -19,6 +19,7 @@ COMMAND_MODULES = (
     "fourlegs_engine.render.commands",
     "fourlegs_engine.eval.commands",
     "fourlegs_engine.language.commands",
+    "fourlegs_engine.language.viclip.commands",
     "fourlegs_engine.query.commands",
     "fourlegs_engine.highlights.commands",
     "fourlegs_addon.commands",

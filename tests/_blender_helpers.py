@@ -112,3 +112,43 @@ def bl(bpy_addon):
     """An empty Blender file for each test."""
     bpy_addon.ops.wm.read_factory_settings(use_empty=True)
     return bpy_addon
+
+
+def language_bundle(path: Path, T: int = 6, N: int = 200, query_label: str = "red cube") -> Path:
+    """A tiny bundle with a real, hand-built language field whose answer is known.
+
+    The decoder maps latent e0 to the (simulated) text embedding of ``query_label`` and e1 to that of
+    "floor" (first Linear [I; -I] + ReLU keeps the sign, the last Linear holds the embeddings). The
+    first half of the Gaussians carries e0 at timesteps 2-3 only, so the query is found there.
+    """
+    import torch
+
+    from fourlegs_engine.language.autoencoder import FeatureDecoder
+    from fourlegs_engine.language.simulated import SimulatedTextEncoder
+    from fourlegs_engine.scene import write_bundle
+    from fourlegs_engine.scene.bundle import update_bundle_meta
+
+    scene = tiny_scene(T=T, N=N)
+    scene.metadata = {"labels": ["floor", query_label]}
+    write_bundle(scene, path)
+    emb = SimulatedTextEncoder().encode_text([query_label, "floor"]).double()  # (2, 768)
+    dec = FeatureDecoder((2, 4, 768))
+    with torch.no_grad():
+        lin1, bn, lin2 = dec.net[0], dec.net[1], dec.net[3]
+        lin1.weight.copy_(torch.tensor([[1.0, 0], [0, 1], [-1, 0], [0, -1]]))
+        lin1.bias.zero_()
+        bn.running_mean.zero_()
+        bn.running_var.fill_(1.0 - bn.eps)
+        lin2.weight.copy_(torch.cat([emb.T, -emb.T], dim=1).float())
+        lin2.bias.zero_()
+    (path / "language").mkdir()
+    torch.save(dec.state_dict(), path / "language" / "decoder.pt")
+    lat = np.zeros((T, N, 2), np.float16)
+    lat[:, :, 1] = 1.0
+    lat[2:4, : N // 2] = [1.0, 0.0]
+    np.save(path / "language" / "latents.npy", lat)
+    update_bundle_meta(path, language={"encoder": "simulated", "latent_dim": 2, "decoder": "language/decoder.pt",
+                                       "latents": "language/latents.npy", "mode": "lift",
+                                       "canonical_phrases": ["object", "things", "stuff", "texture"],
+                                       "config_hash": "test"})
+    return path

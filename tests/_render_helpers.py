@@ -23,7 +23,7 @@ def random_scene(n: int, seed: int, *, channels: int = 4, spread: float = 0.6, l
     return {k: v.to(dtype) for k, v in out.items()}
 
 
-def test_cameras(width: int = 32, height: int = 24) -> list[Camera]:
+def view_cameras(width: int = 32, height: int = 24) -> list[Camera]:
     """Several views of the random scenes: ordinary, oblique, off-centre principal point, a near plane
     that cuts through the cloud, and a camera inside the cloud (Gaussians behind it)."""
     cams = [

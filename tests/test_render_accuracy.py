@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from _render_helpers import as_numpy, random_scene, test_cameras
+from _render_helpers import as_numpy, random_scene, view_cameras
 from _render_oracle import render as oracle_render
 from fourlegs_engine.render import RasterOptions, rasterize
 from fourlegs_engine.render.reference import rasterize_reference
@@ -43,7 +43,7 @@ def test_matches_oracle_on_random_scenes(dtype, seed):
     scene64 = random_scene(250, seed)
     scene = {k: v.to(dtype) for k, v in scene64.items()}
     drawn = 0.0
-    for cam in test_cameras():
+    for cam in view_cameras():
         ref = _oracle(scene64, cam)
         out = rasterize(scene["means"], scene["rotations"], scene["log_scales"], scene["opacity_logits"], cam,
                         colors=scene["colors"], features=scene["features"], background=BACKGROUND,
@@ -53,14 +53,14 @@ def test_matches_oracle_on_random_scenes(dtype, seed):
         bad = {k: v for k, v in errs.items() if not v <= TOL[dtype]}
         assert not bad, f"camera {cam.name}: {bad}"
         drawn += ref["alpha"].mean()
-    assert drawn / len(test_cameras()) > 0.2  # the scenes are not empty
+    assert drawn / len(view_cameras()) > 0.2  # the scenes are not empty
 
 
 @pytest.mark.parametrize("options", [RasterOptions(tile_size=1), RasterOptions(tile_size=7, chunk=3),
                                      RasterOptions(tile_size=16, chunk=1000, batch_elements=4096)])
 def test_tile_size_and_chunking_do_not_change_the_image(options):
     scene = random_scene(200, 5, log_scale=-1.8)
-    cam = test_cameras()[0]
+    cam = view_cameras()[0]
     ref = _oracle(scene, cam)
     out = rasterize(scene["means"], scene["rotations"], scene["log_scales"], scene["opacity_logits"], cam,
                     colors=scene["colors"], features=scene["features"], background=BACKGROUND, outputs=ALL,
@@ -71,7 +71,7 @@ def test_tile_size_and_chunking_do_not_change_the_image(options):
 
 def test_three_sigma_extent_only_drops_faint_tails():
     scene = random_scene(200, 2)
-    cam = test_cameras()[1]
+    cam = view_cameras()[1]
     ref = _oracle(scene, cam)
     out = rasterize(scene["means"], scene["rotations"], scene["log_scales"], scene["opacity_logits"], cam,
                     colors=scene["colors"], background=BACKGROUND, outputs=("rgb", "alpha"),
@@ -84,7 +84,7 @@ def test_three_sigma_extent_only_drops_faint_tails():
 @pytest.mark.parametrize("tile_size", [None, 8])
 def test_dense_reference_matches_oracle(tile_size):
     scene = random_scene(120, 3)
-    cam = test_cameras()[0]
+    cam = view_cameras()[0]
     ref = _oracle(scene, cam)
     out = rasterize_reference(scene["means"], scene["rotations"], scene["log_scales"], scene["opacity_logits"],
                               cam, colors=scene["colors"], features=scene["features"],

@@ -6,7 +6,7 @@ import argparse
 import pytest
 import torch
 
-from fourlegs_engine.errors import InputError
+from fourlegs_engine.errors import InputError, OutputExistsError
 from fourlegs_engine.language import encoders
 from fourlegs_engine.language.encoders import (CANONICAL_PHRASES, VideoTextEncoder, add_encoder_arguments,
                                                get_encoder, load_encoder_from_args)
@@ -37,7 +37,7 @@ def _clips(batch, seed=0):
 
 def test_contract(encoder):
     assert isinstance(encoder, VideoTextEncoder)
-    assert encoder.input_kind == "rgb" and encoder.dim == 48 and encoder.name == "viclip-custom"
+    assert encoder.input_kind == "rgb" and encoder.dim == 48 and encoder.name == "viclip"
     assert CANONICAL_PHRASES == ("object", "things", "stuff", "texture")
     video = encoder.encode_video(encoder.normalize(_clips(5)))
     text = encoder.encode_text(["the cat", "hello", *CANONICAL_PHRASES])
@@ -132,6 +132,9 @@ def test_registry(files):
     with pytest.raises(InputError, match="does not match ViCLIP B/16"):
         get_encoder("viclip-b16", checkpoint=checkpoint, vocab=vocab)
     assert {"viclip", "viclip-b16", "simulated"} <= set(encoders.encoder_names())
+    simulated = get_encoder("simulated", labels=["person jumping", "ball flying"])  # imported on demand
+    assert isinstance(simulated, VideoTextEncoder) and simulated.input_kind == "labels"
+    assert simulated.encode_text(["a ball flying"]).shape == (1, simulated.dim)
 
 
 def test_register_encoder_refuses_silent_override():
@@ -164,6 +167,10 @@ def test_device_resolution():
     if not torch.cuda.is_available():
         with pytest.raises(InputError, match="no CUDA device"):
             encoders.resolve_device("cuda")
+    assert encoders.resolve_dtype("bfloat16") is torch.bfloat16
+    assert encoders.resolve_dtype(torch.float64) is torch.float64
+    with pytest.raises(InputError, match="unknown dtype 'int8'"):
+        encoders.resolve_dtype("int8")
 
 
 @pytest.mark.cuda
@@ -191,3 +198,22 @@ def test_bench_reports_time_and_accuracy_per_knob(tmp_path):
     paths = write_report(report, tmp_path / "viclip")
     assert [p.suffix for p in paths] == [".json", ".md", ".png"] and all(p.stat().st_size > 0 for p in paths)
     assert "| bfloat16 | 2 |" in paths[1].read_text()
+
+
+def test_viclip_info_command_checks_and_converts(files, tmp_path, capsys):
+    from fourlegs_engine.language.viclip import commands
+    model, checkpoint, vocab = files
+    parser = argparse.ArgumentParser()
+    commands.register(parser.add_subparsers())
+    out = tmp_path / "converted.safetensors"
+    args = parser.parse_args(["viclip-info", str(checkpoint), "--vocab", str(vocab), "--convert", str(out)])
+    assert args.func(args) == 0
+    printed = capsys.readouterr().out
+    params = sum(p.numel() for p in model.parameters())
+    assert f"{params:,} parameters" in printed and "texture" in printed and f"written: {out}" in printed
+    converted = ViCLIPEncoder.from_files(out, vocab)
+    original = ViCLIPEncoder.from_files(checkpoint, vocab)
+    clips = original.normalize(_clips(2, seed=3))
+    assert torch.equal(converted.encode_video(clips), original.encode_video(clips))
+    with pytest.raises(OutputExistsError):  # an existing output is not overwritten unless asked
+        args.func(args)

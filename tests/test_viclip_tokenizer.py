@@ -105,6 +105,10 @@ def test_pre_tokenize_cases():
     assert pre_tokenize("x2.5%!") == ["x", "2", ".", "5", "%!"]
     assert pre_tokenize("<|startoftext|>hi<|endoftext|>") == ["<|startoftext|>", "hi", "<|endoftext|>"]
     assert pre_tokenize("''s") == ["''", "s"]
+    # the official pattern's corner cases: U+0345 is matched by no class; U+001C..U+001F are not \s
+    assert pre_tokenize("a\u0345b !\u0345?") == ["a", "b", "!", "?"]
+    assert pre_tokenize("a\x1cb") == ["a", "\x1c", "b"]
+    assert clean_text("A\x1f  B\u2003c") == "a\x1f b c"
 
 
 _OFFICIAL_PATTERN = r"""<\|startoftext\|>|<\|endoftext\|>|'s|'t|'re|'ve|'m|'ll|'d|[\p{L}]+|[\p{N}]|[^\s\p{L}\p{N}]+"""
@@ -113,7 +117,7 @@ _OFFICIAL_PATTERN = r"""<\|startoftext\|>|<\|endoftext\|>|'s|'t|'re|'ve|'m|'ll|'
 # Characters unassigned in this Python's Unicode database ("Cn") are left out: the regex package may
 # follow a newer Unicode version than unicodedata.
 @given(st.text(alphabet=st.characters(codec="utf-8", exclude_categories=("Cs", "Cn")), max_size=40)
-       | st.text(alphabet="ab1 '!sdtlmvre<|>ñ²Ⅻ\u0301", max_size=40))
+       | st.text(alphabet="ab1 '!sdtlmvre<|>ñ²Ⅻ\u0301\u0345\x1c\x1f\t\n", max_size=40))
 def test_pre_tokenize_matches_official_pattern(text):
     regex = pytest.importorskip("regex", reason="the regex package runs CLIP's own pattern as the oracle")
     official = regex.compile(_OFFICIAL_PATTERN, regex.IGNORECASE)
@@ -153,3 +157,18 @@ def test_plain_text_vocab_and_merge_cap(tmp_path):
 def test_tokenize_rejects_non_strings(tok):
     with pytest.raises(InputError, match="text #1 is int"):
         tok.tokenize(["ok", 3])
+
+
+@given(st.text(alphabet=st.characters(codec="utf-8", exclude_categories=("Cs", "Cn")), max_size=40)
+       | st.text(alphabet="aB1 \t\n\x0b\x1c\x1d\x1e\x1f\u2003\u00a0&amp;;#39", max_size=40))
+def test_clean_text_matches_official_cleaning(text):
+    import html
+    import unicodedata
+    regex = pytest.importorskip("regex", reason="the regex package runs CLIP's own whitespace rule")
+    try:
+        import ftfy
+        fixed = ftfy.fix_text(text)
+    except ImportError:
+        fixed = unicodedata.normalize("NFC", text)
+    official = regex.sub(r"\s+", " ", html.unescape(html.unescape(fixed)).strip()).strip().lower()
+    assert clean_text(text) == official

@@ -33,6 +33,10 @@ def register_bench(bench_subparsers: argparse._SubParsersAction) -> None:
                    help="use this synthetic bundle instead of the cached one for --scene/--seed")
     p.add_argument("--methods", default=None,
                    help="comma-separated method names (default: every registered method)")
+    p.add_argument("--views", default=None,
+                   help="comma-separated camera names to evaluate (default: the test cameras)")
+    p.add_argument("--pixel-stride", type=int, default=2,
+                   help="2D baseline: per-pixel features on every N-th pixel, relevancy upsampled (default 2)")
     p.add_argument("--json", default=None, metavar="PATH", help="also write the results as JSON")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     p.set_defaults(func=_bench_grounding)

@@ -44,6 +44,7 @@ class BenchmarkContext:
         videos: per evaluation camera, its lazily rendered label-coverage frames (shared by methods).
         progress: show progress bars.
         seed: the benchmark seed (scene and encoder corruptions).
+        options: method settings from the command line (e.g. ``pixel_stride`` of the 2D baseline).
     """
 
     scene: Scene
@@ -54,7 +55,7 @@ class BenchmarkContext:
     videos: dict[str, CoverageVideo]
     progress: bool = False
     seed: int = 0
-    cache: dict[str, Any] = field(default_factory=dict)
+    options: dict[str, Any] = field(default_factory=dict)
 
 
 class GroundingMethod(Protocol):
@@ -100,8 +101,8 @@ def _load_method_modules() -> None:
 class _Features2DMethod:
     name = "2D features"
 
-    def __init__(self, context: BenchmarkContext, pixel_stride: int = 2):
-        self.impl = Features2D(context.video_encoder, pixel_stride=pixel_stride)
+    def __init__(self, context: BenchmarkContext):
+        self.impl = Features2D(context.video_encoder, pixel_stride=int(context.options.get("pixel_stride", 2)))
 
     def predict_view(self, context: BenchmarkContext, camera: Camera) -> dict[str, ViewPrediction]:
         bar = None
@@ -151,29 +152,39 @@ def _summary(per_view: dict[str, dict[str, dict[str, float]]], queries: Sequence
 
 
 def build_context(scene: Scene, *, seed: int = 0, progress: bool = False,
-                  cameras: Sequence[Camera] | None = None) -> BenchmarkContext:
+                  views: Sequence[str] | None = None, options: dict[str, Any] | None = None) -> BenchmarkContext:
     from ..language.simulated import SimulatedTextEncoder, create_encoder
 
     labels = scene_labels(scene)
     queries = list(scene_queries(scene))
-    cams = list(cameras) if cameras is not None else default_eval_cameras(scene)
+    cams = default_eval_cameras(scene)
+    if views:
+        by_name = {c.name: c for c in scene.cameras.cameras(0, "all")}
+        missing = [v for v in views if v not in by_name]
+        if missing:
+            raise InputError(f"no camera named {missing} (cameras: {', '.join(by_name)})", field="views")
+        cams = [by_name[v] for v in views]
     frame_bytes = len(labels) * cams[0].width * cams[0].height * 4 if cams else 0
     window = scene.num_timesteps if frame_bytes * scene.num_timesteps <= 400 * 2 ** 20 else 12
     videos = {c.name: CoverageVideo(scene, c, window=window) for c in cams}
     return BenchmarkContext(scene=scene, queries=queries, cameras=cams, text_encoder=SimulatedTextEncoder(),
                             video_encoder=create_encoder(scene=scene, seed=seed), videos=videos,
-                            progress=progress, seed=seed)
+                            progress=progress, seed=seed, options=dict(options or {}))
 
 
 def run_grounding_benchmark(scene: Scene, methods: Sequence[str] | None = None, *, seed: int = 0,
-                            progress: bool = False) -> dict[str, Any]:
-    """Score every (or the named) registered method on ``scene``; returns the JSON-ready results."""
+                            progress: bool = False, views: Sequence[str] | None = None,
+                            options: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Score every (or the named) registered method on ``scene``; returns the JSON-ready results.
+
+    ``views``: camera names to evaluate (default: the test cameras); ``options``: method settings.
+    """
     available = method_names()
     names = list(methods) if methods else available
     unknown = [m for m in names if m not in _METHODS]
     if unknown:
         raise InputError(f"unknown method(s) {unknown} (registered: {', '.join(available)})", field="methods")
-    ctx = build_context(scene, seed=seed, progress=progress)
+    ctx = build_context(scene, seed=seed, progress=progress, views=views, options=options)
     start = time.perf_counter()
     gt = ensure_ground_truth(scene, ctx.cameras, progress=progress, videos=ctx.videos)
     gt_seconds = time.perf_counter() - start
@@ -204,6 +215,7 @@ def run_grounding_benchmark(scene: Scene, methods: Sequence[str] | None = None, 
         "ground_truth": {"visibility_threshold": gt.threshold, "seconds": gt_seconds,
                          "segments": {q: [list(s) for s in gt.segments(q)] for q in ctx.queries}},
         "encoder": ctx.video_encoder.config(),
+        "options": ctx.options,
         "metrics": list(METRIC_NAMES),
         "methods": results,
     }
@@ -243,7 +255,11 @@ def run_grounding_benchmark_cli(args: Any) -> int:
     path = Path(args.bundle) if args.bundle else ensure_demo_bundle(args.scene, args.seed)
     scene = load_bundle(path)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
-    results = run_grounding_benchmark(scene, methods, seed=args.seed, progress=True)
+    views = [v.strip() for v in args.views.split(",") if v.strip()] if args.views else None
+    if args.pixel_stride < 1:
+        raise InputError(f"--pixel-stride must be >= 1, got {args.pixel_stride}", field="--pixel-stride")
+    results = run_grounding_benchmark(scene, methods, seed=args.seed, progress=True, views=views,
+                                      options={"pixel_stride": args.pixel_stride})
     results["scene"]["path"] = str(path)
     results["total_seconds"] = time.perf_counter() - start
     print(markdown_tables(results))

@@ -7,6 +7,7 @@ per (view, timestep) serves all queries; a view's maps are kept while that view 
 """
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import numpy as np
@@ -41,10 +42,13 @@ class FourLegsMethod:
         self._temporal = None
         self._maps: dict[int, np.ndarray] = {}
         self._maps_camera: str | None = None
+        self.timings = {"temporal": 0.0, "maps": 0.0}
 
     def temporal(self):
         if self._temporal is None:
+            start = time.perf_counter()
             self._temporal = dict(zip(self.queries, self.engine.temporal_many(self.queries)))
+            self.timings["temporal"] += time.perf_counter() - start
         return self._temporal
 
     def _view_maps(self, camera: Camera, t: int) -> np.ndarray:
@@ -52,10 +56,12 @@ class FourLegsMethod:
         if self._maps_camera != camera.name:
             self._maps, self._maps_camera = {}, camera.name
         if t not in self._maps:
+            start = time.perf_counter()
             rel = self.engine.relevancy_maps(self.queries, camera, t, outputs=("relevancy",))["relevancy"]
             if rel.shape[1:] != (camera.height, camera.width):
                 rel = _upsample(rel, camera.height, camera.width)
             self._maps[t] = rel.astype(np.float16)
+            self.timings["maps"] += time.perf_counter() - start
         return self._maps[t]
 
     def predict_view(self, context: Any, camera: Camera) -> dict[str, ViewPrediction]:

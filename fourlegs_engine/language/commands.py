@@ -35,6 +35,9 @@ def register(subparsers: Any) -> None:
                    help="crop side fed to the encoder (default 224 for RGB encoders; 'means' for label "
                         "encoders that only read per-frame coverage means)")
     p.add_argument("--batch-size", type=int, default=256, help="crop tubes per encoder call (default 256)")
+    p.add_argument("--frame-scale", type=float, default=1.0,
+                   help="render frames at this fraction of the resolution, upsampled before cropping "
+                        "(speed knob; default 1)")
     _split_arguments(p)
     p.add_argument("--check", action="store_true", help="only report finished, missing and unreadable timesteps")
     p.set_defaults(func=run_extract)
@@ -71,6 +74,8 @@ def register(subparsers: Any) -> None:
     _distill_arguments(p)
     p.add_argument("--overwrite", action="store_true", help="discard results of other configurations")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--frame-scale", type=float, default=1.0,
+                   help="extract: render frames at this fraction of the resolution (default 1)")
     p.set_defaults(func=run_language)
 
 
@@ -128,6 +133,8 @@ def _distill_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--views-per-iteration", type=int, default=1, help="views rendered per step (default 1)")
     g.add_argument("--teacher-stride", type=int, default=2,
                    help="encode the teacher every n-th pixel and upsample (default 2; 1 = every pixel)")
+    g.add_argument("--view-scale", type=float, default=1.0,
+                   help="render the training views at this fraction of their resolution (default 1)")
     g.add_argument("--distill-seed", type=int, default=0)
 
 
@@ -188,7 +195,7 @@ def _distill_config(args: argparse.Namespace):
     return DistillConfig(mode=args.mode, iterations=args.iterations, smoothing=smoothing,
                          smoothness=args.smoothness, neighbours=args.neighbours,
                          views_per_iteration=args.views_per_iteration, teacher_stride=args.teacher_stride,
-                         seed=args.distill_seed).check()
+                         view_scale=args.view_scale, seed=args.distill_seed).check()
 
 
 def _print_check(report: dict[str, Any]) -> int:
@@ -206,7 +213,7 @@ def run_extract(args: argparse.Namespace) -> int:
         raise InputError(f"must be >= 1, got {args.batch_size}", field="--batch-size")
     encoder = _encoder(args, scene)
     config = ExtractConfig(ratios=_ratios(args.ratios, args.steps), crop_size=_crop_size(args.crop_size),
-                           batch_size=args.batch_size)
+                           batch_size=args.batch_size, frame_scale=args.frame_scale)
     report = extract_features(scene, encoder, config, timesteps=args.timesteps, shard=args.shard,
                               overwrite=args.overwrite, progress=not args.no_progress)
     print(f"extract: {len(report.timesteps_done)} timestep(s) encoded, {len(report.timesteps_skipped)} already "
@@ -261,8 +268,8 @@ def run_language(args: argparse.Namespace) -> int:
     scene = resolve_bundle(args)
     progress = not args.no_progress
     t0 = time.perf_counter()
-    rep = extract_features(scene, _encoder(args, scene), ExtractConfig(), overwrite=args.overwrite,
-                           progress=progress)
+    rep = extract_features(scene, _encoder(args, scene), ExtractConfig(frame_scale=args.frame_scale),
+                           overwrite=args.overwrite, progress=progress)
     t1 = time.perf_counter()
     ae = train_autoencoder(scene, _ae_config(args), overwrite=args.overwrite, progress=progress)
     t2 = time.perf_counter()
@@ -324,6 +331,8 @@ def bench_distill(scene: Any, *, modes: list[str], optimize_iterations: list[int
         if mode == "lift":
             runs += [(f"lift (teacher stride {s})", DistillConfig(mode="lift", teacher_stride=s))
                      for s in teacher_strides]
+            runs.append(("lift (views at 0.5x, teacher stride 1)",
+                         DistillConfig(mode="lift", teacher_stride=1, view_scale=0.5)))
         elif mode == "lift+refine":
             runs.append((f"lift+refine {refine_iterations}",
                          DistillConfig(mode="lift+refine", iterations=refine_iterations)))
@@ -335,7 +344,7 @@ def bench_distill(scene: Any, *, modes: list[str], optimize_iterations: list[int
     features = feature_store(scene)
     rows = []
     for label, cfg in runs:
-        out = root / "bench" / ("distill-" + label.replace(" ", "-").replace("(", "").replace(")", ""))
+        out = root / "bench" / ("distill-" + "".join(ch if ch.isalnum() or ch in "+." else "-" for ch in label))
         shutil.rmtree(out, ignore_errors=True)
         result = distill_scene(scene, config=cfg, timesteps=steps, out_dir=out, merge=False, progress=progress)
         from .store import StepStore
@@ -345,6 +354,7 @@ def bench_distill(scene: Any, *, modes: list[str], optimize_iterations: list[int
         tim = result.timings
         rows.append({
             "run": label, "mode": cfg.mode, "iterations": cfg.num_iterations, "teacher_stride": cfg.teacher_stride,
+            "view_scale": cfg.view_scale,
             "seconds_per_timestep": sum(t.seconds for t in tim) / len(tim),
             "weights_seconds": sum(t.weights_seconds for t in tim) / len(tim),
             "teacher_seconds": sum(t.teacher_seconds for t in tim) / len(tim),

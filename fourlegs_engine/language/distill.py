@@ -52,7 +52,7 @@ from .attention import NeighbourhoodAttention, knn_indices, neighbour_blur, smoo
 from .autoencoder import AE_REPORT, DECODER_FILE, ENCODER_FILE, FeatureEncoder, l2_normalize, load_encoder
 from .encoders import CANONICAL_PHRASES
 from .extract import feature_store, load_step_features
-from .pyramid import PyramidLayout, pixel_features, upsample_to_pixels
+from .pyramid import PyramidLayout, interpolate_grid, sample_positions, upsample_to_pixels
 from .store import StepStore, config_hash, format_ranges, select_timesteps
 
 MODES = ("optimize", "lift", "lift+refine")
@@ -76,6 +76,8 @@ class DistillConfig:
         lr_latents, lr_attention: Adam learning rates.
         views_per_iteration: training views rendered per optimizer step (sampled without replacement).
         teacher_stride: the teacher latents are encoded every ``teacher_stride`` pixels and upsampled.
+        view_scale: the training views are rendered (blending weights) and compared at this fraction
+            of their resolution (speed knob; 1 = full resolution).
         seed: base seed; timestep t uses a seed derived from (seed, t).
         split: the camera split distilled from.
     """
@@ -89,6 +91,7 @@ class DistillConfig:
     lr_attention: float = 1.6e-4
     views_per_iteration: int = 1
     teacher_stride: int = 2
+    view_scale: float = 1.0
     seed: int = 0
     split: str = "train"
 
@@ -102,6 +105,8 @@ class DistillConfig:
             raise InputError(f"must be >= 0, got {self.iterations}", field="--iterations")
         if self.mode == "optimize" and self.num_iterations < 1:
             raise InputError("optimize needs at least one iteration", field="--iterations")
+        if not 0 < self.view_scale <= 1:
+            raise InputError(f"must be in (0, 1], got {self.view_scale}", field="--view-scale")
         if self.neighbours < 1 or self.views_per_iteration < 1 or self.teacher_stride < 1:
             raise InputError("neighbours, views per iteration and teacher stride must be >= 1", field="distill")
         if not (self.smoothness >= 0 and math.isfinite(self.smoothness)):
@@ -231,15 +236,23 @@ def view_operator(frame: Any, camera: Any) -> ViewOperator:
 # ------------------------------------------------------------------------------------ teacher
 @torch.no_grad()
 def teacher_latents(encoder: FeatureEncoder, layout: PyramidLayout, crop_features: np.ndarray | torch.Tensor,
-                    stride: int = 1) -> torch.Tensor:
-    """Encoded per-pixel teacher of one view: (num_crops, D) crop features -> (H*W, d) unit latents."""
+                    stride: int = 1, width: int | None = None, height: int | None = None) -> torch.Tensor:
+    """Encoded per-pixel teacher of one view: (num_crops, D) crop features -> (h*w, d) unit latents.
+
+    ``width``/``height`` (default the layout's) give the resolution of the rendered view; pixel
+    centres of a smaller view map to (x + 0.5) * W / width - 0.5 in the full-resolution pyramid.
+    """
+    width = layout.width if width is None else int(width)
+    height = layout.height if height is None else int(height)
     crops = torch.from_numpy(np.array(crop_features, dtype=np.float32))
     h = encoder.first_layer()(crops)                                  # (n, hidden) exact before interp.
-    grid = pixel_features(layout, h, stride)                          # (h', w', hidden)
+    xs = (sample_positions(width, stride) + 0.5) * (layout.width / width) - 0.5
+    ys = (sample_positions(height, stride) + 0.5) * (layout.height / height) - 0.5
+    grid = interpolate_grid(layout, h, xs, ys)                        # (h', w', hidden)
     z = encoder.after_first_layer(grid.reshape(-1, grid.shape[-1])).view(grid.shape[0], grid.shape[1], -1)
     if stride > 1:
-        z = l2_normalize(upsample_to_pixels(z, layout.width, layout.height, stride))
-    return z.reshape(layout.width * layout.height, -1).contiguous()
+        z = l2_normalize(upsample_to_pixels(z, width, height, stride))
+    return z.reshape(width * height, -1).contiguous()
 
 
 # ---------------------------------------------------------------------------------- per step
@@ -317,11 +330,13 @@ def distill_timestep(scene: Scene, t: int, encoder: FeatureEncoder, features: St
     ops, teachers = [], []
     w_s = te_s = 0.0
     for cam, layout, off in zip(cameras, layouts, offsets):
+        view = cam if config.view_scale == 1.0 else cam.scaled(config.view_scale)
         s = time.perf_counter()
-        ops.append(view_operator(frame, cam))
+        ops.append(view_operator(frame, view))
         w_s += time.perf_counter() - s
         s = time.perf_counter()
-        teachers.append(teacher_latents(encoder, layout, feats[off:off + layout.num_crops], config.teacher_stride))
+        teachers.append(teacher_latents(encoder, layout, feats[off:off + layout.num_crops], config.teacher_stride,
+                                        view.width, view.height))
         te_s += time.perf_counter() - s
     lift_s = opt_s = 0.0
     init = None

@@ -17,17 +17,15 @@ from __future__ import annotations
 
 import argparse
 import importlib
-from typing import Any, Callable, Protocol, Sequence, runtime_checkable
-
-import torch
+from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence, runtime_checkable
 
 from ..errors import InputError
 
+if TYPE_CHECKING:  # torch is imported only when an encoder is built (keeps `fourlegs --help` fast)
+    import torch
+
 CANONICAL_PHRASES = ("object", "things", "stuff", "texture")
 
-# Factories of the simulated encoder, tried in this order in ``language/simulated.py``.
-SIMULATED_FACTORIES = ("create_encoder", "make_encoder", "build_encoder", "SimulatedEncoder",
-                       "SimulatedVideoTextEncoder")
 
 
 @runtime_checkable
@@ -48,7 +46,7 @@ class VideoTextEncoder(Protocol):
 
 
 def _viclip(size: str | None) -> Callable[..., VideoTextEncoder]:
-    def factory(*, checkpoint=None, vocab=None, device="cpu", dtype=torch.float32, batch_size=16,
+    def factory(*, checkpoint=None, vocab=None, device="cpu", dtype="float32", batch_size=16,
                 normalization="clip", size_override=None, **unused) -> VideoTextEncoder:
         if unused:
             raise InputError(f"unknown option(s) for the ViCLIP encoder: {', '.join(sorted(unused))}",
@@ -62,19 +60,14 @@ def _viclip(size: str | None) -> Callable[..., VideoTextEncoder]:
                              "bpe_simple_vocab_16e6.txt.gz)", field="vocab")
         from .viclip import ViCLIPEncoder
         return ViCLIPEncoder.from_files(checkpoint, vocab, size=size_override or size,
-                                        device=resolve_device(device), dtype=dtype,
+                                        device=resolve_device(device), dtype=resolve_dtype(dtype),
                                         batch_size=batch_size, normalization=normalization)
     return factory
 
 
 def _simulated(**kwargs: Any) -> VideoTextEncoder:
-    module = importlib.import_module(".simulated", __package__)
-    for attr in SIMULATED_FACTORIES:
-        factory = getattr(module, attr, None)
-        if callable(factory):
-            return factory(**kwargs)
-    raise InputError("fourlegs_engine.language.simulated provides none of "
-                     f"{', '.join(SIMULATED_FACTORIES)}", field="encoder")
+    """``language/simulated.py``'s ``create_encoder`` (labels= or scene=, see there)."""
+    return importlib.import_module(".simulated", __package__).create_encoder(**kwargs)
 
 
 _REGISTRY: dict[str, Callable[..., VideoTextEncoder]] = {
@@ -104,8 +97,9 @@ def get_encoder(name: str, **kwargs: Any) -> VideoTextEncoder:
     return factory(**kwargs)
 
 
-def resolve_device(device: str | torch.device | None) -> torch.device:
+def resolve_device(device: "str | torch.device | None") -> "torch.device":
     """``"auto"``/None -> CUDA when available, else CPU; a named device must exist."""
+    import torch
     if device in (None, "auto"):
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
@@ -117,7 +111,17 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
     return resolved
 
 
-_DTYPES = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
+_DTYPES = ("float32", "float16", "bfloat16")
+
+
+def resolve_dtype(dtype: "str | torch.dtype") -> "torch.dtype":
+    """A torch dtype from its name ('float32', 'float16', 'bfloat16') or itself."""
+    import torch
+    if isinstance(dtype, torch.dtype):
+        return dtype
+    if dtype not in _DTYPES:
+        raise InputError(f"unknown dtype {dtype!r} (choose from {', '.join(_DTYPES)})", field="dtype")
+    return getattr(torch, dtype)
 
 
 def add_encoder_arguments(parser: argparse.ArgumentParser, *, default: str = "viclip") -> None:
@@ -154,7 +158,7 @@ def load_encoder_from_args(args: argparse.Namespace, **extra: Any) -> VideoTextE
             checkpoint=getattr(args, "checkpoint", None),
             vocab=getattr(args, "vocab", None),
             device=getattr(args, "device", "auto"),
-            dtype=_DTYPES[getattr(args, "encoder_dtype", "float32")],
+            dtype=getattr(args, "encoder_dtype", "float32"),
             batch_size=getattr(args, "encoder_batch_size", 16),
             normalization=getattr(args, "pixel_normalization", "clip"),
         )

@@ -48,12 +48,15 @@ class ExtractConfig:
             pooling instead of cutting and resizing crops.
         batch_size: crop tubes per encoder call.
         split: camera split the features are extracted for.
+        frame_scale: render the frames at this fraction of the camera resolution and upsample them
+            bilinearly to full size before cutting crops (a speed knob; 1 = full resolution).
     """
 
     ratios: tuple[float, ...] = field(default_factory=pyramid_ratios)
     crop_size: int | str | None = None
     batch_size: int = 256
     split: str = "train"
+    frame_scale: float = 1.0
 
     def resolved_crop_size(self, input_kind: str, encoder: Any = None) -> int | str:
         if self.crop_size is not None:
@@ -74,6 +77,7 @@ def extract_config_dict(scene: Scene, encoder: Any, config: ExtractConfig) -> di
     return {"encoder": str(encoder.name), "dim": int(encoder.dim), "input_kind": str(encoder.input_kind),
             "ratios": [round(float(r), 6) for r in config.ratios], "tube": list(TUBE_OFFSETS),
             "crop_size": config.resolved_crop_size(encoder.input_kind, encoder),
+            "frame_scale": float(config.frame_scale),
             "encoder_config": encoder.config() if hasattr(encoder, "config") else None, "split": config.split,
             "frames": "rendered-rgb" if encoder.input_kind == "rgb" else "rendered-label-coverage",
             "scene": scene_signature(scene)}
@@ -107,11 +111,13 @@ def feature_store(scene: Scene, config_dict: dict[str, Any] | None = None) -> St
 class FrameSource:
     """Renders (and caches) the frames the encoder sees: (C,H,W) float32 per (timestep, camera)."""
 
-    def __init__(self, scene: Scene, input_kind: str, split: str = "train", cache_frames: int = 64):
+    def __init__(self, scene: Scene, input_kind: str, split: str = "train", cache_frames: int = 64,
+                 frame_scale: float = 1.0):
         self.scene = scene
+        self.frame_scale = float(frame_scale)
         self.input_kind = input_kind
         self.split = split
-        self.cache: OrderedDict[tuple[int, int], torch.Tensor] = OrderedDict()
+        self.cache: OrderedDict[tuple, torch.Tensor] = OrderedDict()
         self.cache_frames = cache_frames
         self.render_seconds = 0.0
         if input_kind == "labels":
@@ -139,9 +145,22 @@ class FrameSource:
         img = self._render(t, cam_index)
         self.render_seconds += time.perf_counter() - start
         self.cache[key] = img
-        while len(self.cache) > self.cache_frames:
+        while len(self.cache) > 2 * self.cache_frames:
             self.cache.popitem(last=False)
         return img
+
+    def crop_means(self, t: int, cam_index: int, layout: PyramidLayout) -> torch.Tensor:
+        """(num_crops, C) crop means of frame (t, camera), cached like the frames."""
+        key = (t, cam_index, "means")
+        hit = self.cache.get(key)
+        if hit is None:
+            start = time.perf_counter()
+            frame = self._render(t, cam_index)      # not cached: only its crop means are kept
+            self.render_seconds += time.perf_counter() - start
+            hit = frame_crop_means(frame, layout)
+            self.cache[key] = hit
+        self.cache.move_to_end(key)
+        return hit
 
     def tube(self, t: int, cam_index: int) -> torch.Tensor:
         """(8, C, H, W) frames t-4..t+3 of one camera, edge frames repeated."""
@@ -151,7 +170,16 @@ class FrameSource:
         from ..render import render_frame
         g = self.scene.gaussians
         frame = g.at(t)
-        camera = self.scene.cameras.cameras(t, self.split)[cam_index]
+        full = self.scene.cameras.cameras(t, self.split)[cam_index]
+        camera = full if self.frame_scale == 1.0 else full.scaled(self.frame_scale)
+        img = self._render_at(frame, camera, t)                       # (C, h, w)
+        if camera.width != full.width or camera.height != full.height:
+            img = F.interpolate(img[None], size=(full.height, full.width), mode="bilinear",
+                                align_corners=False)[0]
+        return img.clamp_(0.0, 1.0)
+
+    def _render_at(self, frame: Any, camera: Any, t: int) -> torch.Tensor:
+        from ..render import render_frame
         if self.input_kind == "rgb":
             out = render_frame(frame, camera, outputs=("rgb",))["rgb"]
         else:
@@ -191,8 +219,11 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
     steps = select_timesteps(scene.num_timesteps, timesteps, shard)
     todo = [t for t in steps if not store.is_done(t)]
     skipped = [t for t in steps if t not in set(todo)]
+    if not 0 < config.frame_scale <= 1:
+        raise InputError(f"must be in (0, 1], got {config.frame_scale}", field="frame_scale")
     source = FrameSource(scene, encoder.input_kind, config.split,
-                         cache_frames=max(64, 9 * scene.cameras.num_cameras(config.split)))
+                         cache_frames=max(64, 9 * scene.cameras.num_cameras(config.split)),
+                         frame_scale=config.frame_scale)
     crop_size = cfg["crop_size"]
     clip_norm = encoder.input_kind == "rgb"
     start = time.perf_counter()
@@ -208,12 +239,15 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
             # one camera per batch: encoders may depend on the camera (the simulated one's bias)
             cam_encoder = encoder.bind_camera(cameras[c].name) if hasattr(encoder, "bind_camera") else encoder
             batcher = _Batcher(cam_encoder, out, config.batch_size, coverage=crop_size == COVERAGE_MEANS)
-            tube = source.tube(t, c)
-            for grid in layout.scales:
-                rows = offsets[c] + grid.offset + np.arange(grid.num_crops)
-                if crop_size == COVERAGE_MEANS:
-                    batcher.add(crop_means(tube, grid), rows)
-                else:
+            if crop_size == COVERAGE_MEANS:
+                # crop means depend on one frame only: computed once per frame, shared by 8 tubes
+                means = torch.stack([source.crop_means(k, c, layout)
+                                     for k in tube_indices(t, scene.num_timesteps)], 1)   # (n, 8, C)
+                batcher.add(means, offsets[c] + np.arange(layout.num_crops))
+            else:
+                tube = source.tube(t, c)
+                for grid in layout.scales:
+                    rows = offsets[c] + grid.offset + np.arange(grid.num_crops)
                     batcher.add(resize_crops(scale_crops(tube, grid), crop_size, clip_normalize=clip_norm), rows)
             batcher.flush()
             encode_seconds += batcher.seconds
@@ -229,12 +263,26 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
 def crop_means(tube: torch.Tensor, grid: Any) -> torch.Tensor:
     """Per-frame channel means of every crop, zero padding included: (L,C,H,W) -> (n, L, C).
 
-    Equal to ``scale_crops(tube, grid).mean((3, 4))`` at a fraction of the cost (one average pool).
+    Equal to ``scale_crops(tube, grid).mean((3, 4))``, computed from a float64 summed-area table
+    (4 lookups per crop instead of k² additions).
     """
-    padded = F.pad(tube, (grid.padding,) * 4)
-    pooled = F.avg_pool2d(padded, kernel_size=grid.kernel, stride=grid.stride)
-    L, C, ny, nx = pooled.shape
-    return pooled.reshape(L, C, ny * nx).permute(2, 0, 1).contiguous()
+    L, C, H, W = tube.shape
+    sat = torch.zeros(L, C, H + 1, W + 1, dtype=torch.float64)
+    sat[:, :, 1:, 1:] = tube.to(torch.float64).cumsum(2).cumsum(3)
+    k, p = grid.kernel, grid.padding
+    y0 = torch.arange(grid.ny) * grid.stride - p          # crop rows y0 .. y0+k-1 (may leave the image)
+    x0 = torch.arange(grid.nx) * grid.stride - p
+    ya, yb = y0.clamp(0, H), (y0 + k).clamp(0, H)
+    xa, xb = x0.clamp(0, W), (x0 + k).clamp(0, W)
+    total = (sat[:, :, yb][:, :, :, xb] - sat[:, :, ya][:, :, :, xb]
+             - sat[:, :, yb][:, :, :, xa] + sat[:, :, ya][:, :, :, xa])   # (L, C, ny, nx)
+    means = (total / float(k * k)).to(tube.dtype)
+    return means.reshape(L, C, grid.ny * grid.nx).permute(2, 0, 1).contiguous()
+
+
+def frame_crop_means(frame: torch.Tensor, layout: PyramidLayout) -> torch.Tensor:
+    """(C,H,W) one frame -> (num_crops, C) channel means of all its crops (all scales, layout order)."""
+    return torch.cat([crop_means(frame[None], g)[:, 0] for g in layout.scales])
 
 
 class _Batcher:

@@ -96,7 +96,7 @@ class LanguageField:
         """(N, d) latents of timestep t on the field's device."""
         if not 0 <= int(t) < self.num_timesteps:
             raise InputError(f"timestep {t} is out of range 0..{self.num_timesteps - 1}", field="t")
-        return torch.as_tensor(np.asarray(self.latents[int(t)]), device=self.device).to(dtype)
+        return torch.from_numpy(np.array(self.latents[int(t)])).to(self.device, dtype)
 
     @torch.no_grad()
     def decode(self, latents: torch.Tensor | np.ndarray, chunk: int = 65536) -> torch.Tensor:

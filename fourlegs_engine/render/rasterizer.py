@@ -26,12 +26,12 @@ GEOM_CHANNELS = 6  # mx, my, conic a, b, c, opacity
 
 @dataclass
 class RasterResult:
-    """Raw per-tile results (tile-major; see :func:`tiles_to_image`).
+    """Raw results on the tile-padded pixel grid (Hp·Wp rows, row-major; see :func:`tiles_to_image`).
 
     Attributes:
-        accum: (n_tiles, P, C) Σ w·values.
-        transmittance: (n_tiles, P) final transmittance (1 − alpha).
-        median_ids: (n_tiles, P) int64 Gaussian at the median of the weight distribution, −1 if none;
+        accum: (Hp·Wp, C) Σ w·values.
+        transmittance: (Hp·Wp,) final transmittance (1 − alpha).
+        median_ids: (Hp·Wp,) int64 Gaussian at the median of the weight distribution, −1 if none;
             None unless requested.
         weights: (pixel, gaussian, weight) rows or None unless requested.
     """
@@ -89,6 +89,7 @@ class TileGeometry:
         self.phi = torch.stack([lx * lx, lx * ly, ly * ly, lx, ly, torch.ones_like(lx)], dim=-1)  # (P,6)
         self.px_int = (tiles % binning.tiles_x)[:, None] * ts + p % ts  # (B,P) int64
         self.py_int = (tiles // binning.tiles_x)[:, None] * ts + p // ts
+        self.pix = (self.py_int * (binning.tiles_x * ts) + self.px_int).reshape(-1)  # (B·P,) padded-grid rows
 
 
 def pair_coefficients(geom: torch.Tensor, binning: Binning) -> tuple[torch.Tensor, torch.Tensor]:
@@ -193,9 +194,10 @@ def rasterize_forward(geom: torch.Tensor, values: torch.Tensor, binning: Binning
     device, dtype = geom.device, geom.dtype
     C = values.shape[1]
     chunk = opts.chunk
-    accum = torch.zeros(n_tiles, P, C, device=device, dtype=dtype)
-    t_final_all = torch.ones(n_tiles, P, device=device, dtype=dtype)
-    median = torch.full((n_tiles, P), -1, device=device, dtype=torch.int64) if want_median else None
+    n_pix = n_tiles * P
+    accum = torch.zeros(n_pix, C, device=device, dtype=dtype)
+    t_final_all = torch.ones(n_pix, device=device, dtype=dtype)
+    median = torch.full((n_pix,), -1, device=device, dtype=torch.int64) if want_median else None
     rows_out: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
     with torch.no_grad():
         tables = pair_coefficients(geom, binning)
@@ -215,10 +217,11 @@ def rasterize_forward(geom: torch.Tensor, values: torch.Tensor, binning: Binning
                     b, p, kk = torch.nonzero((w > 0) & inside[..., None], as_tuple=True)
                     r = ch.rows[b]
                     rows_out.append((tg.py_int[r, p] * binning.width + tg.px_int[r, p], ch.gid[b, kk], w[b, p, kk]))
-            accum[tiles] = acc
-            t_final_all[tiles] = t_state
+            if C:
+                accum.index_copy_(0, tg.pix, acc.reshape(-1, C))
+            t_final_all.index_copy_(0, tg.pix, t_state.reshape(-1))
             if want_median:
-                median[tiles] = _median_ids(tables, tg, k_max, opts, chunk, t_state)
+                median.index_copy_(0, tg.pix, _median_ids(tables, tg, k_max, opts, chunk, t_state).reshape(-1))
     weights = None
     if want_weights:
         if rows_out:
@@ -277,9 +280,9 @@ def rasterize_backward(geom: torch.Tensor, values: torch.Tensor, binning: Binnin
             done = torch.zeros(B, P, device=device, dtype=torch.bool)
             starts = [(ch.rows, j0, t_start, d_start) for j0, (ch, t_start, d_start, *_) in
                       zip(range(0, k_max, chunk), _chunks(tables, tg, k_max, opts, chunk, t_state, done))]
-            g_all = grad_accum[tiles] if C else None  # (B,P,C)
+            g_all = grad_accum.index_select(0, tg.pix).view(B, P, C) if C else None
             # the T_final term of ∂L/∂α: every blended entry is followed by T_final·∂L/∂T_final
-            carry = t_state * grad_t[tiles]  # (B,P)
+            carry = t_state * grad_t.index_select(0, tg.pix).view(B, P)
             for rows, j0, t_start, d_start in reversed(starts):
                 ch = Chunk(tables, tg, rows, j0, min(chunk, k_max - j0), opts, for_backward=True)
                 t_excl, _, _, _ = ch.blend(t_start, d_start, opts)
@@ -325,7 +328,7 @@ def _coef_to_geom_grads(ch: Chunk, d_coef: torch.Tensor, geom: torch.Tensor, tg:
 
 
 class RasterizeTiles(torch.autograd.Function):
-    """(geom (N,6), values (N,C)) -> (accum (n_tiles,P,C), T_final (n_tiles,P), median ids, weights)."""
+    """(geom (N,6), values (N,C)) -> (accum (Hp·Wp,C), T_final (Hp·Wp,), median ids, weights)."""
 
     @staticmethod
     def forward(ctx, geom, values, binning, opts, want_median, want_weights):  # noqa: D401
@@ -345,7 +348,7 @@ class RasterizeTiles(torch.autograd.Function):
     def backward(ctx, grad_accum, grad_t, *_):
         geom, values, t_final = ctx.saved_tensors
         if grad_accum is None:
-            grad_accum = torch.zeros(ctx.binning.num_tiles, ctx.binning.tile_size ** 2, values.shape[1],
+            grad_accum = torch.zeros(ctx.binning.num_tiles * ctx.binning.tile_size ** 2, values.shape[1],
                                      dtype=geom.dtype, device=geom.device)
         if grad_t is None:
             grad_t = torch.zeros_like(t_final)
@@ -357,9 +360,8 @@ class RasterizeTiles(torch.autograd.Function):
         return grad_geom, grad_values, None, None, None, None
 
 
-def tiles_to_image(tiles: torch.Tensor, binning: Binning) -> torch.Tensor:
-    """(n_tiles, P, C) tile-major -> (H, W, C) image (differentiable)."""
-    ts, C = binning.tile_size, tiles.shape[-1]
-    img = tiles.reshape(binning.tiles_y, binning.tiles_x, ts, ts, C).permute(0, 2, 1, 3, 4)
-    img = img.reshape(binning.tiles_y * ts, binning.tiles_x * ts, C)
+def tiles_to_image(buffer: torch.Tensor, binning: Binning) -> torch.Tensor:
+    """(Hp·Wp, C) rows of the tile-padded grid -> (H, W, C) image view (differentiable, no copy)."""
+    ts = binning.tile_size
+    img = buffer.reshape(binning.tiles_y * ts, binning.tiles_x * ts, -1)
     return img[:binning.height, :binning.width]

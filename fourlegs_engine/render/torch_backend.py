@@ -43,19 +43,19 @@ def composite(geom: torch.Tensor, depths: torch.Tensor, binning, *, colors, feat
     accum_t, trans_t, median_t, pix, gid, wt = RasterizeTiles.apply(
         geom, values, binning, options, "depth_median" in outputs, "weights" in outputs)
     accum = tiles_to_image(accum_t, binning)
-    trans = tiles_to_image(trans_t[..., None], binning)  # (H,W,1)
+    trans = tiles_to_image(trans_t, binning)  # (H,W,1)
     alpha = 1.0 - trans
     out: dict = {}
     if "rgb" in outputs:
-        out["rgb"] = accum[..., slices["rgb"]] + trans * bg_rgb
+        out["rgb"] = _over_background(accum[..., slices["rgb"]], trans, bg_rgb)
     if "features" in outputs:
-        out["features"] = accum[..., slices["features"]] + trans * bg_feat
+        out["features"] = _over_background(accum[..., slices["features"]], trans, bg_feat)
     if "depth" in outputs:
         has = alpha > DEPTH_ALPHA_EPS
         safe = torch.where(has, alpha, torch.ones_like(alpha))
         out["depth"] = torch.where(has, accum[..., slices["depth"]] / safe, torch.zeros_like(alpha))
     if "depth_median" in outputs:
-        ids = tiles_to_image(median_t[..., None], binning)
+        ids = tiles_to_image(median_t, binning)
         picked = depths.to(dtype)[ids.clamp_min(0)] if N else torch.zeros_like(alpha)
         out["depth_median"] = torch.where(ids >= 0, picked, torch.zeros_like(picked))
     if "alpha" in outputs:
@@ -64,3 +64,10 @@ def composite(geom: torch.Tensor, depths: torch.Tensor, binning, *, colors, feat
         out["weights"] = BlendWeights(pixel=pix, gaussian=gid, weight=wt, width=binning.width,
                                       height=binning.height)
     return out
+
+
+def _over_background(accum: torch.Tensor, trans: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """accum + T·background; a black background costs no pass over the image."""
+    if not background.requires_grad and not bool(background.any()):
+        return accum
+    return accum + trans * background

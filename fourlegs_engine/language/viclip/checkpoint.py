@@ -53,6 +53,9 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
         state = _read_torch(path)
     if not state:
         raise InputError("the checkpoint holds no tensors", file=path)
+    odd_keys = [repr(key) for key in state if not isinstance(key, str)]
+    if odd_keys:
+        raise InputError(f"keys that are not strings: {_listing(odd_keys)}", file=path, field="model")
     bad = [key for key, value in state.items() if not isinstance(value, torch.Tensor)]
     if bad:
         raise InputError(f"entries that are not tensors: {_listing(bad)}", file=path, field="model")

@@ -54,8 +54,8 @@ class ViCLIPEncoder:
         self.image_size = config.image_size
         self.context_length = config.context_length
         self.source = dict(source or {})
-        self.name = name or ("viclip" if config.size_name == "L/14" else
-                             "viclip-b16" if config.size_name == "B/16" else "viclip-custom")
+        # a registry name of language.encoders, so the same encoder can be rebuilt from scene.json
+        self.name = name or ("viclip-b16" if config.size_name == "B/16" else "viclip")
 
     def config(self) -> dict:
         """JSON-serializable settings that change the embeddings (for config hashes of cached features)."""

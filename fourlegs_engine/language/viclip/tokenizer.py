@@ -11,7 +11,8 @@ entities unescaped twice; whitespace runs collapsed; lower-cased) and split into
 CLIP's pattern: the special tokens, the contractions 's 't 're 've 'm 'll 'd, runs of letters (Unicode
 category L*), single digits/numerals (category N*), and runs of anything else that is not whitespace.
 The pattern is implemented as a small scanner over Unicode categories, so the ``regex`` package is
-not needed.
+not needed; the tests check it against the official pattern run by ``regex`` (categories follow the
+Unicode version of the running Python).
 """
 from __future__ import annotations
 
@@ -32,7 +33,13 @@ END_OF_WORD = "</w>"
 MAX_MERGES = 49152 - 256 - 2
 DEFAULT_CONTEXT_LENGTH = 32  # ViCLIP's text context (CLIP uses 77)
 _CONTRACTIONS = ("'s", "'t", "'re", "'ve", "'m", "'ll", "'d")
-_WHITESPACE_RUN = re.compile(r"\s+")
+# CLIP's \s (the regex package: Unicode White_Space) differs from Python's str.isspace() only by the
+# four information separators U+001C..U+001F, which Python also counts as whitespace.
+_SEPARATORS = "\x1c\x1d\x1e\x1f"
+_WHITESPACE_RUN = re.compile(r"[^\S\x1c-\x1f]+")
+# Matched by none of the pattern's classes under IGNORECASE (it case-folds to a letter without being
+# one), so CLIP's findall skips it: U+0345 COMBINING GREEK YPOGEGRAMMENI.
+_SKIPPED = "\u0345"
 
 
 @lru_cache()
@@ -55,6 +62,11 @@ def bytes_to_unicode() -> dict[int, str]:
 
 
 def _category(char: str) -> str:
+    """'L' letter, 'N' number, ' ' whitespace, '-' skipped, anything else: another symbol."""
+    if char in _SKIPPED:
+        return "-"
+    if char.isspace() and char not in _SEPARATORS:
+        return " "
     return unicodedata.category(char)[0]
 
 
@@ -81,12 +93,12 @@ def pre_tokenize(text: str) -> list[str]:
                 j += 1
         elif kind == "N":
             j = i + 1
-        elif char.isspace():
+        elif kind in (" ", "-"):
             i += 1
             continue
         else:
             j = i + 1
-            while j < n and not text[j].isspace() and _category(text[j]) not in ("L", "N"):
+            while j < n and _category(text[j]) not in ("L", "N", " ", "-"):
                 j += 1
         pieces.append(text[i:j])
         i = j

@@ -1,0 +1,203 @@
+"""CLI: ``fourlegs query``, ``fourlegs bench accuracy-time`` and ``fourlegs bench query-speed``."""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "query", help="when and where a text query happens in a scene (segment, peak, maps)",
+        description="Localize a text query in a scene with a distilled language field: prints the "
+                    "temporal segment, its peak and an s_t sparkline; optionally writes JSON, an s_t plot "
+                    "and relevancy/depth/alpha maps as multi-channel EXR files.")
+    p.add_argument("scene", nargs="?", help="bundle directory with a language field")
+    p.add_argument("text", nargs="?", help="the query, e.g. \"a ball flying in the air\"")
+    p.add_argument("--demo", action="store_true",
+                   help="use the synthetic demo scene (built, with its language field, on first use)")
+    p.add_argument("--json", metavar="PATH", help="write the localization as JSON")
+    p.add_argument("--plot", metavar="PATH", help="s_t plot (PNG); default beside --json as *.st.png")
+    p.add_argument("--exr", metavar="DIR", help="write relevancy/depth/alpha EXR maps into DIR")
+    p.add_argument("--views", nargs="+", metavar="CAM",
+                   help="camera names for the EXR maps (default: the best view)")
+    p.add_argument("--frames", nargs="+", metavar="T",
+                   help="timesteps for the EXR maps: integers or 'peak' (default: peak)")
+    p.add_argument("--path", choices=("exact", "codebook"), default="exact",
+                   help="per-Gaussian relevancy: exact decode or codebook lookup (default exact)")
+    p.add_argument("--codebook-size", type=int, default=4096, help="K of --path codebook (default 4096)")
+    p.add_argument("--spatial", choices=("exact", "fast"), default="exact",
+                   help="maps: 128-channel render + per-pixel decode, or 1-channel relevancy render")
+    p.add_argument("--scale", type=float, default=1.0, help="resolution scale of the maps (default 1)")
+    p.add_argument("--stride", type=int, default=1, help="temporal stride (default 1: every timestep)")
+    p.add_argument("--dilation", type=int, default=1, help="temporal dilation radius (default 1)")
+    p.add_argument("--negatives", nargs="+", default=(), metavar="PHRASE",
+                   help="scene-specific negative phrases added to the canonical ones")
+    p.add_argument("--no-spatial", action="store_true", help="temporal localization only")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    p.set_defaults(func=run_query)
+
+
+def register_bench(bench_subparsers: Any) -> None:
+    p = bench_subparsers.add_parser(
+        "accuracy-time", help="every query-speed knob: seconds and the six grounding metrics, same run",
+        description="Sweep the speed/accuracy knobs of querying (codebook K, temporal stride, resolution "
+                    "scale, fast vs exact maps, distillation mode/iterations, kNN k, fp32 vs fp16) on a "
+                    "synthetic scene; each row reports its time and vAP, vIoU, tIoU, tRec, tPrec, tAP. "
+                    "Writes a Markdown table, JSON and a Pareto plot (accuracy vs seconds).")
+    p.add_argument("--scene", default="bench", choices=("tiny", "demo", "bench", "full"),
+                   help="synthetic scene size (default bench; tiny for a quick run)")
+    p.add_argument("--bundle", default=None, help="use this synthetic bundle instead of the cached one")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", metavar="PATH", help="results JSON (default OUT/accuracy_time.json)")
+    p.add_argument("--out", metavar="DIR", help="output directory (default <bundle>/bench/accuracy_time)")
+    p.add_argument("--skip", default="", help="comma-separated knob groups to skip (e.g. distill,knn)")
+    p.add_argument("--distill-timesteps", type=int, default=0,
+                   help="distillation variants: distil every k-th timestep only (0: automatic)")
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(func=run_bench_accuracy_time)
+
+    s = bench_subparsers.add_parser(
+        "query-speed", help="temporal query time at 300k Gaussians x 150 timesteps (synthetic latents)",
+        description="Time the temporal query (codebook and exact paths) and the spatial maps on random "
+                    "latents of the paper's size written as a memmap in a temporary directory (no "
+                    "distillation needed); reports seconds per query and peak RSS.")
+    s.add_argument("--gaussians", type=int, default=300_000)
+    s.add_argument("--timesteps", type=int, default=150)
+    s.add_argument("--codebook", default="4096,65536", help="comma-separated K values (default 4096,65536)")
+    s.add_argument("--repeats", type=int, default=5, help="timed queries per configuration (default 5)")
+    s.add_argument("--exact-timesteps", type=int, default=3,
+                   help="exact path: time this many timesteps and extrapolate to all (0: all)")
+    s.add_argument("--spatial-scene", default="bench", choices=("none", "tiny", "demo", "bench", "full"),
+                   help="synthetic scene whose geometry times the 640x360 maps (default bench; none: skip)")
+    s.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
+    s.add_argument("--json", metavar="PATH", help="write the results as JSON")
+    s.add_argument("--overwrite", action="store_true")
+    s.set_defaults(func=run_bench_query_speed)
+
+
+# ------------------------------------------------------------------------------------ query
+def _open(args: argparse.Namespace):
+    from ..errors import InputError
+    from ..scene.bundle import is_bundle, load_bundle
+    from .engine import QueryEngine
+    from .prepare import ensure_language_field
+
+    if args.demo:
+        from ..eval.synthetic import ensure_demo_bundle
+        if args.text is None and args.scene is not None:
+            args.text, args.scene = args.scene, None
+        if args.scene is not None:
+            raise InputError("give either --demo TEXT or SCENE TEXT, not both", field="scene")
+        path = ensure_demo_bundle()
+    else:
+        if args.scene is None or args.text is None:
+            raise InputError("expected SCENE TEXT (or --demo TEXT)", field="arguments")
+        path = Path(args.scene)
+        if not is_bundle(path):
+            raise InputError("not a scene bundle (scene.json missing); convert it with `fourlegs convert` and "
+                             "distil its language field with `fourlegs language`", file=path)
+    if not args.text or not args.text.strip():
+        raise InputError("the query text is empty", field="text")
+    scene = load_bundle(path)
+    if not scene.language and not (scene.metadata or {}).get("labels"):
+        raise InputError("the scene has no distilled language field; run `fourlegs language` first",
+                         file=path, field="language")
+    scene, field, encoder = ensure_language_field(scene, progress=True)
+    engine = QueryEngine(scene, field, encoder, path=args.path, codebook_size=args.codebook_size,
+                         negatives=args.negatives, temporal_stride=args.stride, spatial=args.spatial,
+                         resolution_scale=args.scale, dilation=args.dilation)
+    return scene, engine
+
+
+def run_query(args: argparse.Namespace) -> int:
+    from ..errors import InputError, OutputExistsError
+    from ..fileio import write_json_atomic
+    from .exr import write_exr
+    from .plots import plot_temporal
+    from .temporal import sparkline
+
+    plot = Path(args.plot) if args.plot else (Path(args.json).with_suffix(".st.png") if args.json else None)
+    for out in (args.json, plot):
+        if out is not None and Path(out).exists() and not args.overwrite:
+            raise OutputExistsError(out)
+    scene, engine = _open(args)
+    need = {"temporal"} if args.no_spatial else {"temporal", "best_view", "action_centre"}
+    start = time.perf_counter()
+    loc = engine.localize(args.text, need)
+    loc.timings["total"] = time.perf_counter() - start
+    tmp = loc.temporal
+    print(f'"{args.text}" in {scene.name} (T={scene.num_timesteps}, N={scene.num_gaussians}, path={args.path})')
+    print(f"s_t |{sparkline(tmp.scores, 80)}|")
+    if tmp.found:
+        a, b = tmp.segment
+        print(f"segment {a}..{b} (inclusive), peak t={tmp.peak}; all segments: "
+              + ", ".join(f"{x}..{y}" for x, y in tmp.segments))
+    else:
+        print(f"not found: {tmp.message}")
+    if loc.best_view is not None:
+        print(f"best view {loc.best_view} (mean relevancy {loc.view_scores[loc.best_view]:.3f})")
+    if loc.action_centre is not None:
+        print("action centre (world) " + ", ".join(f"{v:.3f}" for v in loc.action_centre)
+              + f"; pixel {loc.centre_px[0]:.1f}, {loc.centre_px[1]:.1f} in {loc.best_view}; box {loc.bbox}")
+    for m in loc.messages:
+        if m != tmp.message:
+            print(m)
+    print("timings: " + ", ".join(f"{k} {v:.3f} s" for k, v in loc.timings.items()))
+    result = loc.to_dict()
+    if args.exr:
+        result["exr"] = _write_maps(args, scene, engine, loc, write_exr)
+    if args.json:
+        write_json_atomic(args.json, result, overwrite=args.overwrite)
+        print(f"wrote {args.json}")
+    if plot is not None:
+        plot_temporal(tmp, plot, query=args.text, overwrite=args.overwrite)
+        print(f"wrote {plot}")
+    return 0
+
+
+def _write_maps(args, scene, engine, loc, write_exr) -> list[str]:
+    from ..errors import InputError
+
+    frames: list[int] = []
+    for f in args.frames or ["peak"]:
+        if f == "peak":
+            if loc.temporal.peak is None:
+                raise InputError("no peak to write maps at (query not found); pass --frames T", field="--frames")
+            frames.append(int(loc.temporal.peak))
+        else:
+            try:
+                frames.append(scene.gaussians.check_timestep(int(f)))
+            except ValueError:
+                raise InputError(f"{f!r} is neither a timestep nor 'peak'", field="--frames") from None
+    names = args.views or ([loc.best_view] if loc.best_view else [])
+    if not names:
+        cams = scene.cameras.cameras(0, "all")
+        if not cams:
+            raise InputError("the scene has no cameras", field="--views")
+        names = [cams[0].name]
+    written = []
+    for t in frames:
+        for name in names:
+            cam = scene.cameras.find(name, t)
+            maps = engine.relevancy_map(args.text, cam, t)
+            path = Path(args.exr) / f"{name or 'view'}_t{t:04d}.exr"
+            write_exr(path, maps, overwrite=args.overwrite)
+            written.append(str(path))
+            print(f"wrote {path} (relevancy, depth, alpha; {maps['relevancy'].shape[1]}x"
+                  f"{maps['relevancy'].shape[0]})")
+    return written
+
+
+# ------------------------------------------------------------------------------------ benches
+def run_bench_accuracy_time(args: argparse.Namespace) -> int:
+    from ..eval.accuracy_time import run_accuracy_time_cli
+    return run_accuracy_time_cli(args)
+
+
+def run_bench_query_speed(args: argparse.Namespace) -> int:
+    from .speed import run_query_speed_cli
+    return run_query_speed_cli(args)

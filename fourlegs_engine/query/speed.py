@@ -1,0 +1,209 @@
+"""``fourlegs bench query-speed``: query timings at the paper's scale without distilling a scene.
+
+Random unit latents (T,N,128) float16 — the dtype the language stage stores — are written as a memmap in
+a temporary directory, decoded by a randomly initialized decoder of the real architecture
+(128→256→512→768, L2-normalized). Timed: the codebook build (once per scene), the temporal query on the
+codebook path (cold: includes decoding the K codes once; warm: a further query), the exact path
+(``--exact-timesteps`` timesteps timed and extrapolated to all T, stated as such), and relevancy maps at
+640×360 on the geometry of a synthetic scene (fast 1-channel and exact 128-channel paths). Peak RSS is
+reported from ``resource.getrusage``.
+"""
+from __future__ import annotations
+
+import resource
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..errors import InputError, OutputExistsError
+from ..fileio import write_json_atomic
+from ..scene.camera import CameraRig
+from ..scene.gaussians import GaussianSequence
+from ..scene.scene import Scene
+from .codebook import build_codebook
+from .engine import QueryEngine
+
+QUERY = "a ball flying in the air"
+
+
+class RandomField:
+    """A language field with random latents (memmap) and a random decoder of the real architecture."""
+
+    encoder_name = "simulated"
+    canonical_phrases = ("object", "things", "stuff", "texture")
+
+    def __init__(self, latents: np.ndarray, seed: int = 0):
+        from ..language.autoencoder import FeatureDecoder
+
+        torch.manual_seed(seed)
+        self.latents = latents
+        self.decoder = FeatureDecoder((latents.shape[-1], 256, 512, 768)).eval()
+
+    @torch.no_grad()
+    def decode(self, z: torch.Tensor) -> torch.Tensor:
+        return self.decoder(torch.as_tensor(z, dtype=torch.float32))
+
+
+def random_latents(path: Path, T: int, N: int, d: int = 128, seed: int = 0) -> np.ndarray:
+    """Write (T,N,d) float16 random unit latents to ``path`` a timestep at a time; return the memmap."""
+    rng = np.random.default_rng(seed)
+    out = np.lib.format.open_memmap(path, mode="w+", dtype=np.float16, shape=(T, N, d))
+    for t in range(T):
+        x = rng.standard_normal((N, d), dtype=np.float32)
+        x /= np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+        out[t] = x.astype(np.float16)
+    out.flush()
+    del out
+    return np.load(path, mmap_mode="r")
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _time(fn, repeats: int) -> tuple[float, list[float], Any]:
+    times, out = [], None
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)), times, out
+
+
+def _flat_scene(T: int, N: int) -> Scene:
+    """Geometry-free stand-in for the temporal timings (temporal queries never touch geometry)."""
+    z = np.zeros((T, N, 3), np.float32)
+    rot = np.zeros((T, N, 4), np.float32)
+    rot[..., 0] = 1
+    g = GaussianSequence(means=z, rotations=rot, log_scales=np.zeros((N, 3), np.float32),
+                         opacity_logits=np.zeros(N, np.float32), colors=np.zeros((N, 3), np.float32))
+    return Scene(gaussians=g, cameras=CameraRig(), name=f"random-{N}x{T}")
+
+
+def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int], repeats: int,
+                    exact_timesteps: int, spatial_scene: str, workdir: Path, progress: bool = True) -> dict:
+    from ..language.simulated import SimulatedTextEncoder
+
+    T, N = int(timesteps), int(gaussians)
+    if T < 1 or N < 1:
+        raise InputError("needs at least one timestep and one Gaussian", field="size")
+    report: dict[str, Any] = {"benchmark": "query-speed", "num_gaussians": N, "num_timesteps": T, "latent_dim": 128,
+                              "torch_threads": torch.get_num_threads(), "query": QUERY, "rows": []}
+    t0 = time.perf_counter()
+    lat = random_latents(workdir / "latents.npy", T, N)
+    report["write_latents_s"] = time.perf_counter() - t0
+    field = RandomField(lat)
+    scene = _flat_scene(T, N)
+    text = SimulatedTextEncoder()
+    for K in codebook_sizes:
+        t0 = time.perf_counter()
+        book = build_codebook(lat, K, out_dir=workdir / f"cb{K}", progress=progress)
+        build = time.perf_counter() - t0
+        eng = QueryEngine(scene, field, text, path="codebook", codebook=book)
+        t0 = time.perf_counter()
+        eng.temporal(QUERY)
+        cold = time.perf_counter() - t0
+        queries = iter([f"{QUERY} {i}" for i in range(max(1, repeats))])
+        warm, times, _ = _time(lambda: eng.temporal(next(queries)), repeats)
+        report["rows"].append({"path": f"codebook K={K}", "levels": book.meta["levels"], "build_s": build,
+                               "first_query_s": cold, "query_s": warm, "query_times_s": times,
+                               "decoded_latents": int(eng.stats["decoded_latents"]),
+                               "peak_rss_mb": _peak_rss_mb()})
+        _print_row(report["rows"][-1])
+        del eng, book
+    steps = T if exact_timesteps <= 0 else min(T, int(exact_timesteps))
+    eng = QueryEngine(scene, field, text, path="exact")
+    eng.embed_query(QUERY)
+    eng.reference_embeddings()
+    t0 = time.perf_counter()
+    for t in range(steps):
+        eng._gaussian_relevancy(QUERY, t)
+    per_t = (time.perf_counter() - t0) / steps
+    row = {"path": "exact", "query_s": per_t * T, "timed_timesteps": steps,
+           "extrapolated": steps < T, "seconds_per_timestep": per_t, "peak_rss_mb": _peak_rss_mb()}
+    if steps == T:
+        t0 = time.perf_counter()
+        eng.temporal(QUERY)
+        row["query_s"] = time.perf_counter() - t0
+    report["rows"].append(row)
+    _print_row(row)
+    if spatial_scene != "none":
+        report["spatial"] = _spatial_timings(spatial_scene, text, repeats, workdir)
+        for r in report["spatial"]:
+            print(f"  map {r['path']:5s} {r['width']}x{r['height']} N={r['num_gaussians']}: {r['seconds']:.3f} s",
+                  file=sys.stderr)
+    report["peak_rss_mb"] = _peak_rss_mb()
+    return report
+
+
+def _spatial_timings(size: str, text, repeats: int, workdir: Path) -> list[dict]:
+    from ..eval.synthetic import ensure_demo_bundle
+    from ..scene.bundle import load_bundle
+
+    scene = load_bundle(ensure_demo_bundle(size))
+    lat = random_latents(workdir / "scene_latents.npy", scene.num_timesteps, scene.num_gaussians, seed=1)
+    field = RandomField(lat)
+    cam = scene.cameras.cameras(0, "all")[0]
+    cam = cam.scaled(640 / cam.width)
+    t = scene.num_timesteps // 2
+    rows = []
+    for path, fast in (("fast", True), ("exact", False)):
+        eng = QueryEngine(scene, field, text, spatial="fast" if fast else "exact")
+        eng.relevancy_map(QUERY, cam, t)  # warm-up: text embeddings, background relevancy
+        sec, times, maps = _time(lambda: eng.relevancy_map(QUERY, cam, t), max(1, min(repeats, 3)))
+        rows.append({"path": path, "seconds": sec, "times_s": times, "width": cam.width, "height": cam.height,
+                     "num_gaussians": scene.num_gaussians, "scene": size})
+    return rows
+
+
+def _print_row(row: dict) -> None:
+    extra = f" (build {row['build_s']:.1f} s, first query {row['first_query_s']:.3f} s)" if "build_s" in row else ""
+    extra += f" (extrapolated from {row['timed_timesteps']} timesteps)" if row.get("extrapolated") else ""
+    print(f"  {row['path']:18s} temporal query {row['query_s']:.3f} s{extra}; peak RSS {row['peak_rss_mb']:.0f} MB",
+          file=sys.stderr)
+
+
+def markdown(report: dict) -> str:
+    lines = [f"Temporal query over {report['num_gaussians']:,} Gaussians x {report['num_timesteps']} timesteps x "
+             f"128-d latents (random, float16 memmap), torch threads {report['torch_threads']}", "",
+             "| path | seconds per query | first query (s) | codebook build (s) | peak RSS (MB) |",
+             "|---|---|---|---|---|"]
+    for r in report["rows"]:
+        q = f"{r['query_s']:.3f}" + (f" (extrapolated from {r['timed_timesteps']} timesteps)" if r.get("extrapolated") else "")
+        lines.append(f"| {r['path']} | {q} | {r.get('first_query_s', float('nan')):.3f} | "
+                     f"{r.get('build_s', float('nan')):.1f} | {r['peak_rss_mb']:.0f} |")
+    if report.get("spatial"):
+        lines += ["", "| relevancy map | resolution | Gaussians | seconds |", "|---|---|---|---|"]
+        for r in report["spatial"]:
+            lines.append(f"| {r['path']} | {r['width']}x{r['height']} | {r['num_gaussians']:,} ({r['scene']}) | "
+                         f"{r['seconds']:.3f} |")
+    return "\n".join(lines)
+
+
+def run_query_speed_cli(args) -> int:
+    if args.json and Path(args.json).exists() and not args.overwrite:
+        raise OutputExistsError(args.json)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        sizes = [int(v) for v in str(args.codebook).split(",") if v.strip()]
+    except ValueError:
+        raise InputError(f"expected comma-separated integers, got {args.codebook!r}", field="--codebook") from None
+    workdir = Path(tempfile.mkdtemp(prefix="fourlegs-query-speed-"))
+    try:
+        report = run_query_speed(gaussians=args.gaussians, timesteps=args.timesteps, codebook_sizes=sizes,
+                                 repeats=args.repeats, exact_timesteps=args.exact_timesteps,
+                                 spatial_scene=args.spatial_scene, workdir=workdir)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+    print(markdown(report))
+    if args.json:
+        write_json_atomic(args.json, report, overwrite=args.overwrite)
+        print(f"wrote {args.json}")
+    return 0

@@ -1,0 +1,361 @@
+"""``fourlegs bench render``: speed, memory and accuracy of the rasterizer, as JSON, Markdown and a plot.
+
+Three parts, all on the documented benchmark scene (:mod:`.bench_scene`):
+
+1. **speed** — per N and output, the median ms/frame and peak memory of the forward pass and of
+   forward+backward (rgb: gradients for colours and geometry; features: for the features, geometry
+   frozen, as in distillation; depth: for the means) at 640×360 with 128 feature channels.
+2. **baselines** — at a small N (and a smaller image so the brute force stays quick), the float64
+   brute-force oracle, the straightforward dense-tile implementation (:mod:`.reference`) and the
+   fast rasterizer side by side: time and speed ratio.
+3. **knobs** — the fast rasterizer's accuracy knobs (tile size, 3σ vs opacity-aware extent, float32
+   vs float16 features) at that small N: time next to max/mean error against the oracle.
+
+Every record carries at least ``n, output, mode, device, backend, ms_median, peak_mb``.
+"""
+from __future__ import annotations
+
+import gc
+import ctypes
+import os
+import statistics
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import torch
+
+from .bench_scene import BenchScene, make_bench_scene
+
+OUTPUT_CHOICES = ("rgb", "features", "depth")
+
+
+@dataclass
+class BenchConfig:
+    sizes: tuple[int, ...] = (10_000, 100_000, 300_000)
+    outputs: tuple[str, ...] = OUTPUT_CHOICES
+    device: str = "cpu"
+    backends: tuple[str, ...] = ("torch",)
+    repeats: int = 3
+    channels: int = 128
+    width: int = 640
+    height: int = 360
+    small_n: int = 2000
+    small_width: int = 320
+    small_height: int = 180
+    baselines: bool = True
+    knobs: bool = True
+    seed: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------------------- memory
+class PeakMemory:
+    """Peak memory of a block in MB: CUDA allocator peak on CUDA; on CPU the peak resident set size
+    above the level at entry, sampled every 2 ms (``total_mb``: the whole process's peak RSS)."""
+
+    def __init__(self, device: str):
+        self.device = device
+        self.peak_mb = 0.0
+        self.total_mb = 0.0
+
+    def __enter__(self):
+        _release_memory()
+        if self.device == "cuda":
+            torch.cuda.synchronize()
+            torch.cuda.reset_peak_memory_stats()
+            self._base = torch.cuda.memory_allocated()
+        else:
+            self._base = _rss_bytes()
+            self._peak = self._base
+            self._stop = threading.Event()
+            self._thread = threading.Thread(target=self._sample, daemon=True)
+            self._thread.start()
+        return self
+
+    def _sample(self) -> None:
+        while not self._stop.is_set():
+            self._peak = max(self._peak, _rss_bytes())
+            time.sleep(0.002)
+
+    def __exit__(self, *exc):
+        if self.device == "cuda":
+            torch.cuda.synchronize()
+            peak = torch.cuda.max_memory_allocated()
+            self.peak_mb = (peak - self._base) / 2**20
+            self.total_mb = peak / 2**20
+        else:
+            self._stop.set()
+            self._thread.join()
+            self._peak = max(self._peak, _rss_bytes())
+            self.peak_mb = (self._peak - self._base) / 2**20
+            self.total_mb = self._peak / 2**20
+        return False
+
+
+def _rss_bytes() -> int:
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except OSError:  # not Linux: fall back to the lifetime peak
+        import resource
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def _release_memory() -> None:
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except OSError:
+        pass
+
+
+# ------------------------------------------------------------------------------------------ timing
+def _sync(device: str) -> None:
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def time_case(fn: Callable[[], object], device: str, repeats: int) -> tuple[float, float, float]:
+    """Median ms over ``repeats`` runs after one warm-up; peak MB (above entry) and total peak MB."""
+    fn()
+    _sync(device)
+    times = []
+    with PeakMemory(device) as mem:
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            _sync(device)
+            times.append((time.perf_counter() - t0) * 1000)
+    return statistics.median(times), mem.peak_mb, mem.total_mb
+
+
+def _render_fn(scene: BenchScene, output: str, mode: str, backend: str, options=None,
+               features: torch.Tensor | None = None) -> Callable[[], object]:
+    from . import rasterize
+
+    feats = scene.features if features is None else features
+
+    def run():
+        geom = [scene.means, scene.rotations, scene.log_scales, scene.opacity_logits]
+        colors, f = scene.colors, feats
+        if mode == "backward":
+            if output == "rgb":
+                geom = [g.detach().requires_grad_() for g in geom]
+                colors = colors.detach().requires_grad_()
+                leaves = geom + [colors]
+            elif output == "features":
+                f = f.detach().requires_grad_()
+                leaves = [f]
+            else:
+                geom[0] = geom[0].detach().requires_grad_()
+                leaves = [geom[0]]
+        out = rasterize(*geom, scene.camera, colors=colors, features=f, outputs=(output,), options=options,
+                        backend=backend)
+        if mode == "backward":
+            torch.autograd.grad(out[output].sum(), leaves)
+        return out
+    return run
+
+
+# ------------------------------------------------------------------------------------------- parts
+def speed_records(cfg: BenchConfig, progress=None) -> list[dict]:
+    records = []
+    for n in cfg.sizes:
+        scene = make_bench_scene(n, feature_dim=cfg.channels, seed=cfg.seed, device=cfg.device,
+                                 width=cfg.width, height=cfg.height)
+        for backend in cfg.backends:
+            for output in cfg.outputs:
+                for mode in ("forward", "backward"):
+                    ms, peak, total = time_case(_render_fn(scene, output, mode, backend), cfg.device, cfg.repeats)
+                    records.append({"part": "speed", "n": n, "output": output, "mode": mode, "device": cfg.device,
+                                    "backend": backend, "ms_median": round(ms, 2), "peak_mb": round(peak, 1),
+                                    "process_peak_mb": round(total, 1), "width": cfg.width, "height": cfg.height,
+                                    "channels": cfg.channels if output == "features" else None})
+                    if progress:
+                        progress(records[-1])
+        del scene
+        _release_memory()
+    return records
+
+
+def _errors(out: torch.Tensor, ref: torch.Tensor) -> tuple[float, float]:
+    d = (out.double() - ref.double()).abs()
+    return float(d.max()), float(d.mean())
+
+
+def small_scene(cfg: BenchConfig) -> BenchScene:
+    return make_bench_scene(cfg.small_n, feature_dim=cfg.channels, seed=cfg.seed, device=cfg.device,
+                            width=cfg.small_width, height=cfg.small_height)
+
+
+def oracle_outputs(scene: BenchScene) -> dict[str, torch.Tensor]:
+    """float64 brute force (every pixel × every Gaussian) for rgb and features."""
+    from .reference import rasterize_reference
+    s64 = [t.double() for t in (scene.means, scene.rotations, scene.log_scales, scene.opacity_logits)]
+    with torch.no_grad():
+        return rasterize_reference(*s64, scene.camera, colors=scene.colors.double(),
+                                   features=scene.features.double(), outputs=("rgb", "features"), tile_size=None)
+
+
+def baseline_records(cfg: BenchConfig, scene: BenchScene, progress=None) -> list[dict]:
+    """Oracle vs dense-tile vs fast, forward and forward+backward, at the small N."""
+    from .reference import rasterize_reference
+
+    def ref_fn(dtype, tile_size, output, mode):
+        def run():
+            geom = [t.to(dtype) for t in (scene.means, scene.rotations, scene.log_scales, scene.opacity_logits)]
+            colors, feats = scene.colors.to(dtype), scene.features.to(dtype)
+            leaf = None
+            if mode == "backward":
+                leaf = (colors if output == "rgb" else feats).requires_grad_()
+            out = rasterize_reference(*geom, scene.camera, colors=colors, features=feats, outputs=(output,),
+                                      tile_size=tile_size)
+            if leaf is not None:
+                torch.autograd.grad(out[output].sum(), [leaf])
+        return run
+
+    records = []
+    for output in ("rgb", "features"):
+        for mode in ("forward", "backward"):
+            row = {}
+            for impl, fn in (("oracle_float64", ref_fn(torch.float64, None, output, mode)),
+                             ("dense_tile", ref_fn(torch.float32, 16, output, mode)),
+                             ("fast", _render_fn(scene, output, "backward" if mode == "backward" and output == "rgb"
+                                                 else mode, "torch"))):
+                if impl == "fast" and mode == "backward" and output == "rgb":
+                    fn = _colors_only_backward(scene)
+                ms, peak, total = time_case(fn, cfg.device, max(1, min(cfg.repeats, 3)))
+                row[impl] = ms
+                records.append({"part": "baseline", "impl": impl, "n": scene.n, "output": output, "mode": mode,
+                                "device": cfg.device, "backend": "torch", "ms_median": round(ms, 2),
+                                "peak_mb": round(peak, 1), "width": cfg.small_width, "height": cfg.small_height})
+                if progress:
+                    progress(records[-1])
+            for r in records[-3:]:
+                r["speedup_of_fast"] = round(r["ms_median"] / max(row["fast"], 1e-9), 2)
+    return records
+
+
+def _colors_only_backward(scene: BenchScene):
+    """Fast path with the same gradient request as the baselines (colours only)."""
+    from . import rasterize
+
+    def run():
+        c = scene.colors.detach().requires_grad_()
+        out = rasterize(scene.means, scene.rotations, scene.log_scales, scene.opacity_logits, scene.camera,
+                        colors=c, outputs=("rgb",))
+        torch.autograd.grad(out["rgb"].sum(), [c])
+    return run
+
+
+def knob_records(cfg: BenchConfig, scene: BenchScene, oracle: dict, progress=None) -> list[dict]:
+    """Accuracy knobs: time next to max/mean error against the float64 oracle."""
+    from . import RasterOptions, rasterize
+
+    cases = [("tile_size", str(ts), RasterOptions(tile_size=ts), "float32") for ts in (2, 4, 8, 16)]
+    cases += [("extent", ext, RasterOptions(extent=ext), "float32") for ext in ("opacity", "3sigma")]
+    cases += [("feature_dtype", dt, RasterOptions(), dt) for dt in ("float32", "float16")]
+    records = []
+    for knob, value, opts, fdtype in cases:
+        for output in (("features",) if knob == "feature_dtype" else ("rgb", "features")):
+            feats = scene.features.to(getattr(torch, fdtype))
+            fn = _render_fn(scene, output, "forward", "torch", options=opts, features=feats)
+            ms, peak, _ = time_case(fn, cfg.device, cfg.repeats)
+            out = rasterize(scene.means, scene.rotations, scene.log_scales, scene.opacity_logits, scene.camera,
+                            colors=scene.colors, features=feats, outputs=(output,), options=opts)[output]
+            err_max, err_mean = _errors(out, oracle[output])
+            records.append({"part": "knob", "knob": knob, "value": value, "n": scene.n, "output": output,
+                            "mode": "forward", "device": cfg.device, "backend": "torch", "ms_median": round(ms, 2),
+                            "peak_mb": round(peak, 1), "max_abs_error": err_max, "mean_abs_error": err_mean,
+                            "width": cfg.small_width, "height": cfg.small_height})
+            if progress:
+                progress(records[-1])
+    return records
+
+
+def run_bench(cfg: BenchConfig, progress=None) -> list[dict]:
+    records = speed_records(cfg, progress)
+    if cfg.baselines or cfg.knobs:
+        scene = small_scene(cfg)
+        if cfg.baselines:
+            records += baseline_records(cfg, scene, progress)
+        if cfg.knobs:
+            records += knob_records(cfg, scene, oracle_outputs(scene), progress)
+    return records
+
+
+# ------------------------------------------------------------------------------------------ report
+def markdown_report(records: list[dict], command: str, env: dict) -> str:
+    lines = [f"Command: `{command}`", "", f"Machine: {env.get('machine', '')}; torch {env.get('torch', '')}, "
+             f"{env.get('threads', '?')} threads", ""]
+    speed = [r for r in records if r["part"] == "speed"]
+    if speed:
+        res = f"{speed[0]['width']}×{speed[0]['height']}"
+        lines += [f"**Speed** ({res}, features = {speed[0].get('channels') or 128} channels; backward = forward+backward)",
+                  "", "| N | output | mode | backend | device | ms/frame (median) | peak MB (above baseline) | process peak MB |",
+                  "|---:|---|---|---|---|---:|---:|---:|"]
+        for r in speed:
+            lines.append(f"| {r['n']:,} | {r['output']} | {r['mode']} | {r['backend']} | {r['device']} | "
+                         f"{r['ms_median']:.1f} | {r['peak_mb']:.0f} | {r['process_peak_mb']:.0f} |")
+        lines.append("")
+    base = [r for r in records if r["part"] == "baseline"]
+    if base:
+        lines += [f"**Baselines** (N = {base[0]['n']:,}, {base[0]['width']}×{base[0]['height']}; backward = "
+                  "forward+backward for the colours/features)", "",
+                  "| output | mode | implementation | ms (median) | × the fast path's time | peak MB |",
+                  "|---|---|---|---:|---:|---:|"]
+        for r in base:
+            lines.append(f"| {r['output']} | {r['mode']} | {r['impl']} | {r['ms_median']:.1f} | "
+                         f"{r['speedup_of_fast']:.1f} | {r['peak_mb']:.0f} |")
+        lines.append("")
+    knobs = [r for r in records if r["part"] == "knob"]
+    if knobs:
+        lines += [f"**Accuracy knobs** (N = {knobs[0]['n']:,}, {knobs[0]['width']}×{knobs[0]['height']}, forward, "
+                  "error against the float64 oracle)", "",
+                  "| knob | value | output | ms (median) | max abs error | mean abs error |",
+                  "|---|---|---|---:|---:|---:|"]
+        for r in knobs:
+            lines.append(f"| {r['knob']} | {r['value']} | {r['output']} | {r['ms_median']:.1f} | "
+                         f"{r['max_abs_error']:.2e} | {r['mean_abs_error']:.2e} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def plot_knobs(records: list[dict], path) -> None:
+    """Time vs max error of every knob setting (log-log), one marker per output."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..fileio import atomic_path
+
+    knobs = [r for r in records if r["part"] == "knob"]
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for output, marker in (("rgb", "o"), ("features", "s")):
+        rs = [r for r in knobs if r["output"] == output]
+        ax.scatter([max(r["max_abs_error"], 1e-12) for r in rs], [r["ms_median"] for r in rs], marker=marker,
+                   label=output)
+        for r in rs:
+            ax.annotate(f"{r['knob']}={r['value']}", (max(r["max_abs_error"], 1e-12), r["ms_median"]),
+                        fontsize=7, xytext=(3, 3), textcoords="offset points")
+    ax.set_xscale("log")
+    ax.set_xlabel("max abs error vs float64 oracle")
+    ax.set_ylabel("ms per frame (median)")
+    ax.set_title("Rasterizer accuracy knobs")
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
+
+
+def environment() -> dict:
+    import platform
+    return {"machine": f"{platform.machine()} {os.cpu_count()} CPUs", "torch": torch.__version__,
+            "threads": torch.get_num_threads(), "python": platform.python_version()}
+
+
+def with_overrides(cfg: BenchConfig, **kw) -> BenchConfig:
+    return replace(cfg, **{k: v for k, v in kw.items() if v is not None})

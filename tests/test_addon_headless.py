@@ -1,0 +1,94 @@
+"""The main job: `fourlegs highlight` (CLI -> headless bpy subprocess) end to end on a tiny scene."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from _blender_helpers import child_env, language_bundle
+
+QUERY = "the red cube"
+
+
+def test_cli_process_never_imports_bpy():
+    code = ("import sys; from fourlegs_engine.cli import build_parser; p = build_parser(); "
+            "a = p.parse_args(['highlight', '--demo', 'a ball', '-o', 'x']); "
+            "from fourlegs_addon.commands import headless_argv; argv = headless_argv(a); "
+            "assert 'bpy' not in sys.modules, 'bpy imported'; print(argv)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=child_env(), timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "'--demo'" in proc.stdout and "'a ball'" in proc.stdout
+
+
+def test_headless_argv_round_trips_every_option():
+    from fourlegs_addon import headless
+    from fourlegs_addon.commands import headless_argv
+
+    parser = headless.build_parser()
+    args = parser.parse_args(["scene_dir", "q", "--preset", "subtle_desaturate", "-o", "o", "--overwrite",
+                              "--resolution", "320x180", "--fps", "12", "--no-effect", "zoom_in",
+                              "--encoder", "simulated", "--format", "PNG"])
+    again = parser.parse_args(headless_argv(args))
+    assert vars(again) == vars(args)
+
+
+@pytest.mark.parametrize("text", ["640", "640x", "0x360", "641x360", "axb"])
+def test_bad_resolution_is_an_input_error(text):
+    from fourlegs_addon import headless
+    from fourlegs_engine.errors import InputError
+
+    with pytest.raises(InputError, match="--resolution"):
+        headless.parse_resolution(text, demo=False)
+
+
+@pytest.mark.blender
+def test_highlight_end_to_end(tmp_path):
+    pytest.importorskip("bpy")
+    bundle = language_bundle(tmp_path / "scene")
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "fourlegs_engine.cli", "highlight", str(bundle), QUERY, "--preset", "broadcast",
+           "-o", str(out), "--resolution", "64x36", "--fps", "6"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=child_env(), timeout=500)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    names = {p.name for p in out.iterdir()}
+    assert {"highlight.mp4", "highlight.blend", "plan.json", "report.json", "scores.png"} <= names
+    assert not [n for n in names if n.startswith(".")]  # no temporary files left
+    report = json.loads((out / "report.json").read_text())
+    plan = json.loads((out / "plan.json").read_text())
+    assert report["query"] == QUERY and report["localization"]["found"]
+    assert report["resolution"] == [64, 36]
+    n_frames = plan["frame_end"] - plan["frame_start"] + 1
+    assert report["render"]["frames_rendered"] == n_frames
+    relevancy_frames = {f for a, b in plan["passes"]["relevancy"] for f in range(a, b + 1)}
+    assert relevancy_frames and set(report["render"]["relevancy_frames"]) == relevancy_frames
+    assert len(relevancy_frames) < n_frames  # relevancy is not computed where no effect needs it
+    assert {"render", "localize + plan", "blender import"} <= set(report["timings_s"])
+    # the video and the .blend, checked with Blender itself
+    check = f"""
+import bpy, json
+from fourlegs_addon import video
+n = video.movie_frame_count({str(out / 'highlight.mp4')!r})
+bpy.ops.wm.open_mainfile(filepath={str(out / 'highlight.blend')!r})
+s = bpy.context.scene
+cam = bpy.data.objects['4-LEGS Highlight Camera']
+print('CHECK' + json.dumps({{'frames': n, 'points': len(bpy.data.objects['tiny'].data.vertices),
+    'camera_animated': cam.animation_data is not None and cam.animation_data.action is not None,
+    'active_camera': s.camera.name, 'engine': s.render.engine, 'range': [s.frame_start, s.frame_end],
+    'compositor': s.compositing_node_group is not None and s.compositing_node_group.name,
+    'plan_text': 'fourlegs_plan.json' in bpy.data.texts}}))
+"""
+    proc = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True, env=child_env(), timeout=200)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    info = json.loads([l for l in proc.stdout.splitlines() if l.startswith("CHECK")][-1][5:])
+    assert info["frames"] == n_frames
+    assert info["points"] == 200 and info["camera_animated"]
+    assert info["active_camera"] == "4-LEGS Highlight Camera" and info["engine"] == "FOURLEGS_SPLATS"
+    assert info["range"] == [plan["frame_start"], plan["frame_end"]]
+    assert info["compositor"] == "4-LEGS Compositor" and info["plan_text"]
+    # existing outputs are refused (one clear line, no traceback) and left untouched
+    mtime = (out / "highlight.mp4").stat().st_mtime_ns
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=child_env(), timeout=200)
+    assert proc.returncode == 2 and "already exists" in proc.stderr and "Traceback" not in proc.stderr
+    assert (out / "highlight.mp4").stat().st_mtime_ns == mtime

@@ -1,0 +1,86 @@
+"""Run Query from the panel: background thread + modal operator, results into the scene, cancel, errors."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from _blender_helpers import bl, bpy_addon, tiny_scene  # noqa: F401
+
+pytestmark = pytest.mark.blender
+
+
+def _engine_for(scene):
+    """A real QueryEngine over a small hand-made language field (fixed random decoder, seeded latents)."""
+    from fourlegs_engine.language.autoencoder import FeatureDecoder
+    from fourlegs_engine.language.field import LanguageField
+    from fourlegs_engine.language.simulated import SimulatedTextEncoder
+    from fourlegs_engine.query.engine import QueryEngine
+
+    torch.manual_seed(0)
+    T, N = scene.num_timesteps, scene.num_gaussians
+    latents = np.random.default_rng(0).normal(size=(T, N, 8)).astype(np.float16)
+    field = LanguageField(latents, FeatureDecoder((8, 16, 768)), encoder_name="simulated")
+    return QueryEngine(scene, field, SimulatedTextEncoder())
+
+
+def test_run_query_stores_results_and_colours_by_relevancy(bl, monkeypatch):
+    from fourlegs_addon import importer, operators, plots, querying
+
+    scene = tiny_scene()
+    engine = _engine_for(scene)
+    monkeypatch.setattr(querying, "open_query_engine", lambda s, **kw: engine)
+    obj = importer.import_scene(bl.context.scene, scene)
+    props = bl.context.scene.fourlegs
+    props.query = "the cube"
+    assert bl.ops.fourlegs.run_query() == {"FINISHED"}
+    expected = engine.temporal("the cube")
+    assert not props.running and props.progress == 1.0
+    assert props.found == expected.found
+    if expected.found:
+        assert (props.segment_start, props.segment_end) == tuple(expected.segment)
+        assert props.peak == expected.peak
+    peak = expected.peak if expected.found else 0
+    rel = np.empty(scene.num_gaussians, np.float32)
+    obj.data.attributes[importer.RELEVANCY_ATTR].data.foreach_get("value", rel)
+    np.testing.assert_allclose(rel, engine.gaussian_relevancy("the cube", peak).numpy(), atol=1e-6)
+    assert obj.data.color_attributes.active_color.name == importer.RELEVANCY_RGB_ATTR
+    assert plots.IMAGE_NAME in bl.data.images
+    # the render engine's relevancy provider is the same engine's per-Gaussian relevancy
+    np.testing.assert_allclose(importer.gaussian_relevancy(obj, 1),
+                               engine.gaussian_relevancy("the cube", 1).numpy(), atol=1e-6)
+
+
+def test_run_query_reports_a_missing_language_field(bl):
+    from fourlegs_addon import importer
+
+    importer.import_scene(bl.context.scene, tiny_scene())
+    bl.context.scene.fourlegs.query = "the cube"
+    with pytest.raises(RuntimeError, match="no distilled language field"):
+        bl.ops.fourlegs.run_query()
+    assert not bl.context.scene.fourlegs.running
+    assert bl.context.scene.fourlegs.status.startswith("error:")
+
+
+def test_cancelled_query_changes_nothing(bl, monkeypatch):
+    from fourlegs_addon import operators
+
+    scene = tiny_scene()
+    job = operators._QueryJob(scene, "the cube")
+    job.cancelled = True
+    monkeypatch.setattr(operators.querying, "open_query_engine", lambda s, **kw: _engine_for(s))
+    job.run()
+    assert job.done and job.localization is None and job.error is None
+
+
+def test_scores_image_marks_positive_timesteps():
+    from fourlegs_addon import plots
+
+    scores = np.array([0.05, 0.1, 0.4, 0.35, 0.1])
+    img = plots.scores_pixels(scores, scores > 0.2, (2, 3), 2, width=50, height=20)
+    assert img.shape == (20, 50, 4) and np.all(np.isfinite(img))
+    bottom = img[-1]
+    assert np.allclose(bottom[21, :3], plots.POSITIVE[:3])  # timestep 2 is positive
+    assert np.allclose(bottom[5, :3], plots.BAR[:3])
+    assert np.allclose(img[0, int(2.5 * 10), :3], plots.PEAK[:3])
+    assert np.all(np.isfinite(plots.scores_pixels(np.full(3, np.nan), np.zeros(3, bool), None, None)))

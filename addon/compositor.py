@@ -23,6 +23,10 @@ RELEVANCY_PASS = "Relevancy"
 WEIGHT_NODE = "Desaturation Weight"
 MASK_LOW, MASK_HIGH = 0.4, 0.6  # relevancy 0.5 is the paper's threshold; soften the edge around it
 IS_50 = bpy.app.version >= (5, 0, 0)
+# 5.0 compositor trees use the shared shader utility nodes; 4.x had compositor-specific ones
+MATH_NODE = "ShaderNodeMath" if IS_50 else "CompositorNodeMath"
+VALUE_NODE = "ShaderNodeValue" if IS_50 else "CompositorNodeValue"
+MAP_RANGE_NODE = "ShaderNodeMapRange" if IS_50 else "CompositorNodeMapRange"
 
 
 def _socket(sockets, identifier: str):
@@ -115,16 +119,19 @@ def build_compositor(scene: bpy.types.Scene, plan: dict[str, Any]):
                            "engine to '4-LEGS Splats' before building the compositor")
     gray = nodes.new("CompositorNodeHueSat")
     gray.inputs["Saturation"].default_value = 0.0
-    mask = nodes.new("ShaderNodeMapRange")
-    mask.interpolation_type = "SMOOTHSTEP"
-    mask.clamp = True
+    mask = nodes.new(MAP_RANGE_NODE)
+    if IS_50:
+        mask.interpolation_type = "SMOOTHSTEP"
+        mask.clamp = True
+    else:
+        mask.use_clamp = True
     mask.inputs["From Min"].default_value, mask.inputs["From Max"].default_value = MASK_LOW, MASK_HIGH
-    invert = nodes.new("ShaderNodeMath")
+    invert = nodes.new(MATH_NODE)
     invert.operation = "SUBTRACT"
     invert.inputs[0].default_value = 1.0
-    weight = nodes.new("ShaderNodeValue")
+    weight = nodes.new(VALUE_NODE)
     weight.name = weight.label = WEIGHT_NODE
-    scale = nodes.new("ShaderNodeMath")
+    scale = nodes.new(MATH_NODE)
     scale.operation = "MULTIPLY"
     if IS_50:
         mix = nodes.new("ShaderNodeMix")
@@ -138,8 +145,8 @@ def build_compositor(scene: bpy.types.Scene, plan: dict[str, Any]):
     links.new(layers.outputs["Image"], gray.inputs["Image"])
     links.new(layers.outputs["Image"], mix_a)
     links.new(gray.outputs["Image"], mix_b)
-    links.new(layers.outputs[RELEVANCY_PASS], mask.inputs["Value"])
-    links.new(mask.outputs["Result"], invert.inputs[1])
+    links.new(layers.outputs[RELEVANCY_PASS], mask.inputs[0])
+    links.new(mask.outputs[0], invert.inputs[1])
     links.new(invert.outputs[0], scale.inputs[0])
     links.new(weight.outputs[0], scale.inputs[1])
     links.new(scale.outputs[0], mix_f)

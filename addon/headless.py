@@ -23,7 +23,7 @@ each is written to a temporary name and renamed when complete.
 from __future__ import annotations
 
 import argparse
-import json
+import contextlib
 import os
 import sys
 import time
@@ -191,6 +191,22 @@ def write_scores_plot(path: Path, scores: Sequence[float], positive: Sequence[bo
 
 
 # ----------------------------------------------------------------------------- Blender stage
+@contextlib.contextmanager
+def blender_log_silenced():
+    """Send Blender's per-frame log lines (C-level stdout) to /dev/null; tqdm reports progress on stderr."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+
+
 def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str, Path], fmt: str,
                   timer: Timer) -> dict[str, Any]:
     """Import, Generate Highlight, render through the splat engine + compositor, save the .blend."""
@@ -216,7 +232,7 @@ def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str
     render_engine.reset_stats()
     total = bl_scene.frame_end - bl_scene.frame_start + 1
     with timer("render"):
-        with tqdm(total=total, desc="render", unit="frame") as bar:
+        with tqdm(total=total, desc="render", unit="frame") as bar, blender_log_silenced():
             video.render_animation(bl_scene, out["video"], fmt=fmt, overwrite=True,
                                    on_frame=lambda d, n: bar.update(1))
     stats = dict(render_engine.stats)
@@ -229,6 +245,7 @@ def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str
     bl_scene.frame_set(bl_scene.frame_start)
     with timer("save .blend"):
         with engine_module("fileio").atomic_path(out["blend"]) as tmp:
+            tmp.unlink()  # saving over an existing file would leave a .blend1 backup beside it
             bpy.ops.wm.save_as_mainfile(filepath=str(tmp), copy=True, compress=True)
     return {"frames_rendered": stats["frames"], "relevancy_frames": stats["relevancy_frames"],
             "splat_render_seconds": round(stats["seconds"], 3),

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from _blender_helpers import child_env, language_bundle
+from _blender_helpers import bpy_addon, child_env, language_bundle  # noqa: F401
 
 QUERY = "the red cube"
 
@@ -44,12 +44,13 @@ def test_bad_resolution_is_an_input_error(text):
 
 
 @pytest.mark.blender
-def test_highlight_end_to_end(tmp_path):
+@pytest.mark.slow
+def test_highlight_end_to_end(tmp_path, request, capsys):
     pytest.importorskip("bpy")
     bundle = language_bundle(tmp_path / "scene")
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "fourlegs_engine.cli", "highlight", str(bundle), QUERY, "--preset", "broadcast",
-           "-o", str(out), "--resolution", "64x36", "--fps", "6"]
+           "-o", str(out), "--resolution", "64x36", "--fps", "3"]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=child_env(), timeout=500)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     names = {p.name for p in out.iterdir()}
@@ -65,30 +66,23 @@ def test_highlight_end_to_end(tmp_path):
     assert relevancy_frames and set(report["render"]["relevancy_frames"]) == relevancy_frames
     assert len(relevancy_frames) < n_frames  # relevancy is not computed where no effect needs it
     assert {"render", "localize + plan", "blender import"} <= set(report["timings_s"])
-    # the video and the .blend, checked with Blender itself
-    check = f"""
-import bpy, json
-from fourlegs_addon import video
-n = video.movie_frame_count({str(out / 'highlight.mp4')!r})
-bpy.ops.wm.open_mainfile(filepath={str(out / 'highlight.blend')!r})
-s = bpy.context.scene
-cam = bpy.data.objects['4-LEGS Highlight Camera']
-print('CHECK' + json.dumps({{'frames': n, 'points': len(bpy.data.objects['tiny'].data.vertices),
-    'camera_animated': cam.animation_data is not None and cam.animation_data.action is not None,
-    'active_camera': s.camera.name, 'engine': s.render.engine, 'range': [s.frame_start, s.frame_end],
-    'compositor': s.compositing_node_group is not None and s.compositing_node_group.name,
-    'plan_text': 'fourlegs_plan.json' in bpy.data.texts}}))
-"""
-    proc = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True, env=child_env(), timeout=200)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    info = json.loads([l for l in proc.stdout.splitlines() if l.startswith("CHECK")][-1][5:])
-    assert info["frames"] == n_frames
-    assert info["points"] == 200 and info["camera_animated"]
-    assert info["active_camera"] == "4-LEGS Highlight Camera" and info["engine"] == "FOURLEGS_SPLATS"
-    assert info["range"] == [plan["frame_start"], plan["frame_end"]]
-    assert info["compositor"] == "4-LEGS Compositor" and info["plan_text"]
-    # existing outputs are refused (one clear line, no traceback) and left untouched
+    # the video and the .blend, checked with Blender itself (in this process: the add-on is registered)
+    bl = request.getfixturevalue("bpy_addon")
+    from fourlegs_addon import headless, video
+
+    assert video.movie_frame_count(out / "highlight.mp4") == n_frames
+    bl.ops.wm.open_mainfile(filepath=str(out / "highlight.blend"))
+    s = bl.context.scene
+    cam = bl.data.objects["4-LEGS Highlight Camera"]
+    assert len(bl.data.objects["tiny"].data.vertices) == 200
+    assert cam.animation_data is not None and cam.animation_data.action is not None
+    assert s.camera == cam and s.render.engine == "FOURLEGS_SPLATS"
+    assert [s.frame_start, s.frame_end] == [plan["frame_start"], plan["frame_end"]]
+    assert s.compositing_node_group is not None and s.compositing_node_group.name == "4-LEGS Compositor"
+    assert "fourlegs_plan.json" in bl.data.texts
+    bl.ops.wm.read_factory_settings(use_empty=True)
+    # existing outputs are refused (one clear line, no traceback) before any work, and left untouched
     mtime = (out / "highlight.mp4").stat().st_mtime_ns
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=child_env(), timeout=200)
-    assert proc.returncode == 2 and "already exists" in proc.stderr and "Traceback" not in proc.stderr
+    assert headless.main(cmd[4:]) == 2
+    assert "already exists" in capsys.readouterr().err
     assert (out / "highlight.mp4").stat().st_mtime_ns == mtime

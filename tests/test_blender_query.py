@@ -84,3 +84,78 @@ def test_scores_image_marks_positive_timesteps():
     assert np.allclose(bottom[5, :3], plots.BAR[:3])
     assert np.allclose(img[0, int(2.5 * 10), :3], plots.PEAK[:3])
     assert np.all(np.isfinite(plots.scores_pixels(np.full(3, np.nan), np.zeros(3, bool), None, None)))
+
+
+class _Layout:
+    """Records what a panel draws (bpy offers no off-screen UI in background mode)."""
+
+    def __init__(self, log):
+        self.log = log
+
+    def __getattr__(self, name):
+        def call(*args, **kwargs):
+            self.log.append((name, args, kwargs))
+            return _Layout(self.log) if name in ("row", "column", "box", "split") else _Op()
+        return call
+
+
+class _Op:
+    show = None
+
+
+@pytest.mark.parametrize("imported", [False, True])
+def test_panels_draw_every_state(bl, imported):
+    from fourlegs_addon import importer, panels
+
+    context = bl.context
+    if imported:
+        importer.import_scene(context.scene, tiny_scene())
+        props = context.scene.fourlegs
+        props.segment_start, props.segment_end, props.peak, props.best_view = 1, 2, 1, "cam00"
+    drawn = set()
+    for running in (False, True):
+        context.scene.fourlegs.running = running
+        for cls in panels.classes:
+            log = []
+            panel = type("P", (), {"layout": _Layout(log)})()
+            cls.draw(panel, context)
+            ops = [a[0] for name, a, k in log if name == "operator"]
+            props_drawn = [a[1] for name, a, k in log if name == "prop"]
+            for prop in props_drawn:
+                assert prop in context.scene.fourlegs.bl_rna.properties, prop
+            for op in ops:
+                assert hasattr(bl.ops.fourlegs, op.split(".")[1]), op
+            drawn |= set(ops)
+    assert "fourlegs.import_scene" in drawn
+    if imported:
+        assert {"fourlegs.run_query", "fourlegs.cancel_query", "fourlegs.generate_highlight",
+                "fourlegs.render_video"} <= drawn
+
+
+def test_panel_workflow_import_query_generate_with_the_real_planner(bl, tmp_path):
+    """Import a bundle, Run Query, Generate Highlight (broadcast preset) as a user would, then again
+    without bullet-time: the plan changes and only generated data is replaced."""
+    from _blender_helpers import language_bundle
+    from fourlegs_addon import compositor, keyframes, render_engine
+
+    bundle = language_bundle(tmp_path / "scene")
+    assert bl.ops.fourlegs.import_scene(filepath=str(bundle / "scene.json")) == {"FINISHED"}
+    props = bl.context.scene.fourlegs
+    props.query = "the red cube"
+    assert bl.ops.fourlegs.run_query() == {"FINISHED"}
+    assert props.found and (props.segment_start, props.segment_end, props.peak) == (1, 4, 2)
+    assert props.best_view in ("cam00", "cam01")
+    props.preset = "broadcast"
+    assert bl.ops.fourlegs.generate_highlight() == {"FINISHED"}
+    plan = render_engine.plan_of(bl.context.scene)
+    assert [s["effect"] for s in plan["shots"]] == ["play", "zoom_in", "bullet_time", "desaturate_background"]
+    assert compositor.has_desaturation(bl.context.scene)
+    cam = bl.context.scene.camera
+    assert cam.get(keyframes.GENERATED_KEY) and keyframes.keyed_frames(cam, "location", 0)
+    props.use_bullet_time = False
+    props.use_desaturate = False
+    assert bl.ops.fourlegs.generate_highlight() == {"FINISHED"}
+    plan = render_engine.plan_of(bl.context.scene)
+    assert [s["effect"] for s in plan["shots"]] == ["play", "zoom_in"]
+    assert not compositor.has_desaturation(bl.context.scene)
+    assert sum(1 for o in bl.data.objects if o.get(keyframes.GENERATED_KEY)) == 1

@@ -203,7 +203,7 @@ def test_autoencoder_resumes_from_its_checkpoint(prepared, tmp_path):
 def test_resume_after_a_real_kill_gives_the_uninterrupted_result(prepared, tmp_path):
     reference = _copy(prepared, tmp_path / "ref")
     killed = _copy(prepared, tmp_path / "killed")
-    args = ["--mode", "optimize", "--iterations", "30", "--no-progress"]
+    args = ["--mode", "optimize", "--iterations", "20", "--no-progress"]
     # both runs in fresh processes with the same thread settings (floating-point reductions depend on them)
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     code = ("import sys, torch; torch.set_num_threads(1); from fourlegs_engine.cli import main; "
@@ -233,3 +233,31 @@ def test_resume_after_a_real_kill_gives_the_uninterrupted_result(prepared, tmp_p
     np.testing.assert_array_equal(np.load(killed / "language" / "latents.npy"),
                                   np.load(reference / "language" / "latents.npy"))
     assert not any(p.name.endswith(".part.npy") for p in (killed / "language").rglob("*"))
+
+
+def test_teacher_latents_at_reduced_resolution_and_strides(prepared):
+    from fourlegs_engine.language.autoencoder import load_encoder
+    from fourlegs_engine.language.distill import teacher_latents
+    from fourlegs_engine.language.extract import feature_store, load_step_features
+    scene = load_bundle(prepared)
+    enc = load_encoder(prepared / "language" / "encoder.pt")
+    feats, layouts, offsets = load_step_features(scene, feature_store(scene), 0)
+    lay = layouts[0]
+    crops = feats[:lay.num_crops]
+    full = teacher_latents(enc, lay, crops, 1)
+    assert full.shape == (lay.width * lay.height, 128)
+    torch.testing.assert_close(full.norm(dim=1), torch.ones(full.shape[0]))
+    # the encoder applied to the interpolated 768-d pixel feature (no first-layer split) agrees
+    from fourlegs_engine.language.pyramid import pixel_features
+    direct = enc(pixel_features(lay, torch.from_numpy(np.array(crops, dtype=np.float32))).reshape(-1, 768))
+    torch.testing.assert_close(full, direct, atol=1e-5, rtol=1e-4)
+    for stride in (2, 3):
+        approx = teacher_latents(enc, lay, crops, stride)
+        cos = (approx * full).sum(1)
+        assert float(cos.mean()) > 0.95 and torch.isfinite(approx).all()
+    half = teacher_latents(enc, lay, crops, 1, lay.width // 2, lay.height // 2)
+    assert half.shape == ((lay.width // 2) * (lay.height // 2), 128)
+    res = distill_scene(scene, mode="lift", view_scale=0.5, out_dir=prepared.parent / "half", timesteps=[0])
+    lat = np.load(Path(res.out_dir) / "steps" / "t000000.npy").astype(np.float32)
+    norms = np.linalg.norm(lat, axis=1)
+    assert np.all((np.abs(norms - 1) < 2e-3) | (norms == 0)) and (norms > 0).mean() > 0.5

@@ -28,14 +28,17 @@ def _projected_loss_fn(cam, options, n_proj=3, seed=0):
     return fn
 
 
-@pytest.mark.parametrize("options", [RasterOptions(tile_size=4), RasterOptions(tile_size=3, chunk=2)])
-def test_gradcheck_all_inputs(options):
+@pytest.mark.parametrize("options,fast", [(RasterOptions(tile_size=4), False),
+                                          (RasterOptions(tile_size=3, chunk=2), True)])
+def test_gradcheck_all_inputs(options, fast):
+    """Finite differences for colours, features, opacities, means, log-scales and rotations (the
+    chunked variant in gradcheck's fast mode: random projections of the Jacobian)."""
     scene = random_scene(7, 11, channels=2, spread=0.25, log_scale=-1.6)
     cam = Camera.look_at((0.0, -2.0, 0.4), (0, 0, 0), width=12, height=10, fov_y=0.8)
     inputs = tuple(scene[k].clone().requires_grad_() for k in NAMES)
     fn = _projected_loss_fn(cam, options)
     assert (fn(*inputs).abs() > 0).all()
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=fast)
 
 
 def test_gradients_match_autograd_through_the_dense_reference():

@@ -235,3 +235,26 @@ def test_invalid_camera_and_arguments_raise_input_error():
         rasterize(*args, CAM, colors=scene["colors"], backend="vulkan")
     with pytest.raises(InputError, match="tile_size"):
         rasterize(*args, CAM, colors=scene["colors"], options=RasterOptions(tile_size=0))
+
+
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+
+@settings(max_examples=25)
+@given(log_scale=st.floats(min_value=math.log(1e-8), max_value=math.log(1e3)),
+       logit=st.floats(min_value=-100, max_value=100),
+       y=st.floats(min_value=-8.0, max_value=6.0),
+       x=st.floats(min_value=-30.0, max_value=30.0),
+       aniso=st.floats(min_value=-8.0, max_value=8.0))
+def test_property_finite_and_consistent(log_scale, logit, y, x, aniso):
+    """Any scale, opacity and position (behind, at, beside or in front of the camera): finite outputs
+    and gradients, alpha in [0, 1), and the blending weights add up to alpha."""
+    means = [[x, y, 0.1], [0.0, 0.0, 0.0], [0.05, y + 0.5, -0.05]]
+    ls = [[log_scale, log_scale + aniso, log_scale], [math.log(0.05)] * 3, [log_scale, log_scale, log_scale - aniso]]
+    scene = make(means, log_scales=np.clip(ls, math.log(1e-9), math.log(2e3)), logits=[logit, 0.0, logit])
+    out, grads = render_with_grads(scene, outputs=("rgb", "depth", "alpha"))
+    assert (out["alpha"] >= 0).all() and (out["alpha"] < 1).all()
+    w = rasterize(scene["means"], scene["rotations"], scene["log_scales"], scene["opacity_logits"], CAM,
+                  outputs=("weights",))["weights"]
+    total = torch.zeros(16 * 24, dtype=torch.float64).index_add_(0, w.pixel, w.weight)
+    assert torch.allclose(total.reshape(16, 24, 1), out["alpha"], atol=1e-12)

@@ -8,8 +8,13 @@ every pixel to the query is the spatial prediction. Temporal localization applie
 Gaussians; the box is the box of the best connected component of relevancy > 0.5
 (:func:`fourlegs_engine.query.spatial.best_component_bbox`).
 
-Knob: ``pixel_stride`` — per-pixel features are interpolated on every ``pixel_stride``-th pixel and
-the relevancy map is bilinearly upsampled to full resolution (1 = exact eq. 2 at every pixel).
+Per-pixel relevancy is computed exactly without materializing the (H, W, 768) feature image
+(:func:`pixel_relevancy`: interpolated dot products plus a Gram-matrix norm), checked against the
+literal path (:func:`~fourlegs_engine.language.pyramid.pixel_features` then
+:func:`~fourlegs_engine.query.relevancy.relevancy`) in the tests.
+
+Knob: ``pixel_stride`` — relevancy is evaluated on every ``pixel_stride``-th pixel and bilinearly
+upsampled to full resolution (1 = exact eq. 2 at every pixel).
 """
 from __future__ import annotations
 
@@ -21,8 +26,8 @@ import torch
 
 from ..errors import InputError
 from ..language.encoders import CANONICAL_PHRASES
-from ..language.pyramid import (crop_layout, pixel_features, pyramid_ratios, resize_crops, scale_crops,
-                                tube_indices, upsample_to_pixels)
+from ..language.pyramid import (PyramidLayout, crop_layout, lerp_coefficients, pyramid_ratios, resize_crops,
+                                sample_positions, scale_crops, tube_indices, upsample_to_pixels)
 from ..query.relevancy import RELEVANCY_SCALE, l2_normalize, reference_set
 from ..query.spatial import best_component_bbox
 from ..query.temporal import localize_relevancy
@@ -56,6 +61,67 @@ def inclusive_to_exclusive(box: Sequence[int] | None) -> np.ndarray:
     return np.array([x0, y0, x1 + 1, y1 + 1], dtype=np.float64)
 
 
+def pixel_taps(layout: PyramidLayout, stride: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which crops, with which weights, make up each sampled pixel's feature (eq. 2).
+
+    Returns:
+        idx (M, 4S) int64 crop indices and w (M, 4S) float64 weights (bilinear per scale, divided by
+        the number of scales S), M = ceil(H/stride) * ceil(W/stride) pixels in row-major order, such
+        that ``pixel_features(layout, F, stride).reshape(M, D) == (w[..., None] * F[idx]).sum(1)``.
+    """
+    xs = sample_positions(layout.width, stride)
+    ys = sample_positions(layout.height, stride)
+    my, mx = ys.shape[0], xs.shape[0]
+    S = len(layout.scales)
+    idx, wts = [], []
+    for g in layout.scales:
+        iy, wy = lerp_coefficients(g.first_center, g.stride, g.ny, ys)
+        ix, wx = lerp_coefficients(g.first_center, g.stride, g.nx, xs)
+        iy1, ix1 = torch.clamp(iy + 1, max=g.ny - 1), torch.clamp(ix + 1, max=g.nx - 1)
+        for ry, wy_ in ((iy, 1 - wy), (iy1, wy)):
+            for rx, wx_ in ((ix, 1 - wx), (ix1, wx)):
+                idx.append((g.offset + ry[:, None] * g.nx + rx[None, :]).reshape(-1))
+                wts.append((wy_[:, None] * wx_[None, :]).reshape(-1) / S)
+    assert idx[0].shape[0] == my * mx
+    return torch.stack(idx, 1), torch.stack(wts, 1).to(torch.float64)
+
+
+def pixel_relevancy(layout: PyramidLayout, crop_features: torch.Tensor, queries: torch.Tensor,
+                    canon: torch.Tensor, stride: int = 1, chunk: int = 16384) -> torch.Tensor:
+    """LERF relevancy of every sampled pixel's eq.-2 feature, without forming the (H, W, D) features.
+
+    Relevancy needs only the dot products of the normalized pixel feature with the Q query and K
+    canonical embeddings; both are linear in the crop features (interpolate the (n, Q+K) crop dot
+    products), and the squared norm is ``w^T G w`` with the crops' Gram matrix ``G = F F^T``. The result
+    equals :func:`~fourlegs_engine.query.relevancy.relevancy` on :func:`pixel_features` (tested), at a
+    fraction of the cost.
+
+    Args:
+        layout: crop pyramid; crop_features: (n, D); queries: (Q, D); canon: (K, D) (all L2-normalized
+            inside); stride: pixel sampling stride; chunk: pixels per block (memory bound).
+    Returns:
+        (ceil(H/stride), ceil(W/stride), Q) relevancy in [0, 1], float64.
+    """
+    Fc = crop_features.to(torch.float64)
+    q = l2_normalize(queries.to(torch.float64))
+    refs = reference_set(canon.to(torch.float64))
+    dots = Fc @ torch.cat([q, refs], 0).T                                          # (n, Q+K)
+    gram = Fc @ Fc.T                                                               # (n, n)
+    idx, w = pixel_taps(layout, stride)
+    M, Q = idx.shape[0], q.shape[0]
+    out = torch.empty(M, Q, dtype=torch.float64)
+    for s in range(0, M, chunk):
+        i, ww = idx[s:s + chunk], w[s:s + chunk]
+        pd = (ww[..., None] * dots[i]).sum(1)                                      # (m, Q+K)
+        g = gram[i[:, :, None], i[:, None, :]]                                      # (m, 4S, 4S)
+        norm = torch.einsum("mj,mjl,ml->m", ww, g, ww).clamp_min(0.0).sqrt().clamp_min(1e-12)
+        pd = pd / norm[:, None]
+        margin = RELEVANCY_SCALE * (pd[:, :Q] - pd[:, Q:].max(dim=1, keepdim=True).values)
+        out[s:s + chunk] = torch.sigmoid(margin)
+    my = -(-layout.height // stride)
+    return out.reshape(my, -1, Q)
+
+
 class Features2D:
     """Per-view relevancy from the crop-pyramid teacher features of that view alone.
 
@@ -68,7 +134,7 @@ class Features2D:
 
     name = "2D features"
 
-    def __init__(self, encoder: Any, *, ratios: Sequence[float] | None = None, pixel_stride: int = 2,
+    def __init__(self, encoder: Any, *, ratios: Sequence[float] | None = None, pixel_stride: int = 1,
                  batch_size: int = 512):
         if int(pixel_stride) < 1:
             raise InputError(f"pixel_stride must be >= 1, got {pixel_stride}", field="pixel_stride")
@@ -110,15 +176,9 @@ class Features2D:
         """(Q, H, W) float32 relevancy of every pixel at ``t`` to each of the Q query embeddings."""
         layout = crop_layout(camera.width, camera.height, self.ratios)
         crops = self.crop_features(video, t, camera)
-        feats = pixel_features(layout, crops, self.pixel_stride)                 # (h, w, D)
-        h, w, D = feats.shape
-        phi = l2_normalize(feats.reshape(-1, D).float())
-        refs = reference_set(canon_emb.float())
-        q = l2_normalize(query_emb.float())
-        margin = RELEVANCY_SCALE * (phi @ q.T - (phi @ refs.T).max(dim=1, keepdim=True).values)  # (hw, Q)
-        rel = torch.sigmoid(margin).reshape(h, w, -1)
-        rel = upsample_to_pixels(rel, camera.width, camera.height, self.pixel_stride)  # (H, W, Q)
-        return rel.permute(2, 0, 1).clamp(0.0, 1.0).contiguous()
+        rel = pixel_relevancy(layout, crops, query_emb, canon_emb, self.pixel_stride)   # (h, w, Q)
+        rel = upsample_to_pixels(rel, camera.width, camera.height, self.pixel_stride)   # (H, W, Q)
+        return rel.permute(2, 0, 1).clamp(0.0, 1.0).float().contiguous()
 
     # ------------------------------------------------------------------------------ predict
     def predict_view(self, video: Any, camera: Camera, queries: Sequence[str], text_encoder: Any,

@@ -90,10 +90,7 @@ class NeighbourhoodAttention(nn.Module):
         self.out = nn.Linear(dim, dim)
 
     def init_near_identity(self) -> "NeighbourhoodAttention":
-        """V = O = identity, Q/K scaled down: starts as a near-uniform neighbourhood average.
-
-        Used when refining a lifted field so the first render is already close to the lift.
-        """
+        """V = O = identity, Q/K scaled down: starts as a near-uniform neighbourhood average."""
         with torch.no_grad():
             for lin in (self.v, self.out):
                 lin.weight.copy_(torch.eye(self.dim))
@@ -101,6 +98,16 @@ class NeighbourhoodAttention(nn.Module):
             for lin in (self.q, self.k):
                 lin.weight.mul_(0.1)
                 lin.bias.zero_()
+        return self
+
+    def init_zero_output(self) -> "NeighbourhoodAttention":
+        """Output projection zeroed: as a residual branch (L + attention(L)) it starts as the identity.
+
+        Used when refining a lifted field, so the first render is exactly the lift's.
+        """
+        with torch.no_grad():
+            self.out.weight.zero_()
+            self.out.bias.zero_()
         return self
 
     def forward(self, latents: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
@@ -131,10 +138,12 @@ class NeighbourhoodAttention(nn.Module):
 
 def _attend(q: torch.Tensor, key: torch.Tensor, val: torch.Tensor, nbr: torch.Tensor) -> torch.Tensor:
     """q (n,d) of the chunk; key/val (N,d) of all; nbr (n,k) -> (n,d)."""
-    k_n = key[nbr]                                         # (n,k,d)
-    logits = torch.einsum("nd,nkd->nk", q, k_n) / math.sqrt(q.shape[-1])
-    weights = torch.softmax(logits, dim=-1)                # stable (max-subtracted) softmax
-    return torch.einsum("nk,nkd->nd", weights, val[nbr])
+    n, k = nbr.shape
+    flat = nbr.reshape(-1)
+    k_n = key.index_select(0, flat).view(n, k, -1)                 # (n,k,d); backward is an index_add
+    logits = torch.bmm(k_n, q.unsqueeze(2)).squeeze(2) / math.sqrt(q.shape[-1])
+    weights = torch.softmax(logits, dim=-1)                        # stable (max-subtracted) softmax
+    return torch.bmm(weights.unsqueeze(1), val.index_select(0, flat).view(n, k, -1)).squeeze(1)
 
 
 def neighbour_blur(latents: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:

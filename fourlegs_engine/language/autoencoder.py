@@ -153,12 +153,14 @@ def _sample_pixel_features(scene: Any, store: Any, views: list[tuple[int, int]],
 
 
 def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwrite: bool = False,
-                      progress: bool = False, stop_after_epoch: int | None = None) -> dict[str, Any]:
+                      progress: bool = False, stop_after_epoch: int | None = None,
+                      timesteps: Sequence[int] | None = None) -> dict[str, Any]:
     """Train the scene's autoencoder from its extracted features; resumable from per-epoch checkpoints.
 
     Writes ``language/encoder.pt`` and ``language/decoder.pt`` (state dicts) and
     ``language/autoencoder.json`` (config hash, reconstruction cosine on held-out and training views,
-    loss history). Returns that report. ``stop_after_epoch`` stops early (tests of resumption).
+    loss history). Returns that report. ``stop_after_epoch`` stops early (tests of resumption);
+    ``timesteps`` restricts the training data to those timesteps (benchmarks on a few timesteps).
     """
     from ..errors import ConfigMismatchError, InputError
     from ..fileio import atomic_path, read_json, write_json_atomic
@@ -170,12 +172,16 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
         raise InputError("need epochs >= 1, samples >= 2 and batch size >= 2", field="train-ae")
     root = Path(scene.root)
     store = feature_store(scene)
-    missing = store.missing()
+    T = scene.num_timesteps
+    steps = list(range(T)) if timesteps is None else sorted({int(t) for t in timesteps})
+    missing = store.missing(steps)
     if missing:
         from .store import format_ranges
         raise InputError(f"features of timesteps {format_ranges(missing)} are missing; finish "
                          "`fourlegs extract` first", file=store.root)
     cfg = {"features": store.hash, **config.to_dict()}
+    if timesteps is not None:
+        cfg["timesteps"] = steps
     chash = config_hash(cfg)
     report_path, ckpt_path = root / AE_REPORT, root / AE_CHECKPOINT
     for path in (report_path, ckpt_path):
@@ -198,9 +204,8 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
     num_cams = scene.cameras.num_cameras(store.config.get("split", "train"))
     holdout = config.holdout_camera % num_cams if num_cams > 1 else None
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, 0xAE]))
-    T = scene.num_timesteps
-    train_views = [(t, c) for t in range(T) for c in range(num_cams) if c != holdout]
-    held_views = [(t, holdout) for t in range(T)] if holdout is not None else []
+    train_views = [(t, c) for t in steps for c in range(num_cams) if c != holdout]
+    held_views = [(t, holdout) for t in steps] if holdout is not None else []
     x_train = _sample_pixel_features(scene, store, train_views, config.samples, rng)
     x_held = _sample_pixel_features(scene, store, held_views, config.heldout_samples, rng)
     sample_seconds = time.perf_counter() - start

@@ -131,8 +131,8 @@ def _distill_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--smoothness", type=float, default=0.0, help="ablation: kNN smoothness loss weight λ")
     g.add_argument("--neighbours", type=int, default=20, help="kNN size including the Gaussian (default 20)")
     g.add_argument("--views-per-iteration", type=int, default=1, help="views rendered per step (default 1)")
-    g.add_argument("--teacher-stride", type=int, default=2,
-                   help="encode the teacher every n-th pixel and upsample (default 2; 1 = every pixel)")
+    g.add_argument("--teacher-stride", type=int, default=4,
+                   help="encode the teacher every n-th pixel and upsample (default 4; 1 = every pixel)")
     g.add_argument("--view-scale", type=float, default=1.0,
                    help="render the training views at this fraction of their resolution (default 1)")
     g.add_argument("--distill-seed", type=int, default=0)
@@ -322,10 +322,11 @@ def bench_distill(scene: Any, *, modes: list[str], optimize_iterations: list[int
 
     root = Path(scene.root)
     prep = time.perf_counter()
-    extract_features(scene, get_encoder("simulated", scene=scene), progress=progress)
-    ae = train_autoencoder(scene, progress=progress)
-    prep = time.perf_counter() - prep
     steps = select_timesteps(scene.num_timesteps, timesteps)
+    extract_features(scene, get_encoder("simulated", scene=scene), timesteps=steps, progress=progress)
+    ae_steps = None if not feature_store(scene).missing() else steps
+    ae = train_autoencoder(scene, progress=progress, timesteps=ae_steps)
+    prep = time.perf_counter() - prep
     runs: list[tuple[str, DistillConfig]] = []
     for mode in modes:
         if mode == "lift":

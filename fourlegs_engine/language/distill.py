@@ -16,7 +16,8 @@ Modes (geometry frozen in all of them):
     1.6e-4 for the attention, 2000 iterations by default. Ablations: ``smoothing="none"`` (w/o Attn),
     ``"blur"`` (Local_Blur: kNN mean) and ``smoothness`` λ (Local_Reg).
 ``lift+refine``
-    The lift, then ``iterations`` optimize steps from there (attention initialized near the identity).
+    The lift, then ``iterations`` optimize steps from there. The attention is a residual branch with
+    a zero-initialized output projection (L + SelfAttention(L)), so the first render is the lift's.
 
 Rendering during optimization uses the blending weights of each view, computed once per timestep
 by the rasterizer (``outputs=("weights",)``): with frozen geometry, rendering features is the sparse
@@ -90,7 +91,7 @@ class DistillConfig:
     lr_latents: float = 0.0025
     lr_attention: float = 1.6e-4
     views_per_iteration: int = 1
-    teacher_stride: int = 2
+    teacher_stride: int = 4
     view_scale: float = 1.0
     seed: int = 0
     split: str = "train"
@@ -288,13 +289,14 @@ def optimize_latents(ops: Sequence[ViewOperator], teachers: Sequence[torch.Tenso
     if config.smoothing == "attention":
         attention = NeighbourhoodAttention(d)
         if init is not None:
-            attention.init_near_identity()
+            attention.init_zero_output()
         groups.append({"params": list(attention.parameters()), "lr": config.lr_attention})
     opt = torch.optim.Adam(groups, eps=1e-15)
 
     def smooth(x: torch.Tensor) -> torch.Tensor:
         if config.smoothing == "attention":
-            return attention(x, neighbours)
+            # refining a lift: residual attention that starts as the identity
+            return x + attention(x, neighbours) if init is not None else attention(x, neighbours)
         if config.smoothing == "blur":
             return neighbour_blur(x, neighbours)
         return x

@@ -80,7 +80,7 @@ def nearest(x: torch.Tensor, centroids: torch.Tensor, chunk: int = ASSIGN_CHUNK)
     """(M,d),(K,d) -> (M,) int64 index of the nearest centroid (squared Euclidean), chunked matmuls."""
     cn = _sqnorm(centroids)
     out = torch.empty(x.shape[0], dtype=torch.int64)
-    step = max(1, min(chunk, int(2e8 // max(centroids.shape[0], 1))))
+    step = max(1, min(chunk, int(1 << 24) // max(centroids.shape[0], 1)))  # <= 64 MB of distances
     for s in range(0, x.shape[0], step):
         d = torch.addmm(cn[None], x[s:s + step], centroids.T, alpha=-2.0)
         out[s:s + step] = d.argmin(1)

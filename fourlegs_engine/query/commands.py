@@ -173,6 +173,7 @@ def _write_maps(args, scene, engine, loc, write_exr) -> list[str]:
                 frames.append(scene.gaussians.check_timestep(int(f)))
             except ValueError:
                 raise InputError(f"{f!r} is neither a timestep nor 'peak'", field="--frames") from None
+    frames = list(dict.fromkeys(frames))
     names = args.views or ([loc.best_view] if loc.best_view else [])
     if not names:
         cams = scene.cameras.cameras(0, "all")

@@ -36,10 +36,15 @@ def composite(geom: torch.Tensor, depths: torch.Tensor, binning, *, colors, feat
     parts, slices, start = [], {}, 0
     for name, tensor in (("rgb", colors), ("features", features), ("depth", depths[:, None])):
         if name in outputs:
-            parts.append(tensor.to(dtype))
+            parts.append(tensor)
             slices[name] = slice(start, start + tensor.shape[1])
             start += tensor.shape[1]
-    values = torch.cat(parts, dim=-1) if parts else geom.new_zeros(N, 0)
+    if len(parts) == 1:
+        # one channel group: blended straight from its own storage (float16 features stay float16 in
+        # memory and are widened per chunk: half the gather traffic)
+        values = parts[0] if parts[0].dtype in (dtype, torch.float16, torch.bfloat16) else parts[0].to(dtype)
+    else:
+        values = torch.cat([p.to(dtype) for p in parts], dim=-1) if parts else geom.new_zeros(N, 0)
     accum_t, trans_t, median_t, pix, gid, wt = RasterizeTiles.apply(
         geom, values, binning, options, "depth_median" in outputs, "weights" in outputs)
     accum = tiles_to_image(accum_t, binning)

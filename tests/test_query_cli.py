@@ -1,0 +1,117 @@
+"""``fourlegs query`` end to end on a small bundle; EXR and plot outputs; multi-scene ranking."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from fourlegs_engine.cli import main
+from fourlegs_engine.query import prepare
+from fourlegs_engine.query.engine import QueryEngine
+from fourlegs_engine.query.exr import read_exr, write_exr
+from fourlegs_engine.query.multiscene import rank_scenes
+from fourlegs_engine.query.plots import plot_temporal
+from fourlegs_engine.query.temporal import localize_relevancy
+from fourlegs_engine.scene.bundle import write_bundle
+
+from _query_helpers import two_cluster_scene
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+    """A bundle with a real decoder file whose first layers pass the latent through unchanged."""
+    from fourlegs_engine.language.autoencoder import FeatureDecoder
+
+    scene, field, enc, dirs = two_cluster_scene(T=5, active=(2, 3), d=8, D=16)
+    scene.gaussians.latents = field.latents
+    root = tmp_path_factory.mktemp("q") / "clusters"
+    write_bundle(scene, root)
+    dec = FeatureDecoder((8, 8, 8, 16))
+    with torch.no_grad():
+        for m in dec.modules():
+            if isinstance(m, torch.nn.Linear):
+                m.weight.zero_()
+                m.bias.zero_()
+        lin = [m for m in dec.modules() if isinstance(m, torch.nn.Linear)]
+        lin[0].weight.copy_(torch.eye(8))
+        lin[1].weight.copy_(torch.eye(8))
+        lin[2].weight.copy_(field.weight.T.clone())
+    torch.save(dec.state_dict(), root / "language" / "decoder.pt")
+    from fourlegs_engine.scene.bundle import update_bundle_meta
+    update_bundle_meta(root, language={"encoder": "table", "latent_dim": 8, "latents": "language/latents.npy",
+                                       "decoder": "language/decoder.pt",
+                                       "canonical_phrases": ["object", "things", "stuff", "texture"]})
+    return root, enc
+
+
+def field_weight_rows(root):
+    _, field, _, _ = two_cluster_scene(T=5, active=(2, 3), d=8, D=16)
+    w = field.weight.numpy()[[0, 4]]
+    return w / np.linalg.norm(w, axis=1, keepdims=True)
+
+
+def test_query_command_writes_json_plot_and_exr(bundle, tmp_path, monkeypatch, capsys):
+    root, enc = bundle
+    monkeypatch.setattr(prepare, "default_text_encoder", lambda scene, name=None, **kw: enc)
+    from fourlegs_engine.language.field import LanguageField
+    field = LanguageField.open(root)
+    # the stored decoder reproduces the test's linear map (BatchNorm at its initial statistics)
+    expect = field_weight_rows(root)
+    np.testing.assert_allclose(field.decode(torch.eye(8)[[0, 4]]).numpy(), expect, atol=1e-3)
+    out = tmp_path / "out.json"
+    rc = main(["query", str(root), "a ball flying", "--json", str(out), "--exr", str(tmp_path / "maps"),
+               "--spatial", "fast", "--frames", "peak", "2", "4"])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert "s_t |" in text and "segment" in text
+    data = json.loads(out.read_text())
+    assert data["found"] and data["segment"][0] <= 2 <= data["segment"][1]
+    assert (tmp_path / "out.st.png").read_bytes()[:4] == b"\x89PNG"
+    assert len(data["exr"]) == 2
+    maps = read_exr(data["exr"][0])
+    assert set(maps) == {"relevancy", "depth", "alpha"} and maps["alpha"].max() > 0.5
+    # existing output is not overwritten without --overwrite; a bad frame is one clear error
+    assert main(["query", str(root), "a ball flying", "--json", str(out)]) == 2
+    assert main(["query", str(root), "a ball flying", "--exr", str(tmp_path / "m2"), "--frames", "x"]) == 2
+    assert main(["query", str(tmp_path / "nope"), "a ball flying"]) == 2
+    assert main(["query", str(root), "  "]) == 2
+    assert "error" in capsys.readouterr().err
+
+
+def test_exr_roundtrip_and_bad_channels(tmp_path):
+    rel = np.linspace(0, 1, 12, dtype=np.float32).reshape(3, 4)
+    depth = np.full((3, 4), np.nan, np.float32)
+    write_exr(tmp_path / "a.exr", {"relevancy": rel, "depth": depth})
+    back = read_exr(tmp_path / "a.exr")
+    np.testing.assert_array_equal(back["relevancy"], rel)
+    assert np.all(back["depth"] == 0)
+    from fourlegs_engine.errors import InputError, OutputExistsError
+    with pytest.raises(OutputExistsError):
+        write_exr(tmp_path / "a.exr", {"relevancy": rel})
+    with pytest.raises(InputError):
+        write_exr(tmp_path / "b.exr", {"relevancy": rel, "depth": np.zeros((2, 2))})
+    assert not (tmp_path / "b.exr").exists()
+
+
+def test_plot_found_and_not_found(tmp_path):
+    R = np.full((8, 5), 0.2)
+    R[3:5] = 0.9
+    p = plot_temporal(localize_relevancy(R), tmp_path / "a.png", query="q")
+    assert p.read_bytes()[:4] == b"\x89PNG"
+    plot_temporal(localize_relevancy(np.zeros((8, 5))), tmp_path / "b.png")
+    assert (tmp_path / "b.png").stat().st_size > 0
+
+
+def test_multiscene_ranks_the_scene_with_the_action_first():
+    with_ball = two_cluster_scene(T=20, active=range(5, 9), seed=0)
+    without = two_cluster_scene(T=20, active=(), seed=0)
+    enc = with_ball[2]
+    engines = {"without": QueryEngine(without[0], without[1], enc),
+               "with": QueryEngine(with_ball[0], with_ball[1], enc)}
+    res = rank_scenes(engines, "a ball flying", stride=2)
+    assert res.best == "with" and res.ranking[0][0] == "with" and res.ranking[1][1] == 0.0
+    assert res.localization.temporal.found and engines["without"].stats["temporal"] == 1
+    json.dumps(res.to_dict(), allow_nan=False)
+    assert rank_scenes({"without": engines["without"]}, "a ball flying").best is None

@@ -11,7 +11,6 @@ Measures
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import tempfile
@@ -53,7 +52,7 @@ def bench_render(scene_path: Optional[str], width: int, height: int, frames: int
     import OpenEXR
     import torch
 
-    from . import importer, render_engine
+    from . import convert, importer, render_engine
     from ._engine import engine_module
 
     if scene_path is None:
@@ -91,7 +90,7 @@ def bench_render(scene_path: Optional[str], width: int, height: int, frames: int
             t_direct = time.perf_counter() - t0
             rows.append({"timestep": int(t), "blender_s": t_blender, "direct_s": t_direct,
                          "overhead_s": t_blender - t_direct,
-                         "max_abs_diff": float(np.abs(combined - np.clip(direct, 0, None)).max())})
+                         "max_abs_diff": float(np.abs(combined - convert.srgb_to_linear(direct)).max())})
     return rows
 
 
@@ -122,10 +121,10 @@ def build_parser(p: Optional[argparse.ArgumentParser] = None) -> argparse.Argume
     p = p or argparse.ArgumentParser(prog="fourlegs bench blender", description=__doc__.splitlines()[0])
     p.add_argument("--gaussians", type=int, default=300_000, help="Gaussians for the import benchmark")
     p.add_argument("--scene", default=None, help="scene for the render benchmark (default: the demo scene)")
-    p.add_argument("--resolution", default="640x360")
-    p.add_argument("--frames", type=int, default=3)
-    p.add_argument("--json", default=None)
-    p.add_argument("--plot", default=None)
+    p.add_argument("--resolution", default="640x360", help="render resolution WIDTHxHEIGHT (default 640x360)")
+    p.add_argument("--frames", type=int, default=3, help="frames (timesteps spread over the scene) to render")
+    p.add_argument("--json", default=None, help="write the measurements here")
+    p.add_argument("--plot", default=None, help="write a bar chart (PNG) here")
     return p
 
 
@@ -154,10 +153,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     for r in result["render"]:
         print(f"{r['timestep']:>8} {r['blender_s']:>10.3f} {r['direct_s']:>9.3f} {r['overhead_s']:>10.3f} "
               f"{r['max_abs_diff']:>10.2e}")
+    from ._engine import engine_module
+
+    fileio = engine_module("fileio")
     if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+        fileio.write_json_atomic(args.json, result)
     if args.plot:
-        write_plot(Path(args.plot), result)
+        with fileio.atomic_path(args.plot) as tmp:
+            write_plot(tmp, result)
     return 0
 
 

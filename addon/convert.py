@@ -126,3 +126,14 @@ def camera_intrinsics(lens_mm: float, sensor_width_mm: float, sensor_height_mm: 
     cx = width / 2.0 - shift_x * side / pixel_aspect_x
     cy = height / 2.0 + shift_y * side / pixel_aspect_y
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0,1] -> scene-linear (IEC 61966-2-1), float32; clamps to [0,1] first.
+
+    Gaussian colours are display-referred (they were fitted to sRGB photographs); Blender works in
+    scene-linear and encodes to sRGB on output, so linearizing here makes saved frames reproduce the
+    rasterizer's colours exactly under the Standard view transform.
+    """
+    c = np.clip(np.nan_to_num(np.asarray(c, dtype=np.float32)), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)

@@ -138,12 +138,14 @@ def import_scene(context_scene: bpy.types.Scene, scene: Any, *, source: str | No
     context_scene.frame_start = 1
     context_scene.frame_end = max(1, g.num_timesteps)
     context_scene.render.fps = max(1, int(round(scene.fps)))
+    use_standard_view(context_scene)
     update_object(obj, float(props.timestep))
     return obj
 
 
 def _rgba(rgb: np.ndarray) -> np.ndarray:
-    rgb = np.clip(np.nan_to_num(np.asarray(rgb, dtype=np.float32)), 0.0, 1.0)
+    """(N,3) display (sRGB) colours -> (N,4) scene-linear RGBA for Blender colour attributes."""
+    rgb = convert.srgb_to_linear(rgb)
     return np.concatenate([rgb, np.ones((rgb.shape[0], 1), np.float32)], axis=1)
 
 
@@ -189,6 +191,14 @@ def _splat_node_group(material: bpy.types.Material) -> bpy.types.NodeTree:
     for i, node in enumerate((gin, radius, to_points, set_mat, gout)):
         node.location = (i * 200 - 400, 0)
     return group
+
+
+def use_standard_view(bl_scene: bpy.types.Scene) -> None:
+    """Standard view transform, no look: output pixels reproduce the Gaussians' colours (no AgX tone map)."""
+    bl_scene.view_settings.view_transform = "Standard"
+    bl_scene.view_settings.look = "None"
+    bl_scene.view_settings.exposure = 0.0
+    bl_scene.view_settings.gamma = 1.0
 
 
 # ----------------------------------------------------------------------------- cameras

@@ -18,7 +18,7 @@ from typing import Any, Iterable, Sequence
 
 import bpy
 import numpy as np
-from mathutils import Euler, Matrix
+from mathutils import Matrix
 
 from . import convert
 
@@ -192,10 +192,7 @@ def key_lens_mm(key: dict[str, Any], width: int) -> float:
 def remove_generated(scene: bpy.types.Scene) -> None:
     """Delete what a previous Generate Highlight created (tagged datablocks and the timestep F-curve)."""
     for obj in [o for o in bpy.data.objects if o.get(GENERATED_KEY)]:
-        data = obj.data
         bpy.data.objects.remove(obj, do_unlink=True)
-        if data is not None and data.users == 0:
-            bpy.data.cameras.remove(data) if isinstance(data, bpy.types.Camera) else None
     for cam in [c for c in bpy.data.cameras if c.get(GENERATED_KEY) and c.users == 0]:
         bpy.data.cameras.remove(cam)
     fc = find_fcurve(scene, TIMESTEP_PATH, 0)

@@ -19,12 +19,17 @@ from bpy.props import BoolProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from . import compositor, importer, keyframes, planning, plots, querying, render_engine, video
-from ._engine import engine_module
 
 ALL_NEEDS = {"temporal", "best_view", "action_centre"}
 
 
 def _err(exc: BaseException) -> str:
+    """One line for the user (no traceback)."""
+    if isinstance(exc, ModuleNotFoundError) and exc.name in ("torch", "scipy", "tqdm"):
+        import sys
+
+        return (f"{exc.name} is not installed in Blender's Python; install it with: "
+                f"\"{sys.executable}\" -m pip install {exc.name}")
     return str(exc) if isinstance(exc, (ValueError, FileExistsError, RuntimeError)) else f"{type(exc).__name__}: {exc}"
 
 
@@ -255,9 +260,10 @@ def generate_highlight(bl_scene, plan: dict[str, Any]) -> bpy.types.Object:
     text.write(json.dumps(plan, indent=1))
     text[keyframes.GENERATED_KEY] = True
     bl_scene.render.engine = render_engine.ENGINE_ID
+    importer.use_standard_view(bl_scene)
     rel = bool((plan.get("passes") or {}).get("relevancy"))
     for view_layer in bl_scene.view_layers:
-        view_layer.use_pass_z = bool((plan.get("passes") or {}).get("depth")) or view_layer.use_pass_z
+        view_layer.use_pass_z = bool((plan.get("passes") or {}).get("depth"))
         view_layer.fourlegs_relevancy = rel
     compositor.build_compositor(bl_scene, plan)
     return cam

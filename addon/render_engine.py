@@ -4,7 +4,9 @@ For the current frame it rasterizes every visible imported splat object at the s
 (``scene.fourlegs.timestep``, fractional values interpolate positions and colours) seen from the
 scene's active camera, and writes
 
-- ``Combined``: RGB (alpha = coverage when the film is transparent, else 1),
+- ``Combined``: RGB, scene-linear (the Gaussians' sRGB colours linearized, so a PNG/MP4 written with
+  the Standard view transform reproduces the rasterizer's colours), alpha = coverage when the film
+  is transparent, else 1,
 - ``Depth``: expected camera depth (1e10 where nothing was hit, as Blender's other engines do),
 - ``Relevancy``: the query's relevancy of the visible surface in [0, 1], declared through
   ``update_render_passes`` when the view layer asks for it (``view_layer.fourlegs_relevancy``),
@@ -60,11 +62,13 @@ def relevancy_frames(scene: bpy.types.Scene) -> list:
 
 
 def depth_wanted(scene: bpy.types.Scene, view_layer, frame: int) -> bool:
-    """Depth when the view layer has the Z pass on and the plan (if it lists depth frames) lists this one."""
+    """Depth only where asked: the Z pass is on and, with a highlight plan, the plan lists this frame."""
     if not view_layer.use_pass_z:
         return False
-    ranges = ((plan_of(scene) or {}).get("passes") or {}).get("depth")
-    return not ranges or frames_in_ranges(ranges, frame)
+    plan = plan_of(scene)
+    if plan is None:
+        return True
+    return frames_in_ranges((plan.get("passes") or {}).get("depth"), frame)
 
 
 def wants_relevancy_pass(view_layer: bpy.types.ViewLayer) -> bool:
@@ -116,6 +120,13 @@ def gather_gaussians(scene: bpy.types.Scene, t: float, with_relevancy: bool) -> 
                 "opacity_logits": np.asarray(g.opacity_logits, np.float32), "colors": colors}
         if with_relevancy:
             rel = importer.gaussian_relevancy(obj, ti)
+            query = (plan_of(scene) or {}).get("query")
+            if rel is None and query:  # e.g. a saved .blend re-opened: ask the scene's language field
+                from . import querying
+
+                engine = querying.open_query_engine(src)
+                importer.set_relevancy_provider(obj, lambda t, e=engine, q=query: e.gaussian_relevancy(q, t).numpy())
+                rel = importer.gaussian_relevancy(obj, ti)
             part["relevancy"] = (np.zeros(g.num_gaussians, np.float32) if rel is None
                                  else np.asarray(rel, np.float32))
         parts.append(part)
@@ -152,7 +163,7 @@ def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *,
                         colors=tens["colors"], features=tens["relevancy"][:, None] if compute_rel else None,
                         outputs=tuple(outputs))
     alpha = res["alpha"].numpy().astype(np.float32)
-    rgb = np.clip(np.nan_to_num(res["rgb"].numpy().astype(np.float32)), 0.0, None)
+    rgb = convert.srgb_to_linear(res["rgb"].numpy())  # Blender's Combined is scene-linear
     a = alpha if scene.render.film_transparent else np.ones_like(alpha)
     out["rgba"] = np.concatenate([rgb, a], axis=2)
     if depth:
@@ -173,6 +184,15 @@ def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *,
 def _to_rect(img: np.ndarray) -> np.ndarray:
     """Top-down (H,W,C) image -> Blender's bottom-up (H*W, C) pixel rows."""
     return np.ascontiguousarray(img[::-1].reshape(-1, img.shape[2]), dtype=np.float32)
+
+
+def write_pass(render_pass, img: np.ndarray) -> None:
+    """Copy a top-down (H,W,C) image into a render pass (``foreach_set``: ~1000x faster than ``rect = ...``)."""
+    rect = _to_rect(img)
+    try:
+        render_pass.rect.foreach_set(rect.ravel())
+    except (AttributeError, TypeError):  # older Blender without foreach_set on the pass buffer
+        render_pass.rect = rect
 
 
 class FourlegsRenderEngine(bpy.types.RenderEngine):
@@ -210,14 +230,14 @@ class FourlegsRenderEngine(bpy.types.RenderEngine):
             self.end_result(result, cancel=False)
             return
         layer = result.layers[0]
-        layer.passes["Combined"].rect = _to_rect(arrays["rgba"])
-        depth_pass = layer.passes.get("Depth") if hasattr(layer.passes, "get") else None
+        write_pass(layer.passes["Combined"], arrays["rgba"])
+        depth_pass = layer.passes.get("Depth")
         if depth_pass is not None:
-            depth_pass.rect = _to_rect(arrays["depth"])
+            write_pass(depth_pass, arrays["depth"])
         if want_rel:
             rel_pass = layer.passes.get(RELEVANCY_PASS)
             if rel_pass is not None:
-                rel_pass.rect = _to_rect(arrays["relevancy"])
+                write_pass(rel_pass, arrays["relevancy"])
         self.end_result(result)
         stats["frames"] += 1
         if depth_wanted(scene, view_layer, scene.frame_current):

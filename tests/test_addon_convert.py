@@ -98,3 +98,15 @@ def test_matches_blenders_own_projection(bl):
         assert ndc.x * cam.width == pytest.approx(u, abs=1e-3)
         assert (1.0 - ndc.y) * cam.height == pytest.approx(v, abs=1e-3)
         assert ndc.z == pytest.approx(d, rel=1e-5)
+
+
+def test_srgb_to_linear_known_values_and_edges():
+    c = np.array([0.0, 0.04045, 0.5, 1.0, -0.2, 1.5, np.nan, np.inf], np.float64)
+    lin = convert.srgb_to_linear(c)
+    np.testing.assert_allclose(lin[:4], [0.0, 0.04045 / 12.92, 0.21404114, 1.0], rtol=1e-5)
+    np.testing.assert_allclose(lin[4:], [0.0, 1.0, 0.0, 1.0])  # clamped, NaN -> 0, never NaN/Inf out
+    x = np.linspace(0, 1, 1001)
+    assert np.all(np.diff(convert.srgb_to_linear(x)) >= 0)
+    # continuous at the breakpoint (float64 reference of both branches)
+    lo, hi = 0.04045 / 12.92, ((0.04045 + 0.055) / 1.055) ** 2.4
+    assert abs(lo - hi) < 1e-7

@@ -80,6 +80,18 @@ def test_highlight_end_to_end(tmp_path, request, capsys):
     assert [s.frame_start, s.frame_end] == [plan["frame_start"], plan["frame_end"]]
     assert s.compositing_node_group is not None and s.compositing_node_group.name == "4-LEGS Compositor"
     assert "fourlegs_plan.json" in bl.data.texts
+    # the saved file re-opens its scene from disk: the timeline drives the point cloud again
+    import numpy as np
+
+    from fourlegs_addon import importer
+
+    obj = bl.data.objects["tiny"]
+    mid = (plan["frame_start"] + plan["frame_end"]) // 2
+    s.frame_set(mid)
+    co = np.empty(len(obj.data.vertices) * 3, np.float32)
+    obj.data.vertices.foreach_get("co", co)
+    means = importer.engine_scene_for(obj).gaussians.means
+    np.testing.assert_allclose(co.reshape(-1, 3), importer.blend_timestep(means, s.fourlegs.timestep), atol=1e-5)
     bl.ops.wm.read_factory_settings(use_empty=True)
     # existing outputs are refused (one clear line, no traceback) before any work, and left untouched
     mtime = (out / "highlight.mp4").stat().st_mtime_ns

@@ -130,3 +130,10 @@ def test_install_offline_and_enable(extension_zip, tmp_path):
     assert out["import"] == ["FINISHED"] and out["points"] == 64
     assert out["scene_class_module"].startswith("bl_ext.user_default.fourlegs_highlights.fourlegs_engine")
     assert out["disabled"]
+
+
+def test_missing_dependency_wheels_are_reported(tmp_path):
+    (tmp_path / "wheels").mkdir()
+    with pytest.raises(build.BuildError, match="--fetch-wheels"):
+        build.build(tmp_path / "out", wheels_dir=tmp_path / "wheels")
+    assert not list((tmp_path / "out").glob("*.zip"))

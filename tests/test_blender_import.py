@@ -9,6 +9,12 @@ from _blender_helpers import bl, bpy_addon, tiny_scene  # noqa: F401
 pytestmark = pytest.mark.blender
 
 
+def srgb_to_linear(c):
+    from fourlegs_addon.convert import srgb_to_linear as f
+
+    return f(c)
+
+
 def _positions(obj) -> np.ndarray:
     co = np.empty(len(obj.data.vertices) * 3, np.float32)
     obj.data.vertices.foreach_get("co", co)
@@ -31,7 +37,7 @@ def test_import_creates_one_point_cloud_object(bl):
     assert obj.type == "MESH" and len(obj.data.vertices) == g.num_gaussians and len(obj.data.polygons) == 0
     assert bl.context.scene.fourlegs.splat_object == obj
     np.testing.assert_allclose(_positions(obj), g.means[0], atol=1e-6)
-    np.testing.assert_allclose(_attr(obj, importer.RGB_ATTR, 4)[:, :3], g.colors[0], atol=1e-6)
+    np.testing.assert_allclose(_attr(obj, importer.RGB_ATTR, 4)[:, :3], srgb_to_linear(g.colors[0]), atol=1e-6)
     np.testing.assert_allclose(_attr(obj, importer.RADIUS_ATTR, 1), 1.5 * 0.05, rtol=1e-5)
     np.testing.assert_allclose(_attr(obj, importer.OPACITY_ATTR, 1), 1 / (1 + np.exp(-2.0)), rtol=1e-5)
     assert "color" not in obj.data.attributes  # an attribute called "color" renders black in Cycles
@@ -54,7 +60,8 @@ def test_timestep_property_switches_positions_and_colours(bl):
     props = bl.context.scene.fourlegs
     props.timestep = 3.0
     np.testing.assert_allclose(_positions(obj), scene.gaussians.means[3], atol=1e-6)
-    np.testing.assert_allclose(_attr(obj, importer.RGB_ATTR, 4)[:, :3], scene.gaussians.colors[3], atol=1e-6)
+    np.testing.assert_allclose(_attr(obj, importer.RGB_ATTR, 4)[:, :3], srgb_to_linear(scene.gaussians.colors[3]),
+                               atol=1e-6)
     props.timestep = 1.25  # fractional timesteps interpolate linearly
     expect = 0.75 * scene.gaussians.means[1] + 0.25 * scene.gaussians.means[2]
     np.testing.assert_allclose(_positions(obj), expect, atol=1e-6)

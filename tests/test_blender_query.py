@@ -159,3 +159,12 @@ def test_panel_workflow_import_query_generate_with_the_real_planner(bl, tmp_path
     assert [s["effect"] for s in plan["shots"]] == ["play", "zoom_in"]
     assert not compositor.has_desaturation(bl.context.scene)
     assert sum(1 for o in bl.data.objects if o.get(keyframes.GENERATED_KEY)) == 1
+
+
+def test_missing_dependency_message_names_the_install_command():
+    from fourlegs_addon import operators
+
+    exc = ModuleNotFoundError("No module named 'torch'", name="torch")
+    msg = operators._err(exc)
+    assert "torch is not installed" in msg and "-m pip install torch" in msg
+    assert operators._err(ValueError("bad: field")) == "bad: field"

@@ -114,3 +114,79 @@ def test_video_is_written_decodable_and_never_overwritten(highlight, bl, tmp_pat
     scene.frame_end = 3
     frames = video.render_animation(scene, tmp_path / "frames", fmt="PNG")
     assert sorted(p.name for p in frames.iterdir()) == [f"frame_{i:04d}.png" for i in range(1, 4)]
+
+
+def test_reopened_file_computes_relevancy_from_the_plans_query(bl, tmp_path):
+    """Without a provider (a saved .blend opened again) the engine asks the scene's language field."""
+    from _blender_helpers import language_bundle
+    from fourlegs_addon import importer, operators, render_engine
+
+    bundle = language_bundle(tmp_path / "scene")
+    scene = importer.load_engine_scene(bundle)
+    importer.import_scene(bl.context.scene, scene, source=str(bundle))
+    plan = hand_plan(desaturate=True)
+    plan["query"] = "the red cube"
+    operators.generate_highlight(bl.context.scene, plan)
+    render_engine.reset_stats()
+    passes = _render_passes(bl, 9, tmp_path / "f9.exr")  # timestep 2: the cube half is relevant
+    rel = passes["ViewLayer.Relevancy.X"][passes["ViewLayer.Depth.Z"] < 1e9]
+    assert rel.max() > 0.9 and rel.min() < 0.2
+    assert render_engine.stats["relevancy_frames"] == [9]
+
+
+def test_written_frames_reproduce_the_rasterizers_colours(highlight, bl, tmp_path):
+    """PNG pixels == the engine's RGB for the same camera and timestep (to 8-bit rounding)."""
+    import torch
+
+    from fourlegs_addon import render_engine, video
+    from fourlegs_engine.render import rasterize
+
+    scene, src, _ = highlight
+    scene.frame_start = scene.frame_end = 4
+    frames = video.render_animation(scene, tmp_path / "frames", fmt="PNG")
+    img = bl.data.images.load(str(frames / "frame_0004.png"))
+    img.colorspace_settings.name = "Non-Color"  # raw 8-bit values
+    w, h = img.size
+    png = np.array(img.pixels[:], np.float32).reshape(h, w, 4)[::-1, :, :3]
+    scene.frame_set(4)
+    camera = render_engine.scene_camera(scene, bl.context.evaluated_depsgraph_get(), w, h)
+    t = scene.fourlegs.timestep
+    lo, frac = int(np.floor(t)), t - np.floor(t)
+    g = src.gaussians
+    means = (1 - frac) * g.means[lo] + frac * g.means[min(lo + 1, 3)]
+    colors = (1 - frac) * g.colors[lo] + frac * g.colors[min(lo + 1, 3)]
+    with torch.no_grad():
+        ref = rasterize(torch.from_numpy(means), torch.from_numpy(g.rotations[round(t)]),
+                        torch.from_numpy(g.log_scales), torch.from_numpy(g.opacity_logits), camera,
+                        colors=torch.from_numpy(colors))["rgb"].numpy()
+    assert np.abs(png - np.clip(ref, 0, 1)).max() <= 1.5 / 255
+
+
+def test_render_video_operator_reports_existing_output(highlight, bl, tmp_path):
+    from fourlegs_addon import video
+
+    scene, _, _ = highlight
+    scene.frame_end = 3
+    props = scene.fourlegs
+    props.output_path = str(tmp_path / "clip.mp4")
+    assert bl.ops.fourlegs.render_video() == {"FINISHED"}
+    assert video.movie_frame_count(tmp_path / "clip.mp4") == 3
+    with pytest.raises(RuntimeError, match="already exists"):
+        bl.ops.fourlegs.render_video()
+    props.overwrite = True
+    assert bl.ops.fourlegs.render_video() == {"FINISHED"}
+
+
+def test_no_depth_is_computed_when_the_plan_lists_none(bl):
+    from fourlegs_addon import importer, operators, render_engine
+
+    importer.import_scene(bl.context.scene, tiny_scene())
+    plan = hand_plan(desaturate=False)
+    plan["passes"]["depth"] = []
+    operators.generate_highlight(bl.context.scene, plan)
+    render_engine.reset_stats()
+    bl.context.scene.frame_set(2)
+    bl.ops.render.render()
+    assert render_engine.stats["frames"] == 1
+    assert render_engine.stats["depth_frames"] == [] and render_engine.stats["relevancy_frames"] == []
+    assert not bl.context.scene.view_layers[0].use_pass_z

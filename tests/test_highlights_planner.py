@@ -340,3 +340,13 @@ def test_property_random_plans_are_valid_finite_and_continuous(scene, cx, cy, cz
     keys = all_keys(plan)
     steps = [rotation_angle(x.pose.rotation, y.pose.rotation) for x, y in zip(keys, keys[1:])]
     assert max(steps) < math.radians(30)
+
+
+def test_depth_pass_only_for_shots_with_depth_of_field(scene):
+    preset = preset_of({"effect": "play", "camera": "best_view"},
+                       {"effect": "zoom_in", "depth_of_field": True}, {"effect": "bullet_time"})
+    plan = plan_highlight(scene, FakeLocalizer(scene), QUERY, preset)
+    zoom = plan.shots[1]
+    assert plan.passes["depth"] == [[zoom.frame_start, zoom.frame_end]]
+    assert "relevancy" not in plan.passes
+    assert zoom.params["depth_of_field"] is True and plan.shots[2].params["depth_of_field"] is False

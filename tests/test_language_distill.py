@@ -20,7 +20,7 @@ from _language_helpers import micro_bundle
 from fourlegs_engine.cli import main
 from fourlegs_engine.errors import ConfigMismatchError, InputError
 from fourlegs_engine.language.autoencoder import AETrainConfig, train_autoencoder
-from fourlegs_engine.language.distill import (DistillConfig, ViewOperator, distill_scene, lift_latents,
+from fourlegs_engine.language.distill import (DistillConfig, distill_scene, lift_latents,
                                               optimize_latents, view_operator)
 from fourlegs_engine.language.encoders import get_encoder
 from fourlegs_engine.language.extract import ExtractConfig, check_features, extract_features
@@ -261,3 +261,36 @@ def test_teacher_latents_at_reduced_resolution_and_strides(prepared):
     lat = np.load(Path(res.out_dir) / "steps" / "t000000.npy").astype(np.float32)
     norms = np.linalg.norm(lat, axis=1)
     assert np.all((np.abs(norms - 1) < 2e-3) | (norms == 0)) and (norms > 0).mean() > 0.5
+
+
+def test_rgb_encoder_path_with_a_tiny_viclip(tmp_path):
+    """RGB frames -> 8-frame crop tubes -> resized, CLIP-normalized -> ViCLIP; then train-ae and lift."""
+    from _viclip_helpers import randomize_, tiny_config, write_tiny_vocab
+    from fourlegs_engine.language.extract import FrameSource, feature_store
+    from fourlegs_engine.language.pyramid import crop_layout, resize_crops, scale_crops
+    from fourlegs_engine.language.viclip import BPETokenizer, ViCLIPEncoder, ViCLIPModel
+    torch.manual_seed(0)
+    model = randomize_(ViCLIPModel(tiny_config()).eval(), seed=5)
+    enc = ViCLIPEncoder(model, BPETokenizer(write_tiny_vocab(tmp_path / "bpe.txt.gz")), batch_size=64)
+    path = micro_bundle(tmp_path / "rgb", T=2, cameras=2)
+    scene = load_bundle(path)
+    cfg = ExtractConfig(ratios=(0.4, 0.6), batch_size=50)
+    report = extract_features(scene, enc, cfg)
+    assert report.timesteps_done == [0, 1]
+    store = feature_store(scene)
+    feats = store.load(1)
+    layout = crop_layout(32, 18, (0.4, 0.6))
+    assert feats.shape == (2 * layout.num_crops, enc.dim) and feats.dtype == np.float16
+    # one crop recomputed by hand: camera 1, scale 1, crop 3
+    tube = FrameSource(scene, "rgb").tube(1, 1)
+    assert tube.shape == (8, 3, 18, 32) and float(tube.min()) >= 0 and float(tube.max()) <= 1
+    g = layout.scales[1]
+    clip = resize_crops(scale_crops(tube, g)[3:4], enc.image_size, clip_normalize=True)
+    expected = enc.encode_video(clip)[0].numpy()
+    got = feats[layout.num_crops + g.offset + 3].astype(np.float32)
+    np.testing.assert_allclose(got, expected, atol=2e-3)
+    ae = train_autoencoder(scene, AETrainConfig(epochs=1, samples=512, heldout_samples=64, batch_size=128))
+    assert ae["heldout_camera"] == 1
+    res = distill_scene(scene, mode="lift")
+    assert LanguageField.open(path).decode(torch.zeros(3, 128)).shape == (3, enc.dim)
+    assert res.latents is not None

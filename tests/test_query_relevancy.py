@@ -96,3 +96,12 @@ def test_property_bounded_finite_and_monotone_in_margin(feats, q, scale):
     assert np.all(np.isfinite(r)) and np.all((r >= 0) & (r <= 1))
     order = np.argsort(m, kind="stable")
     assert np.all(np.diff(r[order]) >= -1e-12)
+
+
+def test_unit_feature_fast_path_equals_general_form():
+    from fourlegs_engine.query.relevancy import l2_normalize, reference_set, relevancy_of_unit_features
+    feats = l2_normalize(torch.tensor(rng.normal(size=(100, 12))))
+    q = l2_normalize(torch.tensor(rng.normal(size=12)))
+    canon, neg = torch.tensor(rng.normal(size=(4, 12))), torch.tensor(rng.normal(size=(2, 12)))
+    fast = relevancy_of_unit_features(feats, q, reference_set(canon, neg))
+    np.testing.assert_allclose(fast.numpy(), relevancy(feats, q, canon, neg).numpy(), atol=1e-12)

@@ -9,6 +9,7 @@ from fourlegs_engine.cli import main
 from fourlegs_engine.render.bench_scene import make_bench_scene
 
 TINY = ["bench", "render", "--sizes", "400", "--outputs", "rgb,features", "--repeats", "1", "--channels", "8",
+        "--threads", "1",
         "--resolution", "64x36", "--small-n", "150", "--small-resolution", "48x27"]
 
 

@@ -35,8 +35,10 @@ def register_bench(bench_subparsers: argparse._SubParsersAction) -> None:
                    help="comma-separated method names (default: every registered method)")
     p.add_argument("--views", default=None,
                    help="comma-separated camera names to evaluate (default: the test cameras)")
-    p.add_argument("--pixel-stride", type=int, default=2,
-                   help="2D baseline: per-pixel features on every N-th pixel, relevancy upsampled (default 2)")
+    p.add_argument("--pixel-stride", default="2",
+                   help="2D baseline: relevancy on every N-th pixel, upsampled (default 2); a list such as "
+                        "1,2,4 runs one variant per stride (the speed/accuracy table and plot)")
+    p.add_argument("--plot", default=None, metavar="PNG", help="write a seconds-vs-accuracy plot")
     p.add_argument("--json", default=None, metavar="PATH", help="also write the results as JSON")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     p.set_defaults(func=_bench_grounding)

@@ -228,6 +228,7 @@ def ensure_ground_truth(scene: Scene, cameras: Sequence[Camera] | None = None, *
             old = None
         if isinstance(old, dict) and old.get("key") == key:
             meta["cameras"] = [c for c in old.get("cameras", []) if isinstance(c, str)]
+    computed = False
     iterator: Iterable[Camera] = cameras
     if progress:
         from tqdm import tqdm
@@ -247,13 +248,14 @@ def ensure_ground_truth(scene: Scene, cameras: Sequence[Camera] | None = None, *
         video = (videos or {}).get(name) or CoverageVideo(scene, cam)
         masks, boxes = compute_camera_ground_truth(video, label_sets, threshold)
         gt.masks[name], gt.boxes[name] = masks, boxes
+        computed = True
         if root is not None:
             save_npy_atomic(root / f"{stem}.masks.npy", masks)
             save_npy_atomic(root / f"{stem}.boxes.npy", boxes)
             if name not in meta["cameras"]:
                 meta["cameras"].append(name)
             write_json_atomic(root / "meta.json", meta)
-    if root is not None:
+    if root is not None and (computed or not (root / "temporal.json").is_file()):
         write_json_atomic(root / "temporal.json",
                           {"queries": {q: {"labels": queries[q], "segments": [list(s) for s in gt.segments(q)]}
                                        for q in texts}, "num_timesteps": scene.num_timesteps})

@@ -101,8 +101,9 @@ def _load_method_modules() -> None:
 class _Features2DMethod:
     name = "2D features"
 
-    def __init__(self, context: BenchmarkContext):
-        self.impl = Features2D(context.video_encoder, pixel_stride=int(context.options.get("pixel_stride", 2)))
+    def __init__(self, context: BenchmarkContext, pixel_stride: int | None = None):
+        stride = pixel_stride if pixel_stride is not None else int(context.options.get("pixel_stride", 2))
+        self.impl = Features2D(context.video_encoder, pixel_stride=stride)
 
     def predict_view(self, context: BenchmarkContext, camera: Camera) -> dict[str, ViewPrediction]:
         bar = None
@@ -256,10 +257,17 @@ def run_grounding_benchmark_cli(args: Any) -> int:
     scene = load_bundle(path)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
     views = [v.strip() for v in args.views.split(",") if v.strip()] if args.views else None
-    if args.pixel_stride < 1:
-        raise InputError(f"--pixel-stride must be >= 1, got {args.pixel_stride}", field="--pixel-stride")
+    strides = parse_strides(args.pixel_stride)
+    if len(strides) > 1:  # the speed/accuracy knob of the 2D baseline: one variant per stride
+        variants = []
+        for stride in strides:
+            name = f"2D features (pixel stride {stride})"
+            register_method(name, lambda ctx, s=stride: _Features2DMethod(ctx, s), replace=True)
+            variants.append(name)
+        methods = [m for m in (methods or method_names()) if m != "2D features" and not
+                   m.startswith("2D features (")] + variants
     results = run_grounding_benchmark(scene, methods, seed=args.seed, progress=True, views=views,
-                                      options={"pixel_stride": args.pixel_stride})
+                                      options={"pixel_stride": strides[0]})
     results["scene"]["path"] = str(path)
     results["total_seconds"] = time.perf_counter() - start
     print(markdown_tables(results))
@@ -267,4 +275,44 @@ def run_grounding_benchmark_cli(args: Any) -> int:
     if args.json:
         write_json_atomic(args.json, results)
         print(f"wrote {args.json}")
+    if args.plot:
+        plot_speed_accuracy(results, args.plot)
+        print(f"wrote {args.plot}")
     return 0
+
+
+def parse_strides(text: str | int) -> list[int]:
+    """``"1,2,4"`` -> [1, 2, 4]; every stride must be a positive integer."""
+    try:
+        strides = [int(x) for x in str(text).split(",") if x.strip()]
+    except ValueError:
+        raise InputError(f"expected comma-separated integers, got {text!r}", field="--pixel-stride") from None
+    if not strides or min(strides) < 1:
+        raise InputError(f"strides must be >= 1, got {text!r}", field="--pixel-stride")
+    return strides
+
+
+def plot_speed_accuracy(results: dict[str, Any], path: str | Path) -> None:
+    """Seconds against vAP and tIoU (± std over views) of every method of a benchmark run."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..fileio import atomic_path
+
+    names = list(results["methods"])
+    secs = [results["methods"][n]["seconds"] for n in names]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, metric in zip(axes, ("vAP", "tIoU")):
+        for n, sec in zip(names, secs):
+            m = results["methods"][n][metric]
+            ax.errorbar([sec], [100 * m["mean"]], yerr=[100 * m["std"]], fmt="o", capsize=3, label=n)
+        ax.set_xlabel("seconds (all views, all queries)")
+        ax.set_ylabel(f"{metric} (%)")
+        ax.set_title(f"{metric} vs time on {results['scene']['name']}")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
+    plt.close(fig)

@@ -33,7 +33,10 @@ class FourLegsMethod:
 
     name = METHOD_NAME
 
-    def __init__(self, context: Any, field: Any = None, **engine_options: Any):
+    def __init__(self, context: Any, field: Any = None, *, shared: dict | None = None,
+                 temporal_key: Any = None, map_key: Any = None, **engine_options: Any):
+        """``shared`` (with ``temporal_key`` / ``map_key``) lets several configurations that compute
+        identical temporal results or maps reuse them; each reuse is charged the seconds it took."""
         scene = context.scene
         if field is None:
             scene, field, _ = ensure_language_field(scene, context.video_encoder, progress=context.progress)
@@ -43,12 +46,22 @@ class FourLegsMethod:
         self._maps: dict[int, np.ndarray] = {}
         self._maps_camera: str | None = None
         self.timings = {"temporal": 0.0, "maps": 0.0}
+        self.shared = shared
+        self.temporal_key = temporal_key
+        self.map_key = map_key
 
     def temporal(self):
         if self._temporal is None:
-            start = time.perf_counter()
-            self._temporal = dict(zip(self.queries, self.engine.temporal_many(self.queries)))
-            self.timings["temporal"] += time.perf_counter() - start
+            key = ("temporal", self.temporal_key)
+            if self.shared is not None and self.temporal_key is not None and key in self.shared:
+                self._temporal, seconds = self.shared[key]
+            else:
+                start = time.perf_counter()
+                self._temporal = dict(zip(self.queries, self.engine.temporal_many(self.queries)))
+                seconds = time.perf_counter() - start
+                if self.shared is not None and self.temporal_key is not None:
+                    self.shared[key] = (self._temporal, seconds)
+            self.timings["temporal"] += seconds
         return self._temporal
 
     def _view_maps(self, camera: Camera, t: int) -> np.ndarray:
@@ -56,12 +69,19 @@ class FourLegsMethod:
         if self._maps_camera != camera.name:
             self._maps, self._maps_camera = {}, camera.name
         if t not in self._maps:
-            start = time.perf_counter()
-            rel = self.engine.relevancy_maps(self.queries, camera, t, outputs=("relevancy",))["relevancy"]
-            if rel.shape[1:] != (camera.height, camera.width):
-                rel = _upsample(rel, camera.height, camera.width)
-            self._maps[t] = rel.astype(np.float16)
-            self.timings["maps"] += time.perf_counter() - start
+            key = ("maps", self.map_key, camera.name, t)
+            if self.shared is not None and self.map_key is not None and key in self.shared:
+                self._maps[t], seconds = self.shared[key]
+            else:
+                start = time.perf_counter()
+                rel = self.engine.relevancy_maps(self.queries, camera, t, outputs=("relevancy",))["relevancy"]
+                if rel.shape[1:] != (camera.height, camera.width):
+                    rel = _upsample(rel, camera.height, camera.width)
+                self._maps[t] = rel.astype(np.float16)
+                seconds = time.perf_counter() - start
+                if self.shared is not None and self.map_key is not None:
+                    self.shared[key] = (self._maps[t], seconds)
+            self.timings["maps"] += seconds
         return self._maps[t]
 
     def predict_view(self, context: Any, camera: Camera) -> dict[str, ViewPrediction]:

@@ -34,7 +34,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--crop-size", default=None,
                    help="crop side fed to the encoder (default 224 for RGB encoders; 'means' for label "
                         "encoders that only read per-frame coverage means)")
-    p.add_argument("--batch-size", type=int, default=256, help="crop tubes per encoder call (default 256)")
+    p.add_argument("--batch-size", type=int, default=None,
+                   help="crop tubes per encoder call (default 32 for RGB encoders, 256 otherwise)")
     p.add_argument("--frame-scale", type=float, default=1.0,
                    help="render frames at this fraction of the resolution, upsampled before cropping "
                         "(speed knob; default 1)")
@@ -209,7 +210,7 @@ def run_extract(args: argparse.Namespace) -> int:
     scene = resolve_bundle(args)
     if args.check:
         return _print_check(check_features(scene))
-    if args.batch_size < 1:
+    if args.batch_size is not None and args.batch_size < 1:
         raise InputError(f"must be >= 1, got {args.batch_size}", field="--batch-size")
     encoder = _encoder(args, scene)
     config = ExtractConfig(ratios=_ratios(args.ratios, args.steps), crop_size=_crop_size(args.crop_size),
@@ -315,7 +316,7 @@ def bench_distill(scene: Any, *, modes: list[str], optimize_iterations: list[int
     import shutil
     import torch
     from .autoencoder import ENCODER_FILE, load_encoder, train_autoencoder
-    from .distill import DistillConfig, distill_scene, render_fidelity
+    from .distill import DistillConfig, distill_scene, fidelity_reference, render_fidelity
     from .encoders import get_encoder
     from .extract import extract_features, feature_store
     from .store import select_timesteps
@@ -343,15 +344,12 @@ def bench_distill(scene: Any, *, modes: list[str], optimize_iterations: list[int
             raise InputError(f"unknown mode {mode!r}", field="--modes")
     encoder = load_encoder(root / ENCODER_FILE)
     features = feature_store(scene)
-    rows = []
+    rows, outs = [], []
     for label, cfg in runs:
         out = root / "bench" / ("distill-" + "".join(ch if ch.isalnum() or ch in "+." else "-" for ch in label))
         shutil.rmtree(out, ignore_errors=True)
         result = distill_scene(scene, config=cfg, timesteps=steps, out_dir=out, merge=False, progress=progress)
-        from .store import StepStore
-        store = StepStore(out / "steps", "latents", result.config, scene.num_timesteps)
-        fid = [render_fidelity(scene, t, torch.from_numpy(store.load(t, mmap=False).astype("float32")), encoder,
-                               features) for t in steps]
+        outs.append((out, result.config))
         tim = result.timings
         rows.append({
             "run": label, "mode": cfg.mode, "iterations": cfg.num_iterations, "teacher_stride": cfg.teacher_stride,
@@ -363,9 +361,20 @@ def bench_distill(scene: Any, *, modes: list[str], optimize_iterations: list[int
             "optimize_seconds": sum(t.optimize_seconds for t in tim) / len(tim),
             "seconds_per_iteration": (sum(t.optimize_seconds for t in tim) / sum(t.iterations for t in tim)
                                       if any(t.iterations for t in tim) else None),
-            "render_l1": sum(f["l1"] for f in fid) / len(fid),
-            "render_cosine": sum(f["cosine"] for f in fid) / len(fid),
         })
+    # fidelity: one full-resolution reference (weights + stride-1 teacher) per timestep, shared by all runs
+    from .store import StepStore
+    fid: list[list[dict[str, float]]] = [[] for _ in runs]
+    for t in steps:
+        reference = fidelity_reference(scene, t, encoder, features)
+        for i, (out, cfg_dict) in enumerate(outs):
+            store = StepStore(out / "steps", "latents", cfg_dict, scene.num_timesteps)
+            lat = torch.from_numpy(store.load(t, mmap=False).astype("float32"))
+            fid[i].append(render_fidelity(reference, lat))
+        del reference
+    for row, f, (out, _) in zip(rows, fid, outs):
+        row["render_l1"] = sum(x["l1"] for x in f) / len(f)
+        row["render_cosine"] = sum(x["cosine"] for x in f) / len(f)
         shutil.rmtree(out, ignore_errors=True)
     import torch as _torch
     return {"benchmark": "distill", "scene": scene.name, "num_gaussians": scene.num_gaussians,

@@ -509,19 +509,25 @@ def check_distill(scene: Scene, out_dir: str | Path | None = None) -> dict[str, 
 
 
 @torch.no_grad()
-def render_fidelity(scene: Scene, t: int, latents: torch.Tensor, encoder: FeatureEncoder, features: StepStore,
-                    split: str = "train", min_alpha: float = 0.5) -> dict[str, float]:
-    """How well latents (N,d) reproduce the encoded teacher (stride 1) over the views of timestep t.
-
-    Returns mean L1 (per channel) and mean cosine between rendered latents and teacher latents on
-    pixels with alpha > ``min_alpha``.
-    """
+def fidelity_reference(scene: Scene, t: int, encoder: FeatureEncoder, features: StepStore,
+                       split: str = "train") -> list[tuple[ViewOperator, torch.Tensor]]:
+    """Full-resolution rendering maps and stride-1 teacher latents of every view of timestep t."""
     frame = scene.gaussians.at(t)
     feats, layouts, offsets = load_step_features(scene, features, t)
+    return [(view_operator(frame, cam), teacher_latents(encoder, layout, feats[off:off + layout.num_crops], 1))
+            for cam, layout, off in zip(scene.cameras.cameras(t, split), layouts, offsets)]
+
+
+@torch.no_grad()
+def render_fidelity(reference: list[tuple[ViewOperator, torch.Tensor]], latents: torch.Tensor,
+                    min_alpha: float = 0.5) -> dict[str, float]:
+    """How well latents (N,d) reproduce the encoded teacher over the views of :func:`fidelity_reference`.
+
+    Returns mean L1 (per channel) and mean cosine between rendered and teacher latents on pixels
+    with alpha > ``min_alpha`` (0 and 0 when no pixel is covered).
+    """
     l1s, coss = [], []
-    for cam, layout, off in zip(scene.cameras.cameras(t, split), layouts, offsets):
-        op = view_operator(frame, cam)
-        teacher = teacher_latents(encoder, layout, feats[off:off + layout.num_crops], 1)
+    for op, teacher in reference:
         rendered = op.render(latents)
         alpha = op.A @ torch.ones(op.num_gaussians, 1)
         covered = alpha[:, 0] > min_alpha
@@ -530,5 +536,4 @@ def render_fidelity(scene: Scene, t: int, latents: torch.Tensor, encoder: Featur
         r, e = rendered[covered], teacher[covered]
         l1s.append(float((r - e).abs().mean()))
         coss.append(float(torch.nn.functional.cosine_similarity(r, e, dim=-1, eps=1e-8).mean()))
-    return {"l1": float(np.mean(l1s)) if l1s else float("nan"),
-            "cosine": float(np.mean(coss)) if coss else float("nan")}
+    return {"l1": float(np.mean(l1s)) if l1s else 0.0, "cosine": float(np.mean(coss)) if coss else 0.0}

@@ -42,11 +42,13 @@ class ExtractConfig:
 
     Attributes:
         ratios: crop side / image height per scale (5 steps 0.15..0.6 by default).
-        crop_size: side the crops are resized to before encoding; None = 224 for RGB encoders and,
+        crop_size: side the crops are resized to before encoding; None = the RGB encoder's
+            ``image_size`` (224 for ViCLIP) and,
             for label encoders that offer ``encode_coverage`` (the simulated one, which only looks at
             each frame's mean coverage), ``"means"``: the exact per-frame crop means by average
             pooling instead of cutting and resizing crops.
-        batch_size: crop tubes per encoder call.
+        batch_size: crop tubes per encoder call (None: 32 for RGB encoders, whose 224 px tubes take
+            4.8 MB each, 256 otherwise).
         split: camera split the features are extracted for.
         frame_scale: render the frames at this fraction of the camera resolution and upsample them
             bilinearly to full size before cutting crops (a speed knob; 1 = full resolution).
@@ -54,7 +56,7 @@ class ExtractConfig:
 
     ratios: tuple[float, ...] = field(default_factory=pyramid_ratios)
     crop_size: int | str | None = None
-    batch_size: int = 256
+    batch_size: int | None = None
     split: str = "train"
     frame_scale: float = 1.0
 
@@ -62,7 +64,7 @@ class ExtractConfig:
         if self.crop_size is not None:
             return self.crop_size
         if input_kind == "rgb":
-            return RGB_CROP_SIZE
+            return int(getattr(encoder, "image_size", RGB_CROP_SIZE))
         return COVERAGE_MEANS if hasattr(encoder, "encode_coverage") else 32
 
 
@@ -238,7 +240,8 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
         for c, layout in enumerate(layouts):
             # one camera per batch: encoders may depend on the camera (the simulated one's bias)
             cam_encoder = encoder.bind_camera(cameras[c].name) if hasattr(encoder, "bind_camera") else encoder
-            batcher = _Batcher(cam_encoder, out, config.batch_size, coverage=crop_size == COVERAGE_MEANS)
+            batch = config.batch_size or (32 if encoder.input_kind == "rgb" else 256)
+            batcher = _Batcher(cam_encoder, out, batch, coverage=crop_size == COVERAGE_MEANS)
             if crop_size == COVERAGE_MEANS:
                 # crop means depend on one frame only: computed once per frame, shared by 8 tubes
                 means = torch.stack([source.crop_means(k, c, layout)
@@ -248,7 +251,9 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
                 tube = source.tube(t, c)
                 for grid in layout.scales:
                     rows = offsets[c] + grid.offset + np.arange(grid.num_crops)
-                    batcher.add(resize_crops(scale_crops(tube, grid), crop_size, clip_normalize=clip_norm), rows)
+                    # raw crops are small; resizing to 224 happens per batch (a 224 px tube is 4.8 MB)
+                    batcher.add(scale_crops(tube, grid), rows,
+                                transform=lambda x: resize_crops(x, crop_size, clip_normalize=clip_norm))
             batcher.flush()
             encode_seconds += batcher.seconds
         if not np.all(np.isfinite(out)):
@@ -297,18 +302,22 @@ class _Batcher:
         self.count = 0
         self.seconds = 0.0
 
-    def add(self, crops: torch.Tensor, rows: np.ndarray) -> None:
-        for s in range(0, crops.shape[0], self.batch_size):
-            self.pending.append((crops[s:s + self.batch_size], rows[s:s + self.batch_size]))
-            self.count += min(self.batch_size, crops.shape[0] - s)
+    def add(self, crops: torch.Tensor, rows: np.ndarray, transform: Any = None) -> None:
+        """Queue crops (n, ...) for output ``rows``; ``transform`` (resize, normalize) runs per batch."""
+        s = 0
+        while s < crops.shape[0]:
+            take = min(self.batch_size - self.count, crops.shape[0] - s)
+            self.pending.append((crops[s:s + take], rows[s:s + take], transform))
+            self.count += take
+            s += take
             if self.count >= self.batch_size:
                 self.flush()
 
     def flush(self) -> None:
         if not self.pending:
             return
-        clips = torch.cat([c for c, _ in self.pending])
-        rows = np.concatenate([r for _, r in self.pending])
+        clips = torch.cat([t(c) if t is not None else c for c, _, t in self.pending])
+        rows = np.concatenate([r for _, r, _ in self.pending])
         start = time.perf_counter()
         with torch.no_grad():
             feats = (self.encoder.encode_coverage(clips) if self.coverage

@@ -311,13 +311,12 @@ class SimulatedVideoEncoder:
 
     def _clip_keys(self, cov: torch.Tensor, camera: str | None) -> np.ndarray:
         """(B,) uint64 per-clip keys from (seed, camera, the clip's quantized per-frame coverage)."""
-        q = np.round(cov.numpy() * 4096).astype(np.int32)
+        q = np.round(cov.numpy().reshape(cov.shape[0], -1) * 4096).astype(np.uint64)     # (B, F*C)
         head = hashlib.blake2b(f"{self.seed}|{camera}".encode(), digest_size=8).digest()
-        return np.array([int.from_bytes(hashlib.blake2b(head + q[b].tobytes(), digest_size=8).digest(), "little")
-                         for b in range(q.shape[0])], dtype=np.uint64)
-
-
-_MASK64 = np.uint64(0xFFFFFFFFFFFFFFFF)
+        keys = np.full(q.shape[0], int.from_bytes(head, "little"), dtype=np.uint64)
+        for col in q.T:                                                   # fold every value in
+            keys = _splitmix64(keys ^ col)
+        return keys
 
 
 def _splitmix64(x: np.ndarray) -> np.ndarray:

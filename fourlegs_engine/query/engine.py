@@ -29,7 +29,8 @@ from ..scene.camera import Camera
 from ..scene.scene import Scene
 from . import spatial, viewpoint
 from .codebook import Codebook, ensure_codebook
-from .relevancy import RELEVANCY_SCALE, as_tensor, l2_normalize, relevancy
+from .relevancy import (RELEVANCY_SCALE, as_tensor, l2_normalize, reference_set, relevancy,
+                        relevancy_of_unit_features)
 from .results import CentreResult, Localization, TemporalResult, ViewResult
 from .temporal import counts_from_code_histogram, counts_from_relevancy, localize_counts, sampled_timesteps
 
@@ -184,9 +185,12 @@ class QueryEngine:
         """(K,) relevancy of every code (the decoded codebook is computed once per engine)."""
         if query not in self._code_scores:
             if self._decoded_codes is None:
-                self._decoded_codes = self._decode(self.codebook.centroids)
+                self._decoded_codes = l2_normalize(self._decode(self.codebook.centroids))
                 self.stats["decoded_codes"] += int(self._decoded_codes.shape[0])
-            self._code_scores[query] = self._score(self._decoded_codes, self.embed_query(query))
+            canon, neg = self.reference_embeddings()
+            refs = reference_set(canon, neg)
+            self._code_scores[query] = relevancy_of_unit_features(
+                self._decoded_codes, self.embed_query(query), refs, scale=self.relevancy_scale)
         return self._code_scores[query]
 
     # ------------------------------------------------------------------ per Gaussian

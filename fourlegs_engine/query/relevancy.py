@@ -93,6 +93,14 @@ def relevancy(features, query, canon, negatives=None, *, scale: float = RELEVANC
     return torch.exp(F.logsigmoid(margin))
 
 
+def relevancy_of_unit_features(features: torch.Tensor, query: torch.Tensor, refs: torch.Tensor, *,
+                               scale: float = RELEVANCY_SCALE) -> torch.Tensor:
+    """Fast path of :func:`relevancy` for features already L2-normalized and finite (e.g. a decoded
+    codebook, normalized once): (M,D), (D,) unit query, (K,D) unit references -> (M,) relevancy."""
+    margin = scale * (features @ (query[None] - refs).T.to(features.dtype)).min(dim=1).values
+    return torch.exp(F.logsigmoid(margin))
+
+
 def relevancy_reference(features: np.ndarray, query: np.ndarray, canon: np.ndarray,
                         negatives: Optional[np.ndarray] = None, scale: float = RELEVANCY_SCALE) -> np.ndarray:
     """Literal float64 transcription of the paper's formula (test oracle; overflows for huge logits).

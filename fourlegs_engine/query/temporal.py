@@ -60,20 +60,21 @@ def counts_from_code_histogram(code_scores, histogram) -> tuple[np.ndarray, floa
     Returns:
         counts (T,), R_avg, number of relevant (g,t) pairs — a (T,K) reduction, no per-Gaussian work.
     """
-    r = np.asarray(torch.as_tensor(code_scores).double().numpy() if isinstance(code_scores, torch.Tensor)
-                   else code_scores, dtype=np.float64)
+    r = np.asarray(code_scores.double().numpy() if isinstance(code_scores, torch.Tensor) else code_scores,
+                   dtype=np.float64)
     hist = np.asarray(histogram)
     T = hist.shape[0]
+    per_code = hist.sum(axis=0, dtype=np.int64)  # (K,) Gaussians holding each code over the timesteps
     rel = r > RELEVANT
-    per_code = hist[:, rel].sum(axis=0, dtype=np.int64) if T else np.zeros(int(rel.sum()), np.int64)
-    n_rel = int(per_code.sum())
+    n_rel = int(per_code[rel].sum())
     if n_rel == 0:
         return np.zeros(T, dtype=np.int64), 0.0, 0
-    r_avg = float(per_code @ r[rel] / n_rel)
-    counts = hist[:, r > r_avg].sum(axis=1, dtype=np.int64)
+    r_avg = float(per_code[rel] @ r[rel] / n_rel)
+    above = r > r_avg
+    counts = hist @ above.astype(hist.dtype)  # (T,K) @ (K,) matrix-vector: the whole per-query cost
     if counts.sum() == 0:
-        counts = hist[:, rel].sum(axis=1, dtype=np.int64)
-    return counts, r_avg, n_rel
+        counts = hist @ rel.astype(hist.dtype)
+    return counts.astype(np.int64), r_avg, n_rel
 
 
 def expand_counts(counts: np.ndarray, timesteps: np.ndarray, num_timesteps: int) -> np.ndarray:

@@ -80,8 +80,6 @@ def bench_render(args: argparse.Namespace) -> int:
             raise OutputExistsError(path)
     if args.repeats < 1:
         raise InputError("must be >= 1", field="--repeats")
-    if args.threads:
-        torch.set_num_threads(args.threads)
     w, h = _resolution(args.resolution, "--resolution")
     sw, sh = _resolution(args.small_resolution, "--small-resolution")
     cfg = BenchConfig(sizes=_ints(args.sizes, "--sizes"), outputs=outputs, device=args.device, backends=backends,
@@ -95,11 +93,16 @@ def bench_render(args: argparse.Namespace) -> int:
         bar.set_postfix_str(f"{rec.get('impl') or rec.get('knob') or ''} n={rec['n']} {rec['output']} "
                             f"{rec['mode']} {rec['ms_median']:.0f} ms")
 
-    with torch.inference_mode(False):
+    threads_before = torch.get_num_threads()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
         records = run_bench(cfg, progress)
-    bar.close()
+    finally:
+        torch.set_num_threads(threads_before)
+        bar.close()
     command = "fourlegs " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:] else "fourlegs bench render"
-    env = environment()
+    env = dict(environment(), threads=args.threads or threads_before)
     report = markdown_report(records, command, env)
     print(report)
     if args.json:

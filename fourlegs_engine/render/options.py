@@ -87,7 +87,7 @@ class BlendWeights(NamedTuple):
         pixel: (M,) int64 flat pixel index y·W + x.
         gaussian: (M,) int64 index into the Gaussians passed to ``rasterize``.
         weight: (M,) α·T, in the working dtype.
-        width, height: image size.
+        width, height: image size (so ``pixel`` can be unflattened).
     """
 
     pixel: torch.Tensor

@@ -1,10 +1,16 @@
 """Tile rasterizer in pure torch with a hand-written backward.
 
-Tiles are processed in batches padded to a common list length K: a batch is a dense (B, P, K)
-problem (B tiles, P = tile_size² pixels, K depth-sorted Gaussians), solved with a cumulative product
-for the transmittance and one batched matmul for all channels at once ((B,P,K) weights @ (B,K,C)).
-The backward recomputes α per batch (nothing of size P·K is kept between passes) and obtains the
-transmittance gradient from a reverse cumulative sum:
+Each tile owns a depth-sorted list of Gaussians (:mod:`.binning`). Tiles are processed in batches,
+and every batch walks its lists front to back ``chunk`` entries at a time: a chunk is a dense
+(b, P, K) problem (b tiles still running, P = tile_size² pixels, K list entries) whose exponents are one
+(P,6) @ (b,6,K) matmul (see :class:`TileGeometry`), whose transmittance is a cumulative product
+continued from the previous chunk, and whose channels are blended by one batched matmul
+((b,P,K) weights @ (b,K,C)) for any C. Tiles whose pixels have all stopped (T would fall below
+``transmittance_min``) leave the loop, so deeply stacked tiles cost only their visible front.
+
+The backward replays the chunk loop to recover each chunk's starting transmittance (nothing of size
+P·K is kept between passes), then visits the chunks back to front, carrying the reverse cumulative
+sum that the transmittance gradient needs:
 
     out_p   = Σ_i w_i v_i + T_final·bg,     w_i = α_i T_i,     T_i = Π_{j<i} (1 − α_j)
     ∂L/∂α_i = T_i s_i − (Σ_{k>i} w_k s_k + T_final ∂L/∂T_final) / (1 − α_i),   s_i = ∂L/∂w_i = g_p·v_i

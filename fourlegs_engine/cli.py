@@ -27,7 +27,9 @@ COMMAND_MODULES = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fourlegs", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="fourlegs", description="4-LEGS highlights: find when and where a text query happens in a dynamic "
+        "3D Gaussian scene and turn it into a highlight video.")
     parser.add_argument("--version", action="version", version=f"fourlegs {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     bench = sub.add_parser("bench", help="benchmarks: speed and accuracy, as tables, JSON and plots")

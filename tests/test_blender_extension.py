@@ -137,3 +137,13 @@ def test_missing_dependency_wheels_are_reported(tmp_path):
     with pytest.raises(build.BuildError, match="--fetch-wheels"):
         build.build(tmp_path / "out", wheels_dir=tmp_path / "wheels")
     assert not list((tmp_path / "out").glob("*.zip"))
+
+
+def test_manifest_version_matches_the_package():
+    import tomllib
+
+    import fourlegs_engine
+
+    manifest = tomllib.loads((REPO / "blender_manifest.toml").read_text())
+    assert manifest["version"] == fourlegs_engine.__version__
+    assert manifest["blender_version_min"] == "4.2.0" and manifest["type"] == "add-on"

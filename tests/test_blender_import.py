@@ -160,3 +160,19 @@ def test_import_300k_gaussians_in_seconds(bl):
     np.testing.assert_allclose(_positions(obj)[-5:], means[1, -5:], atol=1e-6)
     print(f"300k import {t_import:.2f} s, timestep switch {t_switch:.2f} s")
     assert t_import < 10.0 and t_switch < 5.0
+
+
+def test_import_operator_reads_a_ply_sequence_and_reports_bad_input(bl, tmp_path):
+    from fourlegs_addon import importer
+    from fourlegs_engine.scene.ply import write_ply_scene
+
+    scene = tiny_scene()
+    write_ply_scene(scene, tmp_path / "frames")
+    assert bl.ops.fourlegs.import_scene(filepath=str(tmp_path / "frames")) == {"FINISHED"}
+    obj = bl.context.scene.fourlegs.splat_object
+    assert len(obj.data.vertices) == scene.num_gaussians and bl.context.scene.fourlegs.num_timesteps == 4
+    bl.context.scene.fourlegs.timestep = 2.0
+    np.testing.assert_allclose(_positions(obj), scene.gaussians.means[2], atol=1e-5)
+    (tmp_path / "broken.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nend_header\n")
+    with pytest.raises(RuntimeError, match="4-LEGS import: .*broken.ply"):
+        bl.ops.fourlegs.import_scene(filepath=str(tmp_path / "broken.ply"))

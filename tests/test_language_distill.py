@@ -148,7 +148,7 @@ def test_pipeline_outputs_and_language_field(prepared, tmp_path):
     # the lifted field separates the labels: the decoded latents are closest to their own label text
     enc = get_encoder("simulated", scene=scene)
     text = enc.encode_text(scene.metadata["labels"])
-    labels = torch.as_tensor(np.asarray(scene.gaussians.labels[2]), dtype=torch.long)
+    labels = torch.from_numpy(np.array(scene.gaussians.labels[2], dtype=np.int64))
     pred = (field.decode(z[seen]) @ text.T).argmax(1)
     assert float((pred == labels[seen]).float().mean()) > 0.6
 

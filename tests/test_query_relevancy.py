@@ -105,3 +105,15 @@ def test_unit_feature_fast_path_equals_general_form():
     canon, neg = torch.tensor(rng.normal(size=(4, 12))), torch.tensor(rng.normal(size=(2, 12)))
     fast = relevancy_of_unit_features(feats, q, reference_set(canon, neg))
     np.testing.assert_allclose(fast.numpy(), relevancy(feats, q, canon, neg).numpy(), atol=1e-12)
+
+
+def test_many_queries_in_one_product_equal_one_at_a_time():
+    from fourlegs_engine.query.relevancy import l2_normalize, reference_set, relevancy_many
+    feats = torch.tensor(rng.normal(size=(50, 12)))
+    feats[0] = 0
+    qs = l2_normalize(torch.tensor(rng.normal(size=(3, 12))))
+    canon = torch.tensor(rng.normal(size=(4, 12)))
+    many = relevancy_many(feats, qs, reference_set(canon)).numpy()
+    for j in range(3):
+        np.testing.assert_allclose(many[:, j], relevancy(feats.float(), qs[j], canon).numpy(), atol=1e-6)
+    assert many[0].tolist() == [0.5, 0.5, 0.5]

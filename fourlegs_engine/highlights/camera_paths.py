@@ -249,16 +249,38 @@ def orbit_path(start: Pose, centre: np.ndarray, angles: np.ndarray, *, axis: np.
     rel = start.position - c
     rel_v = (rel @ ax) * ax
     rel_h = rel - rel_v
-    poses = []
-    for a, kr, kh in zip(angles, rf, hf):
-        turn = axis_angle_matrix(ax, a)
-        rigid_rel = turn @ rel
-        rot = turn @ start.rotation
-        actual_rel = turn @ (rel_h * kr + rel_v * kh)
-        if np.linalg.norm(rigid_rel) > _EPS and np.linalg.norm(actual_rel) > _EPS:
-            rot = rotation_between(-rigid_rel, -actual_rel) @ rot
-        poses.append(Pose(c + actual_rel, orthonormalize(rot)))
-    return poses
+    turns = Rotation.from_rotvec(ax[None, :] * angles[:, None]).as_matrix()            # (n,3,3)
+    rigid_rel = turns @ rel                                                          # (n,3)
+    actual_rel = np.einsum("nij,nj->ni", turns, rel_h[None] * rf[:, None] + rel_v[None] * hf[:, None])
+    rots = turns @ start.rotation                                                    # (n,3,3)
+    # Minimal rotation taking the rigid orbit's view of the centre onto the actual one (identity when
+    # the factors are 1). Both directions lie on the same side of the horizontal plane, so they are
+    # never opposite unless a factor makes the offset vanish; those rows take the scalar fallback.
+    a, b = -rigid_rel, -actual_rel
+    na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
+    ok = (na > _EPS) & (nb > _EPS)
+    a_u = a / np.maximum(na, _EPS)[:, None]
+    b_u = b / np.maximum(nb, _EPS)[:, None]
+    axis_v = np.cross(a_u, b_u)
+    sin = np.linalg.norm(axis_v, axis=1)
+    cos = np.clip(np.einsum("ni,ni->n", a_u, b_u), -1.0, 1.0)
+    regular = ok & ((sin > 1e-7) | (cos > 0))
+    rotvec = axis_v / np.maximum(sin, 1e-300)[:, None] * np.arctan2(sin, cos)[:, None]
+    rotvec[~regular | (sin <= 1e-7)] = 0.0
+    corr = Rotation.from_rotvec(rotvec).as_matrix()
+    for i in np.flatnonzero(ok & ~regular):  # exactly opposite directions: half turn
+        corr[i] = rotation_between(a[i], b[i])
+    rots = _orthonormalize_many(corr @ rots)
+    return [Pose(c + r, R) for r, R in zip(actual_rel, rots)]
+
+
+def _orthonormalize_many(Rs: np.ndarray) -> np.ndarray:
+    """(n,3,3) nearest proper rotations."""
+    U, _, Vt = np.linalg.svd(Rs)
+    d = np.sign(np.linalg.det(U @ Vt))
+    d[d == 0] = 1.0
+    U[:, :, 2] *= d[:, None]
+    return U @ Vt
 
 
 def hold_path(pose: Pose, n: int) -> list[Pose]:

@@ -28,8 +28,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--per-shot", type=int, default=4, help="preview frames per shot")
     p.add_argument("--fps", type=float, help="override the preset's output frame rate")
     p.add_argument("--resolution", metavar="WxH", help="override the preset's output resolution")
-    p.add_argument("--query-path", choices=("exact", "codebook"), default="codebook",
-                   help="per-Gaussian relevancy path of the query engine (default: codebook)")
+    p.add_argument("--query-path", choices=("exact", "codebook"), default="exact",
+                   help="per-Gaussian relevancy path of the query engine (default: exact)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     enc = p.add_argument_group("encoder (only used when the scene has no language field yet, and for queries)")
     enc.add_argument("--encoder", default="auto",
@@ -54,7 +54,7 @@ def _parse_resolution(text: str | None) -> tuple[int, int] | None:
 
 
 def open_scene_and_localizer(scene_path: str | Path | None, *, demo: bool, encoder: str = "auto",
-                             query_path: str = "codebook", encoder_args: argparse.Namespace | None = None):
+                             query_path: str = "exact", encoder_args: argparse.Namespace | None = None):
     """Load the scene (or the demo scene) and a :class:`~fourlegs_engine.query.engine.QueryEngine` on it.
 
     A scene without a distilled language field gets one first (extract features -> train the

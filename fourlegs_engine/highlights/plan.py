@@ -243,11 +243,15 @@ class HighlightPlan:
                 raise bad("needs exactly one camera key per frame, in order", f"{where}.camera_keys")
             if [k.frame for k in s.time_keys] != frames:
                 raise bad("needs exactly one time key per frame, in order", f"{where}.time_keys")
+            c2w = np.stack([np.asarray(k.c2w, dtype=np.float64) for k in s.camera_keys])
+            R = c2w[:, :3, :3]
+            err = np.maximum(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2)),
+                             np.abs(np.linalg.det(R) - 1.0))
+            err = np.maximum(err, np.abs(c2w[:, 3] - [0, 0, 0, 1]).max(axis=1) * 1e4)
+            bad_keys = np.flatnonzero(~(err <= 1e-5) | ~np.isfinite(c2w).all(axis=(1, 2)))
+            if bad_keys.size:
+                raise bad("is not a rigid transform", f"{where}.camera_keys[{int(bad_keys[0])}].c2w")
             for j, k in enumerate(s.camera_keys):
-                R = np.asarray(k.c2w)[:3, :3]
-                if (np.abs(R.T @ R - np.eye(3)).max() > 1e-5 or abs(np.linalg.det(R) - 1) > 1e-5
-                        or np.abs(np.asarray(k.c2w)[3] - [0, 0, 0, 1]).max() > 1e-9):
-                    raise bad("is not a rigid transform", f"{where}.camera_keys[{j}].c2w")
                 if not k.focal_px > 0:
                     raise bad(f"must be positive, got {k.focal_px}", f"{where}.camera_keys[{j}].focal_px")
             expected = s.frame_end + 1

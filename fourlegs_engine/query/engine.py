@@ -29,7 +29,7 @@ from ..scene.camera import Camera
 from ..scene.scene import Scene
 from . import spatial, viewpoint
 from .codebook import Codebook, ensure_codebook
-from .relevancy import (RELEVANCY_SCALE, as_tensor, l2_normalize, reference_set, relevancy,
+from .relevancy import (RELEVANCY_SCALE, as_tensor, l2_normalize, reference_set, relevancy, relevancy_many,
                         relevancy_of_unit_features)
 from .results import CentreResult, Localization, TemporalResult, ViewResult
 from .temporal import counts_from_code_histogram, counts_from_relevancy, localize_counts, sampled_timesteps
@@ -149,6 +149,11 @@ class QueryEngine:
         canon, neg = self.reference_embeddings()
         return relevancy(features, q, canon, neg, scale=self.relevancy_scale)
 
+    def _score_many(self, features: torch.Tensor, qs: torch.Tensor) -> torch.Tensor:
+        """(M,D) features, (Q,D) unit queries -> (M,Q) relevancy (one matrix product)."""
+        canon, neg = self.reference_embeddings()
+        return relevancy_many(features, qs, reference_set(canon, neg), scale=self.relevancy_scale)
+
     # ------------------------------------------------------------------ decoding
     def _read_latents(self, t: int) -> np.ndarray:
         x = self.latents[t]
@@ -169,7 +174,7 @@ class QueryEngine:
         M = latents.shape[0]
         out = torch.empty(M, dtype=torch.float32)
         for s in range(0, M, self.chunk):
-            out[s:s + self.chunk] = self._score(self._decode(latents[s:s + self.chunk]), q)
+            out[s:s + self.chunk] = self._score_many(self._decode(latents[s:s + self.chunk]), q[None])[:, 0]
         self.stats["decoded_latents"] += M
         return out
 
@@ -228,14 +233,12 @@ class QueryEngine:
             hist = self.codebook.histogram[ts]
             stats = [counts_from_code_histogram(self._codes_scores(q).double().numpy(), hist) for q in queries]
         else:
-            qs = [self.embed_query(q) for q in queries]
+            qs = torch.stack([self.embed_query(q) for q in queries])
             scores = np.empty((Q, len(ts), N), dtype=np.float32)
             for i, t in enumerate(ts):
                 lat = self._read_latents(int(t))
                 for s in range(0, N, self.chunk):
-                    feats = self._decode(lat[s:s + self.chunk])
-                    for j, q in enumerate(qs):
-                        scores[j, i, s:s + self.chunk] = self._score(feats, q).numpy()
+                    scores[:, i, s:s + self.chunk] = self._score_many(self._decode(lat[s:s + self.chunk]), qs).T.numpy()
                 self.stats["decoded_latents"] += N
             stats = [counts_from_relevancy(scores[j]) for j in range(Q)]
         return [localize_counts(c, ts, T, dilation=self.dilation, r_avg=a, num_relevant=n, query=q,
@@ -319,9 +322,7 @@ class QueryEngine:
             pix = out["features"].reshape(H * W, -1)
             rel = torch.empty(Q, H * W, dtype=torch.float32)
             for s in range(0, H * W, self.chunk):
-                feats = self._decode(pix[s:s + self.chunk])
-                for i in range(Q):
-                    rel[i, s:s + self.chunk] = self._score(feats, qs[i])
+                rel[:, s:s + self.chunk] = self._score_many(self._decode(pix[s:s + self.chunk]), qs).T
             self.stats["decoded_pixels"] += H * W
             rel = rel.reshape(Q, H, W)
             alpha = out["alpha"].reshape(H, W)

@@ -101,6 +101,23 @@ def relevancy_of_unit_features(features: torch.Tensor, query: torch.Tensor, refs
     return torch.exp(F.logsigmoid(margin))
 
 
+def relevancy_many(features: torch.Tensor, queries: torch.Tensor, refs: torch.Tensor, *,
+                   scale: float = RELEVANCY_SCALE) -> torch.Tensor:
+    """Relevancy of M features to Q queries in one matrix product.
+
+    Args:
+        features: (M,D) (normalized here; non-finite values become 0), queries: (Q,D) unit,
+        refs: (K,D) unit canonical (+ negative) embeddings.
+    Returns:
+        (M,Q) relevancy.
+    """
+    feats = l2_normalize(torch.nan_to_num(features.float(), nan=0.0, posinf=0.0, neginf=0.0))
+    Q, K = queries.shape[0], refs.shape[0]
+    diffs = (queries[:, None, :] - refs[None, :, :]).reshape(Q * K, -1).to(feats.dtype)
+    margin = scale * (feats @ diffs.T).reshape(-1, Q, K).min(dim=2).values
+    return torch.exp(F.logsigmoid(margin))
+
+
 def relevancy_reference(features: np.ndarray, query: np.ndarray, canon: np.ndarray,
                         negatives: Optional[np.ndarray] = None, scale: float = RELEVANCY_SCALE) -> np.ndarray:
     """Literal float64 transcription of the paper's formula (test oracle; overflows for huge logits).

@@ -17,14 +17,19 @@ bpy.) Stages:
    H.264 MP4, save the .blend.
 
 ``out/`` receives highlight.mp4, highlight.blend, plan.json, report.json (timings, localization,
-render statistics) and scores.png (the s_t curve). Existing files are refused unless --overwrite;
-each is written to a temporary name and renamed when complete.
+render statistics) and scores.png (the s_t curve). A finished job (report.json present) is
+never overwritten unless --overwrite; an interrupted one resumes: the language stages and the
+rendered frames (kept in ``out/.frames-<plan hash>/`` until the MP4 is encoded) are reused. Every
+file is written to a temporary name and renamed when complete.
 """
 from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
+import json
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -233,8 +238,16 @@ def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str
     total = bl_scene.frame_end - bl_scene.frame_start + 1
     with timer("render"):
         with tqdm(total=total, desc="render", unit="frame") as bar, blender_log_silenced():
-            video.render_animation(bl_scene, out["video"], fmt=fmt, overwrite=True,
-                                   on_frame=lambda d, n: bar.update(1))
+            progress = lambda done, n: bar.update(done - bar.n)  # noqa: E731
+            if fmt == "EXR":
+                video.render_animation(bl_scene, out["video"], fmt=fmt, overwrite=True, on_frame=progress)
+            else:  # frame by frame into a resumable directory (an interrupted run continues from there)
+                frames_dir = out["video"] if fmt == "PNG" else out["video"].parent / f".frames-{plan_digest(plan)}"
+                frames = video.render_frames(bl_scene, frames_dir, on_frame=progress)
+                if fmt == "MP4":
+                    video.encode_mp4(frames, out["video"], fps=bl_scene.render.fps,
+                                     fps_base=bl_scene.render.fps_base, overwrite=True)
+                    shutil.rmtree(frames_dir, ignore_errors=True)
     stats = dict(render_engine.stats)
     if stats.get("last_error"):
         raise RuntimeError(f"the 4-LEGS Splats engine failed: {stats['last_error']}")
@@ -264,7 +277,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     suffix = {"MP4": ".mp4", "PNG": "", "EXR": ""}[args.format]
     out = {k: out_dir / v for k, v in OUTPUT_NAMES.items()}
     out["video"] = out_dir / ("highlight" + suffix if suffix else "frames")
-    existing = [str(p) for p in out.values() if p.exists()]
+    # report.json marks a finished job; without it, files here are an interrupted run's, resumed
+    existing = [str(out[k]) for k in ("video", "blend", "report") if out[k].exists()]
     if existing and not args.overwrite:
         raise errors.OutputExistsError(", ".join(existing))
     resolution = parse_resolution(args.resolution, args.demo)
@@ -311,6 +325,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     }
     fileio.write_json_atomic(out["report"], report, overwrite=True)
     return report
+
+
+def plan_digest(plan: dict) -> str:
+    """Short hash of a plan: rendered frames are reused only for the very same plan."""
+    return hashlib.sha256(json.dumps(plan, sort_keys=True).encode()).hexdigest()[:12]
 
 
 def preset_needs_relevancy(preset: Any) -> bool:

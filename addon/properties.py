@@ -10,13 +10,16 @@ import bpy
 from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
                        StringProperty)
 
-PLAN_TEXT_NAME = "fourlegs_plan.json"
-PLOT_IMAGE_NAME = "fourlegs_scores"
+
+_PRESET_ITEMS: list[tuple[str, str, str]] = []  # Blender needs Python to keep dynamic enum strings alive
 
 
 def _preset_items(self, context):
     from . import planning
-    return [(name, name.replace("_", " ").title(), f"{name} preset") for name in planning.preset_names()]
+
+    _PRESET_ITEMS[:] = [(name, name.replace("_", " ").title(), f"{name} preset")
+                        for name in planning.preset_names()]
+    return _PRESET_ITEMS
 
 
 def _timestep_changed(self, context):

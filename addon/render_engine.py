@@ -27,7 +27,7 @@ import bpy
 import numpy as np
 
 from . import convert, importer
-from ._engine import engine, engine_module
+from ._engine import engine_module
 from .keyframes import frames_in_ranges
 
 ENGINE_ID = "FOURLEGS_SPLATS"
@@ -258,4 +258,3 @@ def unregister() -> None:
 
 
 classes = (FourlegsRenderEngine,)
-__all__ = ["FourlegsRenderEngine", "engine", "render_arrays", "plan_of", "stats"]

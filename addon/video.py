@@ -11,7 +11,7 @@ import contextlib
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Callable, Iterator, Optional
+from typing import Callable, Iterator, Optional, Sequence
 
 import bpy
 
@@ -128,3 +128,62 @@ def movie_frame_count(path: str | Path) -> int:
         return int(clip.frame_duration)
     finally:
         bpy.data.movieclips.remove(clip)
+
+
+def render_frames(scene: bpy.types.Scene, frames_dir: str | Path, *,
+                  on_frame: Optional[Callable[[int, int], None]] = None) -> list[Path]:
+    """Render every frame of the range to ``frames_dir/frame_####.png``, skipping frames already there.
+
+    Each frame is written to a temporary name and renamed when complete, so an interrupted run
+    resumes at the first missing frame. Returns the frame files in order.
+    """
+    frames_dir = Path(frames_dir)
+    frames_dir.mkdir(parents=True, exist_ok=True)
+    frames = list(range(scene.frame_start, scene.frame_end + 1))
+    old_path = scene.render.filepath
+    out = []
+    try:
+        configure_output(scene, "PNG")
+        for i, frame in enumerate(frames):
+            target = frames_dir / f"frame_{frame:04d}.png"
+            if not target.is_file():
+                tmp = frames_dir / f".frame_{frame:04d}.part.png"
+                scene.frame_set(frame)
+                scene.render.filepath = str(tmp)
+                result = bpy.ops.render.render(write_still=True, scene=scene.name)
+                if "FINISHED" not in result or not tmp.is_file():
+                    raise RuntimeError(f"rendering frame {frame} stopped ({result})")
+                tmp.replace(target)
+            out.append(target)
+            if on_frame is not None:
+                on_frame(i + 1, len(frames))
+    finally:
+        scene.render.filepath = old_path
+    return out
+
+
+def encode_mp4(frames: Sequence[Path], output: str | Path, *, fps: int, fps_base: float = 1.0,
+               overwrite: bool = False) -> Path:
+    """Encode PNG frames to an H.264 MP4 with Blender's FFmpeg (through a temporary sequencer scene)."""
+    if not frames:
+        raise ValueError("no frames to encode")
+    first = bpy.data.images.load(str(frames[0]), check_existing=False)
+    width, height = first.size
+    bpy.data.images.remove(first)
+    encoder = bpy.data.scenes.new("4-LEGS Encode")
+    try:
+        editor = encoder.sequence_editor_create()
+        strips = editor.strips if hasattr(editor, "strips") else editor.sequences  # 5.0 renamed it
+        strip = strips.new_image(name="frames", filepath=str(frames[0]), channel=1, frame_start=1)
+        for path in frames[1:]:
+            strip.elements.append(Path(path).name)
+        encoder.frame_start, encoder.frame_end = 1, len(frames)
+        render = encoder.render
+        render.resolution_x, render.resolution_y, render.resolution_percentage = width, height, 100
+        render.fps, render.fps_base = int(fps), float(fps_base)
+        encoder.view_settings.view_transform = "Standard"
+        encoder.view_settings.look = "None"
+        render.use_sequencer = True
+        return render_animation(encoder, output, fmt="MP4", overwrite=overwrite)
+    finally:
+        bpy.data.scenes.remove(encoder)

@@ -190,3 +190,24 @@ def test_no_depth_is_computed_when_the_plan_lists_none(bl):
     assert render_engine.stats["frames"] == 1
     assert render_engine.stats["depth_frames"] == [] and render_engine.stats["relevancy_frames"] == []
     assert not bl.context.scene.view_layers[0].use_pass_z
+
+
+def test_frame_by_frame_rendering_resumes_and_encodes(highlight, bl, tmp_path):
+    from fourlegs_addon import render_engine, video
+
+    scene, _, _ = highlight
+    scene.frame_end = 5
+    frames = video.render_frames(scene, tmp_path / "frames")
+    assert [p.name for p in frames] == [f"frame_{i:04d}.png" for i in range(1, 6)]
+    kept = {p: p.stat().st_mtime_ns for p in frames if p.name not in ("frame_0002.png", "frame_0005.png")}
+    frames[1].unlink()
+    frames[4].unlink()  # as if interrupted
+    render_engine.reset_stats()
+    again = video.render_frames(scene, tmp_path / "frames")
+    assert again == frames and render_engine.stats["frames"] == 2  # only the missing frames
+    assert all(p.stat().st_mtime_ns == t for p, t in kept.items())
+    assert not [p for p in (tmp_path / "frames").iterdir() if p.name.startswith(".")]
+    movie = video.encode_mp4(again, tmp_path / "clip.mp4", fps=12)
+    assert video.movie_frame_count(movie) == 5
+    with pytest.raises(FileExistsError):
+        video.encode_mp4(again, tmp_path / "clip.mp4", fps=12)

@@ -81,3 +81,15 @@ def test_table_and_pareto_plot(tmp_path):
     assert table.count("\n| ") >= 4 and "50.0 ± 1.0" in table and "hold the nearest" in table
     png = pareto_plot(report, tmp_path / "p.png")
     assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_query_speed_bench_runs_small(tmp_path):
+    from fourlegs_engine.query.speed import markdown, run_query_speed
+
+    rep = run_query_speed(gaussians=300, timesteps=3, codebook_sizes=[16], repeats=2, exact_timesteps=0,
+                          spatial_scene="none", workdir=tmp_path, progress=False)
+    paths = [r["path"] for r in rep["rows"]]
+    assert paths == ["codebook K=16", "exact"]
+    cb, exact = rep["rows"]
+    assert cb["decoded_latents"] == 0 and cb["query_s"] >= 0 and not exact["extrapolated"]
+    assert "| codebook K=16 |" in markdown(rep)

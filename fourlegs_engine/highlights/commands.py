@@ -30,6 +30,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--resolution", metavar="WxH", help="override the preset's output resolution")
     p.add_argument("--query-path", choices=("exact", "codebook"), default="exact",
                    help="per-Gaussian relevancy path of the query engine (default: exact)")
+    p.add_argument("--spatial", choices=("exact", "fast"), default="exact",
+                   help="relevancy maps for the best view / action centre: exact (128-channel render, "
+                        "paper) or fast (1-channel per-Gaussian relevancy render)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     enc = p.add_argument_group("encoder (only used when the scene has no language field yet, and for queries)")
     enc.add_argument("--encoder", default="auto",
@@ -54,7 +57,8 @@ def _parse_resolution(text: str | None) -> tuple[int, int] | None:
 
 
 def open_scene_and_localizer(scene_path: str | Path | None, *, demo: bool, encoder: str = "auto",
-                             query_path: str = "exact", encoder_args: argparse.Namespace | None = None):
+                             query_path: str = "exact", spatial: str = "exact",
+                             encoder_args: argparse.Namespace | None = None):
     """Load the scene (or the demo scene) and a :class:`~fourlegs_engine.query.engine.QueryEngine` on it.
 
     A scene without a distilled language field gets one first (extract features -> train the
@@ -94,7 +98,7 @@ def open_scene_and_localizer(scene_path: str | Path | None, *, demo: bool, encod
         distill_scene(scene, mode="lift", progress=True)
         scene = load_scene(scene.root)
     field = LanguageField.open(scene.root)
-    return scene, QueryEngine(scene, field, text_encoder, path=query_path)
+    return scene, QueryEngine(scene, field, text_encoder, path=query_path, spatial=spatial)
 
 
 def _text_encoder(scene, name: str, encoder_args: argparse.Namespace | None):
@@ -151,7 +155,8 @@ def run_plan(args: argparse.Namespace) -> int:
 
     from .planner import plan_highlight
     scene, localizer = open_scene_and_localizer(scene_path, demo=args.demo is not None, encoder=args.encoder,
-                                                query_path=args.query_path, encoder_args=args)
+                                                query_path=args.query_path, spatial=args.spatial,
+                                                encoder_args=args)
     plan = plan_highlight(scene, localizer, query, preset, resolution=_parse_resolution(args.resolution),
                           fps=args.fps)
     plan.save(out, overwrite=args.overwrite)

@@ -172,7 +172,7 @@ def _spatial_timings(size: str, text, repeats: int, workdir: Path) -> list[dict]
 def _print_row(row: dict) -> None:
     extra = f" (build {row['build_s']:.1f} s, first query {row['first_query_s']:.3f} s)" if "build_s" in row else ""
     extra += f" (extrapolated from {row['timed_timesteps']} timesteps)" if row.get("extrapolated") else ""
-    print(f"  {row['path']:18s} temporal query {row['query_s']:.3f} s{extra}; peak RSS {row['peak_rss_mb']:.0f} MB",
+    print(f"  {row['path']:18s} temporal query {row['query_s']:.4f} s{extra}; peak RSS {row['peak_rss_mb']:.0f} MB",
           file=sys.stderr)
 
 
@@ -182,7 +182,7 @@ def markdown(report: dict) -> str:
              "| path | seconds per query | first query (s) | codebook build (s) | peak RSS (MB) |",
              "|---|---|---|---|---|"]
     for r in report["rows"]:
-        q = f"{r['query_s']:.3f}" + (f" (extrapolated from {r['timed_timesteps']} timesteps)" if r.get("extrapolated") else "")
+        q = f"{r['query_s']:.4f}" + (f" (extrapolated from {r['timed_timesteps']} timesteps)" if r.get("extrapolated") else "")
         lines.append(f"| {r['path']} | {q} | {r.get('first_query_s', float('nan')):.3f} | "
                      f"{r.get('build_s', float('nan')):.1f} | {r['peak_rss_mb']:.0f} |")
     if report.get("spatial"):

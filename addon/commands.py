@@ -65,11 +65,15 @@ def run_highlight(args: argparse.Namespace) -> int:
     try:
         return proc.wait()
     except KeyboardInterrupt:
+        # Blender's own SIGINT handler in the child only flags a break; stop it for real. Every stage
+        # writes whole files atomically (features, latents, frames), so the next run resumes.
+        proc.terminate()
         try:
-            return proc.wait(timeout=30)
+            proc.wait(timeout=30)
         except subprocess.TimeoutExpired:
             proc.kill()
-            raise
+            proc.wait()
+        raise
 
 
 def run_build_extension(args: argparse.Namespace) -> int:

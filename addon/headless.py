@@ -328,8 +328,21 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def plan_digest(plan: dict) -> str:
-    """Short hash of a plan: rendered frames are reused only for the very same plan."""
-    return hashlib.sha256(json.dumps(plan, sort_keys=True).encode()).hexdigest()[:12]
+    """Short hash of a plan: rendered frames are reused only for the same plan.
+
+    Floats are rounded to 5 decimals first: re-planning the same query gives the same plan up to
+    the last bits of multi-threaded sums (action centre), which must not invalidate finished frames.
+    """
+    def canonical(value: Any) -> Any:
+        if isinstance(value, float):
+            return round(value, 5) + 0.0  # +0.0 turns -0.0 into 0.0
+        if isinstance(value, dict):
+            return {k: canonical(v) for k, v in value.items() if k != "messages"}
+        if isinstance(value, (list, tuple)):
+            return [canonical(v) for v in value]
+        return value
+
+    return hashlib.sha256(json.dumps(canonical(plan), sort_keys=True).encode()).hexdigest()[:12]
 
 
 def preset_needs_relevancy(preset: Any) -> bool:

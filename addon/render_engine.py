@@ -37,11 +37,11 @@ EMPTY_DEPTH = 1e10
 
 #: per-frame statistics of the last render (the headless job reads and reports them)
 stats: dict[str, Any] = {"frames": 0, "relevancy_frames": [], "depth_frames": [], "seconds": 0.0,
-                         "last_error": None}
+                         "last_error": None, "cancelled": False}
 
 
 def reset_stats() -> None:
-    stats.update(frames=0, relevancy_frames=[], depth_frames=[], seconds=0.0, last_error=None)
+    stats.update(frames=0, relevancy_frames=[], depth_frames=[], seconds=0.0, last_error=None, cancelled=False)
 
 
 def plan_of(scene: bpy.types.Scene) -> Optional[dict[str, Any]]:
@@ -224,6 +224,10 @@ class FourlegsRenderEngine(bpy.types.RenderEngine):
             arrays = render_arrays(scene, depsgraph, width, height, frame=scene.frame_current,
                                    relevancy_pass=want_rel,
                                    depth=depth_wanted(scene, view_layer, scene.frame_current))
+        except KeyboardInterrupt:  # Ctrl-C inside the rasterizer: no traceback, the frame is dropped
+            stats["cancelled"] = True
+            self.end_result(result, cancel=True)
+            return
         except Exception as exc:  # report, leave an empty (black) frame, let the caller see the error
             stats["last_error"] = f"{type(exc).__name__}: {exc}"
             self.report({"ERROR"}, f"4-LEGS Splats: {stats['last_error']}")

@@ -15,6 +15,8 @@ from typing import Callable, Iterator, Optional, Sequence
 
 import bpy
 
+from . import render_engine
+
 FORMATS = ("MP4", "PNG", "EXR")
 
 
@@ -151,6 +153,9 @@ def render_frames(scene: bpy.types.Scene, frames_dir: str | Path, *,
                 scene.frame_set(frame)
                 scene.render.filepath = str(tmp)
                 result = bpy.ops.render.render(write_still=True, scene=scene.name)
+                if render_engine.stats.get("cancelled"):
+                    tmp.unlink(missing_ok=True)
+                    raise KeyboardInterrupt
                 if "FINISHED" not in result or not tmp.is_file():
                     raise RuntimeError(f"rendering frame {frame} stopped ({result})")
                 tmp.replace(target)

@@ -98,3 +98,18 @@ def test_highlight_end_to_end(tmp_path, request, capsys):
     assert headless.main(cmd[4:]) == 2
     assert "already exists" in capsys.readouterr().err
     assert (out / "highlight.mp4").stat().st_mtime_ns == mtime
+
+
+def test_plan_digest_ignores_float_noise_but_not_changes():
+    from _blender_helpers import hand_plan
+    from fourlegs_addon.headless import plan_digest
+
+    plan = hand_plan()
+    noisy = hand_plan()
+    noisy["localization"]["action_centre"] = [1e-13, -1e-13, 2e-14]
+    noisy["shots"][1]["camera_keys"][2]["c2w"][0][3] += 1e-12
+    noisy["messages"] = ["a note"]
+    assert plan_digest(noisy) == plan_digest(plan)
+    changed = hand_plan()
+    changed["shots"][1]["camera_keys"][2]["c2w"][0][3] += 0.01
+    assert plan_digest(changed) != plan_digest(plan)

@@ -205,3 +205,20 @@ def test_unknown_method_or_view_is_an_input_error(scene_gt):
 def test_inclusive_boxes_convert_to_exclusive():
     np.testing.assert_array_equal(inclusive_to_exclusive((2, 3, 4, 5)), [2, 3, 5, 6])
     assert np.isnan(inclusive_to_exclusive(None)).all()
+
+
+def test_stride_list_parsing_and_the_speed_accuracy_plot(tmp_path):
+    from fourlegs_engine.errors import InputError
+    assert grounding.parse_strides("1, 2,4") == [1, 2, 4]
+    for bad in ("0", "a,b", ""):
+        with pytest.raises(InputError):
+            grounding.parse_strides(bad)
+    metric = {"mean": 0.5, "std": 0.1}
+    results = {"scene": {"name": "s", "views": ["v"], "num_timesteps": 3},
+               "methods": {f"2D features (pixel stride {k})": {**{m: metric for m in METRIC_NAMES},
+                                                              "seconds": float(k), "per_query": {}}
+                           for k in (1, 2)}}
+    grounding.plot_speed_accuracy(results, tmp_path / "p.png")
+    assert (tmp_path / "p.png").stat().st_size > 1000
+    table = grounding.markdown_tables(results)
+    assert "| 2D features (pixel stride 2) | 50.0 ± 10.0 |" in table

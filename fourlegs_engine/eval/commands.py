@@ -39,6 +39,8 @@ def register_bench(bench_subparsers: argparse._SubParsersAction) -> None:
                    help="2D baseline: relevancy on every N-th pixel, upsampled (default 2); a list such as "
                         "1,2,4 runs one variant per stride (the speed/accuracy table and plot)")
     p.add_argument("--plot", default=None, metavar="PNG", help="write a seconds-vs-accuracy plot")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch CPU threads (default: torch's choice; 1 is fastest on a busy machine)")
     p.add_argument("--json", default=None, metavar="PATH", help="also write the results as JSON")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     p.set_defaults(func=_bench_grounding)

@@ -250,8 +250,15 @@ def run_grounding_benchmark_cli(args: Any) -> int:
     from ..scene.bundle import load_bundle
     from .synthetic import ensure_demo_bundle
 
-    if args.json and Path(args.json).exists() and not args.overwrite:
-        raise OutputExistsError(args.json)
+    for out in (args.json, getattr(args, "plot", None)):
+        if out and Path(out).exists() and not args.overwrite:
+            raise OutputExistsError(out)
+    threads = getattr(args, "threads", None)
+    if threads is not None:
+        if threads < 1:
+            raise InputError(f"--threads must be >= 1, got {threads}", field="--threads")
+        import torch
+        torch.set_num_threads(threads)
     start = time.perf_counter()
     path = Path(args.bundle) if args.bundle else ensure_demo_bundle(args.scene, args.seed)
     scene = load_bundle(path)
@@ -270,6 +277,9 @@ def run_grounding_benchmark_cli(args: Any) -> int:
                                       options={"pixel_stride": strides[0]})
     results["scene"]["path"] = str(path)
     results["total_seconds"] = time.perf_counter() - start
+    results["cpu_seconds"] = time.process_time()
+    import torch
+    results["torch_threads"] = torch.get_num_threads()
     print(markdown_tables(results))
     print(f"\ntotal {results['total_seconds']:.1f} s (ground truth {results['ground_truth']['seconds']:.1f} s)")
     if args.json:

@@ -46,7 +46,7 @@ from ..scene.camera import Camera, CameraRig
 from ..scene.gaussians import GaussianSequence
 from ..scene.scene import Scene
 
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 4
 QUERIES_FILE = "queries.json"
 SCENE_SECONDS = 6.0
 
@@ -108,6 +108,8 @@ DOME_RADIUS = 4.5
 LOOK_TARGET = (0.0, 0.0, 1.0)
 BALL_RADIUS = 0.16
 FOV_Y_DEG = 52.0
+PERSON_SALIENCE = 6.0   # simulated video-model response per unit of crop coverage (background: 1)
+BALL_SALIENCE = 20.0    # the ball is small, yet a video model notices it
 
 # ----------------------------------------------------------------------------------- small math
 
@@ -410,7 +412,8 @@ class _Actor:
         d = self.path_end - self.position
         heading = math.atan2(-d[0], d[1])
         pos = self.position + s * d
-        yaw = heading if s < 1.0 else _lerp(heading, self.yaw, _smoothstep((u - walk.end) / 0.06))
+        turn = (self.yaw - heading + math.pi) % (2 * math.pi) - math.pi   # shortest way round
+        yaw = heading if s < 1.0 else heading + turn * _smoothstep((u - walk.end) / 0.06)
         return pos, yaw
 
     def pose(self, u: float) -> _Pose:
@@ -666,6 +669,9 @@ def generate_scene(size: str = "tiny", seed: int = 0,
         "script": script_frames,
         "ball_labels": ball_labels,
         "background_labels": ["floor", "wall", "wooden box", "bench"],
+        # how strongly a (simulated) video model responds to a label per unit of crop coverage
+        "salience": {name: (1.0 if name in ("floor", "wall", "wooden box", "bench") else
+                            BALL_SALIENCE if name.startswith("ball") else PERSON_SALIENCE) for name in LABELS},
     }
     return Scene(gaussians=gaussians, cameras=rig, name=f"synthetic-{size}-seed{int(seed)}",
                  fps=T / SCENE_SECONDS, metadata=metadata)

@@ -25,7 +25,8 @@ Video (:class:`SimulatedVideoEncoder`)
     :func:`render_label_coverage`). Output: the coverage-weighted embedding of the labels in the crop
     over the tube (the uncovered share weighs the "background" phrase). Like a real video model, which
     notices a person filling a tenth of a crop, foreground labels (people, the ball: every label not
-    in ``background_labels``) weigh ``foreground_salience`` (default 6) times their coverage;
+    in ``background_labels``) weigh ``foreground_salience`` (default 6) times their coverage, or the
+    per-label ``salience`` the scene lists (synthetic scenes: the ball 20, being small);
     background labels (floor, wall, props) and the uncovered share weigh just their coverage. Three
     documented corruptions follow, all deterministic given ``seed`` (randomness is drawn from a
     counter-based hash of the seed, the camera and the clip's coverage, so the same input always gives
@@ -46,7 +47,7 @@ import hashlib
 import math
 import re
 from functools import lru_cache
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -195,6 +196,8 @@ class SimulatedVideoEncoder:
         camera: the camera whose bias applies (see :meth:`bind_camera`); None = a shared bias.
         background_labels: labels with salience 1 (default: none, i.e. every label is foreground).
         foreground_salience: weight multiplier of the other labels' coverage.
+        salience: per-label multipliers that override both (e.g. a small ball weighs more than its
+            area, as a video model notices it anyway).
     """
 
     name = "simulated"
@@ -204,7 +207,8 @@ class SimulatedVideoEncoder:
     def __init__(self, labels: Sequence[str], *, seed: int = 0, noise_cosine: float = DEFAULT_NOISE_COSINE,
                  camera_bias: float = DEFAULT_CAMERA_BIAS,
                  wrong_label_fraction: float = DEFAULT_WRONG_LABEL_FRACTION, camera: str | None = None,
-                 background_labels: Sequence[str] = (), foreground_salience: float = DEFAULT_FOREGROUND_SALIENCE):
+                 background_labels: Sequence[str] = (), foreground_salience: float = DEFAULT_FOREGROUND_SALIENCE,
+                 salience: Mapping[str, float] | None = None):
         labels = [str(x) for x in labels]
         if not labels:
             raise InputError("the label vocabulary is empty", field="labels")
@@ -221,8 +225,12 @@ class SimulatedVideoEncoder:
         self.labels = labels
         self.background_labels = [str(x) for x in background_labels if str(x) in labels]
         self.foreground_salience = float(foreground_salience)
-        self._salience = torch.tensor([1.0 if name in self.background_labels else self.foreground_salience
-                                       for name in labels], dtype=torch.float64)
+        self.salience_overrides = {str(k): float(v) for k, v in (salience or {}).items() if str(k) in labels}
+        if any(not (v > 0 and math.isfinite(v)) for v in self.salience_overrides.values()):
+            raise InputError("salience values must be finite and > 0", field="salience")
+        self._salience = torch.tensor([self.salience_overrides.get(
+            name, 1.0 if name in self.background_labels else self.foreground_salience) for name in labels],
+            dtype=torch.float64)
         self.seed = int(seed)
         self.noise_cosine = float(noise_cosine)
         self.camera_bias = float(camera_bias)
@@ -241,7 +249,8 @@ class SimulatedVideoEncoder:
         return {"encoder": self.name, "labels": list(self.labels), "seed": self.seed,
                 "noise_cosine": self.noise_cosine, "camera_bias": self.camera_bias,
                 "wrong_label_fraction": self.wrong_label_fraction,
-                "background_labels": list(self.background_labels), "foreground_salience": self.foreground_salience}
+                "background_labels": list(self.background_labels), "foreground_salience": self.foreground_salience,
+                "salience": dict(self.salience_overrides)}
 
     def bind_camera(self, camera: str | None) -> "SimulatedVideoEncoder":
         """The same encoder with ``camera``'s bias (tables are shared, nothing is recomputed)."""
@@ -255,7 +264,8 @@ class SimulatedVideoEncoder:
         return SimulatedVideoEncoder(self.labels, seed=self.seed, noise_cosine=1.0, camera_bias=0.0,
                                      wrong_label_fraction=0.0, camera=self.camera,
                                      background_labels=self.background_labels,
-                                     foreground_salience=self.foreground_salience)
+                                     foreground_salience=self.foreground_salience,
+                                     salience=self.salience_overrides)
 
     def encode_text(self, texts: Sequence[str]) -> torch.Tensor:
         return self.text.encode_text(texts)
@@ -365,11 +375,13 @@ def create_encoder(*, labels: Sequence[str] | None = None, scene: Any = None, se
         labels = meta.get("labels")
     if "background_labels" not in options and meta.get("background_labels"):
         options["background_labels"] = meta["background_labels"]
+    if "salience" not in options and isinstance(meta.get("salience"), dict):
+        options["salience"] = meta["salience"]
     if labels is None:
         raise InputError("the simulated encoder needs the scene's label vocabulary (a synthetic scene with "
                          "metadata['labels'])", field="encoder")
     allowed = {"noise_cosine", "camera_bias", "wrong_label_fraction", "camera", "background_labels",
-               "foreground_salience"}
+               "foreground_salience", "salience"}
     unknown = set(options) - allowed - {"device", "dtype", "batch_size"}
     if unknown:
         raise InputError(f"unknown option(s) for the simulated encoder: {', '.join(sorted(unknown))}",

@@ -38,6 +38,7 @@ __all__ = ["QueryEngine", "TemporalResult", "Localization", "ViewResult", "Centr
 
 NEEDS = frozenset({"temporal", "best_view", "action_centre"})
 DEFAULT_CODEBOOK_SIZE = 4096
+GAUSSIAN_CACHE_SIZE = 16  # per-Gaussian relevancy vectors (query, t) kept for reuse
 
 
 class QueryEngine:
@@ -111,6 +112,7 @@ class QueryEngine:
         self._decoded_codes: Optional[torch.Tensor] = None
         self._code_scores: dict[str, torch.Tensor] = {}
         self._background_score: dict[str, float] = {}
+        self._gaussian_cache: dict[tuple[str, int], torch.Tensor] = {}
 
     # ------------------------------------------------------------------ embeddings
     @property
@@ -202,15 +204,23 @@ class QueryEngine:
     def gaussian_relevancy(self, query: str, t: int) -> torch.Tensor:
         """(N,) relevancy of every Gaussian at timestep ``t`` (decoded volumetric latents)."""
         self.stats["gaussian_relevancy"] += 1
-        return self._gaussian_relevancy(query, self.scene.gaussians.check_timestep(t))
+        return self._gaussian_relevancy(query, self.scene.gaussians.check_timestep(t)).clone()
 
     def _gaussian_relevancy(self, query: str, t: int) -> torch.Tensor:
+        key = (query, int(t))
+        if key in self._gaussian_cache:  # e.g. one fast map per camera in a best-view search
+            return self._gaussian_cache[key]
         if self.scene.num_gaussians == 0:
-            return torch.zeros(0)
-        if self.path == "codebook":
+            out = torch.zeros(0)
+        elif self.path == "codebook":
             codes = torch.from_numpy(np.asarray(self.codebook.codes[t], dtype=np.int64))
-            return self._codes_scores(query)[codes]
-        return self._score_latents(self._read_latents(t), self.embed_query(query))
+            out = self._codes_scores(query)[codes]
+        else:
+            out = self._score_latents(self._read_latents(t), self.embed_query(query))
+        self._gaussian_cache[key] = out
+        while len(self._gaussian_cache) > GAUSSIAN_CACHE_SIZE:
+            self._gaussian_cache.pop(next(iter(self._gaussian_cache)))
+        return out
 
     # ------------------------------------------------------------------ temporal
     def temporal(self, query: str, *, stride: Optional[int] = None) -> TemporalResult:

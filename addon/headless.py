@@ -260,7 +260,9 @@ def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str
         with engine_module("fileio").atomic_path(out["blend"]) as tmp:
             tmp.unlink()  # saving over an existing file would leave a .blend1 backup beside it
             bpy.ops.wm.save_as_mainfile(filepath=str(tmp), copy=True, compress=True)
-    return {"frames_rendered": stats["frames"], "relevancy_frames": stats["relevancy_frames"],
+    return {"frames_total": total, "frames_rendered": stats["frames"],
+            "frames_reused": total - stats["frames"] if fmt != "EXR" else 0,
+            "relevancy_frames": stats["relevancy_frames"],
             "splat_render_seconds": round(stats["seconds"], 3),
             "seconds_per_frame": round(stats["seconds"] / max(stats["frames"], 1), 3)}
 

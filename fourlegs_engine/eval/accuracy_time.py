@@ -242,36 +242,51 @@ def markdown_table(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _pareto(ax, xs: np.ndarray, ys: np.ndarray) -> None:
+    """Join the Pareto-optimal points (no other point is both faster and more accurate)."""
+    front, best = [], -np.inf
+    for i in np.argsort(xs, kind="stable"):
+        if ys[i] > best:
+            front.append(i)
+            best = ys[i]
+    if front:
+        ax.plot(xs[front], ys[front], color="black", lw=1, ls="--", zorder=2, label="Pareto front")
+
+
 def pareto_plot(report: dict[str, Any], path: Path, *, overwrite: bool = True) -> Path:
+    """vAP and tIoU against query seconds (query knobs), and vAP against distillation seconds per
+    timestep (distillation knobs, when present)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = report["rows"]
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), dpi=100)
-    groups = list(dict.fromkeys(r["group"] for r in rows))
+    query_rows = [r for r in report["rows"] if r["group"] not in ("distill", "knn")]
+    distill_rows = [r for r in report["rows"] if r["group"] in ("distill", "knn") and r.get("distill_s_per_timestep")]
+    panels = [("vAP", query_rows, "seconds", "seconds (method's whole benchmark run)"),
+              ("tIoU", query_rows, "seconds", "seconds (method's whole benchmark run)")]
+    if distill_rows:
+        panels.append(("vAP", distill_rows, "distill_s_per_timestep", "distillation seconds per timestep"))
+    groups = list(dict.fromkeys(r["group"] for r in report["rows"]))
     colors = {g: plt.cm.tab10(i % 10) for i, g in enumerate(groups)}
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4.5), dpi=100, squeeze=False)
     try:
-        for ax, metric in zip(axes, ("vAP", "tIoU")):
-            xs = np.array([max(r["seconds"], 1e-3) for r in rows])
+        for ax, (metric, rows, xkey, xlabel) in zip(axes[0], panels):
+            if not rows:
+                ax.set_visible(False)
+                continue
+            xs = np.array([max(float(r[xkey]), 1e-3) for r in rows])
             ys = np.array([100 * r["metrics"][metric]["mean"] for r in rows])
             for r, x, y in zip(rows, xs, ys):
                 ax.scatter(x, y, color=colors[r["group"]], s=30, zorder=3)
                 ax.annotate(r["name"], (x, y), fontsize=6, xytext=(3, 3), textcoords="offset points")
-            order = np.argsort(xs)
-            front, best = [], -np.inf
-            for i in order:
-                if ys[i] > best:
-                    front.append(i)
-                    best = ys[i]
-            ax.plot(xs[front], ys[front], color="black", lw=1, ls="--", zorder=2, label="Pareto front")
+            _pareto(ax, xs, ys)
             ax.set_xscale("log")
-            ax.set_xlabel("seconds (whole benchmark run of the method)")
+            ax.set_xlabel(xlabel)
             ax.set_ylabel(f"{metric} (%)")
-            ax.set_title(f"{metric} vs time")
-        for g in groups:
-            axes[0].scatter([], [], color=colors[g], label=g)
-        axes[0].legend(fontsize=7, loc="lower right")
+            ax.set_title(f"{metric} vs time" + (" (distillation knobs)" if xkey != "seconds" else ""))
+            for g in dict.fromkeys(r["group"] for r in rows):
+                ax.scatter([], [], color=colors[g], label=g)
+            ax.legend(fontsize=7, loc="lower right")
         fig.suptitle(f"accuracy vs time: {report['scene']['name']}")
         fig.tight_layout()
         with atomic_path(path, overwrite=overwrite) as tmp:

@@ -29,7 +29,7 @@ from .ground_truth import CoverageVideo, GroundTruth, default_eval_cameras, ensu
     scene_queries
 from .metrics import METRIC_NAMES, aggregate_views, format_percent, grounding_metrics
 
-METHOD_MODULES = ("fourlegs_engine.query.grounding_method",)
+METHOD_MODULES = ("fourlegs_engine.eval.method4d",)
 
 
 @dataclass
@@ -91,11 +91,13 @@ def _load_method_modules() -> None:
     _modules_loaded = True
     for name in METHOD_MODULES:
         try:
-            importlib.import_module(name)
+            module = importlib.import_module(name)
         except ModuleNotFoundError as exc:
             if exc.name is not None and name.startswith(exc.name):
                 continue
             raise
+        if hasattr(module, "register"):
+            module.register()
 
 
 class _Features2DMethod:

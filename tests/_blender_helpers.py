@@ -70,29 +70,9 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
-def ensure_addon_importable() -> Path | None:
-    """Make ``fourlegs_addon`` importable even when the editable install predates ``addon/``.
-
-    Returns a directory to put on PYTHONPATH for child processes (a symlink farm), or None.
-    """
-    if importlib.util.find_spec("fourlegs_addon") is not None:
-        return None
-    farm = Path(tempfile.mkdtemp(prefix="fourlegs-addon-path-"))
-    (farm / "fourlegs_addon").symlink_to(REPO / "addon", target_is_directory=True)
-    sys.path.insert(0, str(farm))
-    importlib.invalidate_caches()
-    return farm
-
-
-ADDON_PATH_FARM = ensure_addon_importable()
-
-
 def child_env(**extra: str) -> dict:
-    """Environment for a child Python that must import fourlegs_addon."""
-    env = dict(os.environ, **extra)
-    if ADDON_PATH_FARM is not None:
-        env["PYTHONPATH"] = os.pathsep.join([str(ADDON_PATH_FARM)] + [p for p in [env.get("PYTHONPATH")] if p])
-    return env
+    """Environment for a child Python that must import fourlegs_addon (installed by pip with the project)."""
+    return dict(os.environ, **extra)
 
 
 @pytest.fixture(scope="module")

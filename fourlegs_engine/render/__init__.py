@@ -5,11 +5,12 @@ Public API::
     rasterize(means, rotations, log_scales, opacity_logits, camera, *, colors=None, features=None,
               background=None, feature_background=None, outputs=("rgb",), options=None, backend="auto")
     render_frame(frame, camera, outputs=("rgb",), features=None, **kw)
+    splat(means, rotations, log_scales, opacity_logits, camera, pixel_values, options=None)  # render's transpose
 
 See :func:`rasterize` for shapes. ``reference`` holds the straightforward dense implementation used as
 the speed/accuracy baseline.
 """
-from .api import rasterize, render_frame
+from .api import rasterize, render_frame, splat
 from .options import OUTPUT_NAMES, BlendWeights, RasterOptions
 
-__all__ = ["rasterize", "render_frame", "RasterOptions", "BlendWeights", "OUTPUT_NAMES"]
+__all__ = ["rasterize", "render_frame", "splat", "RasterOptions", "BlendWeights", "OUTPUT_NAMES"]

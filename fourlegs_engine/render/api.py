@@ -60,6 +60,40 @@ def rasterize(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Te
                 dtype=dtype)
 
 
+def splat(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Tensor,
+          opacity_logits: torch.Tensor, camera: Camera, pixel_values: torch.Tensor, *,
+          options: RasterOptions | None = None) -> torch.Tensor:
+    """The transpose of rendering features: per-Gaussian sums of per-pixel values weighted by α·T.
+
+    ``splat(..., v)[i] = Σ_p w_i(p) v(p)`` with w_i(p) = α_i T_i the blending weights of Gaussian i
+    at pixel p (the ``"weights"`` output), so ``<render(f), v> = <f, splat(v)>``. Computed in one
+    front-to-back pass without materializing the weights (much cheaper than ``"weights"`` when only
+    Σ_p w·v is needed; append a channel of ones to also get Σ_p w). Torch backend, no autograd.
+
+    Args:
+        means, rotations, log_scales, opacity_logits, camera: as for :func:`rasterize`.
+        pixel_values: (H,W,S) values per pixel of ``camera``'s image (any float dtype).
+        options: :class:`RasterOptions`.
+    Returns:
+        (N,S) in the working dtype (that of ``means``: float32 or float64).
+    """
+    from .torch_backend import splat_torch
+
+    options = (options or RasterOptions()).check()
+    camera.validate()
+    dtype = means.dtype if means.dtype in (torch.float32, torch.float64) else torch.float32
+    if options.validate:
+        _check_inputs(means, rotations, log_scales, opacity_logits, None, None)
+    if (not isinstance(pixel_values, torch.Tensor) or pixel_values.ndim != 3
+            or tuple(pixel_values.shape[:2]) != (camera.height, camera.width)):
+        raise InputError(f"must be ({camera.height}, {camera.width}, S), got {_shape(pixel_values)}",
+                         field="pixel_values")
+    if not _all_finite(pixel_values):
+        raise InputError("contains NaN or Inf", field="pixel_values")
+    return splat_torch(means.detach().to(dtype), rotations.detach(), log_scales.detach(), opacity_logits.detach(),
+                       camera, pixel_values.detach().to(device=means.device, dtype=dtype), options, dtype)
+
+
 def render_frame(frame, camera: Camera, outputs: Sequence[str] = ("rgb",), features: torch.Tensor | None = None,
                  **kw) -> dict[str, torch.Tensor | BlendWeights]:
     """Render a :class:`~fourlegs_engine.scene.GaussianFrame` (colours from ``frame.colors``, or its SH

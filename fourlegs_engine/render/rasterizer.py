@@ -40,12 +40,15 @@ class RasterResult:
         median_ids: (Hp·Wp,) int64 Gaussian at the median of the weight distribution, −1 if none;
             None unless requested.
         weights: (pixel, gaussian, weight) rows or None unless requested.
+        splatted: (N, S) Σ_p w_i(p)·splat(p) per Gaussian (the adjoint of blending) or None unless
+            ``splat`` values were given.
     """
 
     accum: torch.Tensor
     transmittance: torch.Tensor
     median_ids: torch.Tensor | None
     weights: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None
+    splatted: torch.Tensor | None = None
 
 
 def tile_batches(binning: Binning, budget: int, chunk: int) -> Iterator[tuple[torch.Tensor, int]]:
@@ -189,11 +192,15 @@ def _chunks(tables, tg: TileGeometry, k_max: int, opts: RasterOptions, chunk: in
 
 
 def rasterize_forward(geom: torch.Tensor, values: torch.Tensor, binning: Binning, opts: RasterOptions,
-                      want_median: bool = False, want_weights: bool = False) -> RasterResult:
+                      want_median: bool = False, want_weights: bool = False,
+                      splat: torch.Tensor | None = None) -> RasterResult:
     """Blend every tile front to back (no autograd).
 
     Args:
         geom: (N,6) mx, my, conic a, b, c, opacity. values: (N,C) channels to blend (C may be 0).
+        splat: (Hp·Wp, S) per-pixel values on the tile-padded grid (zero outside the image), or None.
+            When given, ``splatted`` (N,S) = Σ_p w_i(p)·splat(p) is accumulated in the same pass — the
+            transpose of blending, without materializing the weights.
     """
     P = binning.tile_size ** 2
     n_tiles = binning.num_tiles
@@ -205,6 +212,10 @@ def rasterize_forward(geom: torch.Tensor, values: torch.Tensor, binning: Binning
     t_final_all = torch.ones(n_pix, device=device, dtype=dtype)
     median = torch.full((n_pix,), -1, device=device, dtype=torch.int64) if want_median else None
     rows_out: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+    splatted = None
+    if splat is not None:
+        S = splat.shape[1]
+        splatted = torch.zeros(geom.shape[0], S, device=device, dtype=dtype)
     with torch.no_grad():
         tables = pair_coefficients(geom, binning)
         for tiles, k_max in tile_batches(binning, opts.batch_elements, chunk):
@@ -213,8 +224,13 @@ def rasterize_forward(geom: torch.Tensor, values: torch.Tensor, binning: Binning
             t_state = torch.ones(B, P, device=device, dtype=dtype)
             done = torch.zeros(B, P, device=device, dtype=torch.bool)
             acc = torch.zeros(B, P, C, device=device, dtype=dtype)
+            g_all = splat.index_select(0, tg.pix).view(B, P, S).to(dtype) if splat is not None else None
             for ch, _, _, t_excl, _, _ in _chunks(tables, tg, k_max, opts, chunk, t_state, done):
                 w = ch.alpha.mul_(t_excl)
+                if splat is not None:
+                    # padded list entries have w = 0 (sentinel α = 0), so they add nothing to Gaussian 0
+                    splatted.index_add_(0, ch.gid.reshape(-1),
+                                        torch.bmm(w.transpose(1, 2), g_all[ch.rows]).reshape(-1, S))
                 if C:
                     vals = values.index_select(0, ch.gid.reshape(-1)).view(ch.gid.shape + (C,))
                     acc[ch.rows] += torch.bmm(w, vals.to(dtype))
@@ -239,7 +255,8 @@ def rasterize_forward(geom: torch.Tensor, values: torch.Tensor, binning: Binning
         else:
             empty = torch.zeros(0, dtype=torch.int64, device=device)
             weights = (empty, empty.clone(), torch.zeros(0, dtype=dtype, device=device))
-    return RasterResult(accum=accum, transmittance=t_final_all, median_ids=median, weights=weights)
+    return RasterResult(accum=accum, transmittance=t_final_all, median_ids=median, weights=weights,
+                        splatted=splatted)
 
 
 def _median_ids(tables, tg, k_max, opts, chunk, t_final) -> torch.Tensor:

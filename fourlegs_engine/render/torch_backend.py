@@ -76,3 +76,21 @@ def _over_background(accum: torch.Tensor, trans: torch.Tensor, background: torch
     if not background.requires_grad and not bool(background.any()):
         return accum
     return accum + trans * background
+
+
+def splat_torch(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Tensor,
+                opacity_logits: torch.Tensor, camera: Camera, pixel_values: torch.Tensor,
+                options: RasterOptions, dtype: torch.dtype) -> torch.Tensor:
+    """(H,W,S) per-pixel values -> (N,S) Σ_p w_i(p)·values(p); see :func:`~fourlegs_engine.render.splat`."""
+    from .rasterizer import rasterize_forward
+    with torch.no_grad():
+        proj = project_gaussians(means, rotations, log_scales, opacity_logits, camera, options, dtype)
+        binning = bin_gaussians(proj, camera.width, camera.height, options.tile_size)
+        geom = torch.cat([proj.means2d, proj.conics, proj.opacities[:, None]], dim=-1)
+        ts = binning.tile_size
+        S = pixel_values.shape[-1]
+        padded = pixel_values.new_zeros(binning.tiles_y * ts, binning.tiles_x * ts, S)
+        padded[:binning.height, :binning.width] = pixel_values
+        res = rasterize_forward(geom, geom.new_zeros(geom.shape[0], 0), binning, options,
+                                splat=padded.reshape(-1, S))
+    return res.splatted

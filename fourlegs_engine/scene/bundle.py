@@ -14,14 +14,13 @@ add their own sub-directories inside an existing bundle with their own atomic pe
 from __future__ import annotations
 
 import shutil
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..errors import InputError, OutputExistsError
-from ..fileio import load_npy, read_json, save_npy_atomic, write_json_atomic
+from ..errors import InputError
+from ..fileio import atomic_directory, load_npy, read_json, save_npy_atomic, write_json_atomic
 from .camera import CameraRig
 from .gaussians import GaussianSequence, normalize_quaternions_chunked, quaternions_need_normalizing
 from .scene import Scene
@@ -43,11 +42,7 @@ def write_bundle(scene: Scene, path: str | Path, *, overwrite: bool = False) -> 
     Latents (if any) are copied chunk by chunk (never loaded whole) to ``language/latents.npy``.
     """
     path = Path(path)
-    if path.exists() and not overwrite:
-        raise OutputExistsError(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent))
-    try:
+    with atomic_directory(path, overwrite=overwrite) as tmp:
         g = scene.gaussians
         arrays: dict[str, str] = {}
         for name in ARRAY_FIELDS:
@@ -82,16 +77,6 @@ def write_bundle(scene: Scene, path: str | Path, *, overwrite: bool = False) -> 
             "metadata": scene.metadata,
         }
         write_json_atomic(tmp / SCENE_FILE, meta)
-        if path.exists():
-            trash = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
-            path.rename(trash / "old")
-            tmp.rename(path)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            tmp.rename(path)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     scene.root = path
     return path
 

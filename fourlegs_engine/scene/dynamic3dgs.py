@@ -17,9 +17,7 @@ header is checked (object dtypes refused), compressed members go through
 """
 from __future__ import annotations
 
-import shutil
 import struct
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Any, Optional
@@ -27,7 +25,7 @@ from typing import Any, Optional
 import numpy as np
 
 from ..errors import InputError, OutputExistsError
-from ..fileio import atomic_path, read_json, write_json_atomic
+from ..fileio import atomic_directory, atomic_path, read_json, write_json_atomic
 from .camera import Camera, CameraRig
 from .gaussians import GaussianSequence, normalize_quaternions_chunked, sh_dc_to_rgb
 from .scene import Scene
@@ -305,9 +303,7 @@ def write_dynamic3dgs(scene: Scene, path: str | Path, *, overwrite: bool = False
         arrays["seg_colors"] = np.stack([fg, np.zeros_like(fg), 1.0 - fg], axis=1)
     for key, value in (scene.metadata.get("color_correction") or {}).items():
         arrays[key] = np.asarray(value, dtype=np.float32)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent))
-    try:
+    with atomic_directory(path, overwrite=overwrite) as tmp:
         with atomic_path(tmp / PARAMS_FILE) as part:
             with open(part, "wb") as fh:
                 (np.savez_compressed if compressed else np.savez)(fh, **arrays)
@@ -315,16 +311,6 @@ def write_dynamic3dgs(scene: Scene, path: str | Path, *, overwrite: bool = False
             lists = scene.cameras.train if split == "train" else scene.cameras.test
             if any(lists):
                 write_json_atomic(tmp / file, _meta_dict(lists, T, file))
-        if path.exists():
-            trash = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
-            path.rename(trash / "old")
-            tmp.rename(path)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            tmp.rename(path)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return path
 
 

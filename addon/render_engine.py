@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
 from typing import Any, Optional
 
 import bpy
@@ -44,28 +45,40 @@ def reset_stats() -> None:
     stats.update(frames=0, relevancy_frames=[], depth_frames=[], seconds=0.0, last_error=None, cancelled=False)
 
 
+#: the last parsed plan text: (source string, plan) -- parsing the plan JSON on every frame cost
+#: more than the Blender side of a frame; the text is re-read (cheap) and re-parsed only when it changed
+_PLAN_CACHE: list = [None, None]
+
+
 def plan_of(scene: bpy.types.Scene) -> Optional[dict[str, Any]]:
-    """The highlight plan stored by Generate Highlight (text datablock), or None."""
+    """The highlight plan stored by Generate Highlight (text datablock), or None.
+
+    The parsed plan is shared between calls while the text is unchanged: treat it as read-only.
+    """
     name = scene.get("fourlegs_plan_text", PLAN_TEXT_NAME)
     text = bpy.data.texts.get(name)
     if text is None:
         return None
-    try:
-        return json.loads(text.as_string())
-    except json.JSONDecodeError:
-        return None
+    source = text.as_string()
+    if _PLAN_CACHE[0] != source:
+        try:
+            plan = json.loads(source)
+        except json.JSONDecodeError:
+            plan = None
+        _PLAN_CACHE[:] = [source, plan]
+    return _PLAN_CACHE[1]
 
 
-def relevancy_frames(scene: bpy.types.Scene) -> list:
-    plan = plan_of(scene)
+def relevancy_frames(scene: bpy.types.Scene, plan: Any = ...) -> list:
+    plan = plan_of(scene) if plan is ... else plan
     return list(((plan or {}).get("passes") or {}).get("relevancy") or [])
 
 
-def depth_wanted(scene: bpy.types.Scene, view_layer, frame: int) -> bool:
+def depth_wanted(scene: bpy.types.Scene, view_layer, frame: int, plan: Any = ...) -> bool:
     """Depth only where asked: the Z pass is on and, with a highlight plan, the plan lists this frame."""
     if not view_layer.use_pass_z:
         return False
-    plan = plan_of(scene)
+    plan = plan_of(scene) if plan is ... else plan
     if plan is None:
         return True
     return frames_in_ranges((plan.get("passes") or {}).get("depth"), frame)
@@ -95,7 +108,8 @@ def scene_camera(scene: bpy.types.Scene, depsgraph, width: int, height: int):
                   far=max(data.clip_end, data.clip_start * 2), name=cam_obj.name)
 
 
-def gather_gaussians(scene: bpy.types.Scene, t: float, with_relevancy: bool) -> Optional[dict[str, np.ndarray]]:
+def gather_gaussians(scene: bpy.types.Scene, t: float, with_relevancy: bool,
+                     plan: Any = ...) -> Optional[dict[str, np.ndarray]]:
     """Concatenate the visible splat objects' Gaussians at timestep ``t`` (world space)."""
     parts = []
     for obj in importer.splat_objects(scene):
@@ -120,7 +134,7 @@ def gather_gaussians(scene: bpy.types.Scene, t: float, with_relevancy: bool) -> 
                 "opacity_logits": np.asarray(g.opacity_logits, np.float32), "colors": colors}
         if with_relevancy:
             rel = importer.gaussian_relevancy(obj, ti)
-            query = (plan_of(scene) or {}).get("query")
+            query = ((plan_of(scene) if plan is ... else plan) or {}).get("query")
             if rel is None and query:  # e.g. a saved .blend re-opened: ask the scene's language field
                 from . import querying
 
@@ -132,22 +146,46 @@ def gather_gaussians(scene: bpy.types.Scene, t: float, with_relevancy: bool) -> 
         parts.append(part)
     if not parts:
         return None
+    if len(parts) == 1:  # the usual case: no copy
+        return parts[0]
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
+def srgb_to_linear_torch(c, out=None):
+    """Torch twin of ``convert.srgb_to_linear`` for the rasterized image (one pass fewer copies).
+
+    Args:
+        c: (...,3) sRGB-encoded values (any float dtype; NaN -> 0, clamped to [0,1]).
+        out: optional float32 tensor (may be a strided view) receiving the result.
+    Returns:
+        (...,3) float32 scene-linear values (``out`` when given).
+    """
+    import torch
+
+    c = torch.nan_to_num(c.to(torch.float32), nan=0.0).clamp_(0.0, 1.0)
+    high = c.add(0.055).div_(1.055).pow_(2.4)
+    result = torch.where(c <= 0.04045, c / 12.92, high)
+    if out is None:
+        return result
+    out.copy_(result)
+    return out
+
+
 def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *, frame: int,
-                  relevancy_pass: bool, depth: bool = True) -> dict[str, np.ndarray]:
+                  relevancy_pass: bool, depth: bool = True, plan: Any = ...) -> dict[str, np.ndarray]:
     """Rasterize the current state: returns top-down (H,W,·) float32 arrays rgba, depth, [relevancy].
 
     ``depth=False`` skips the depth output (the pass is filled with "nothing hit"); relevancy is
     computed only when ``relevancy_pass`` and ``frame`` is in the plan's relevancy ranges.
+    ``plan``: the scene's plan when the caller already has it (default: read it).
     """
     import torch
 
+    plan = plan_of(scene) if plan is ... else plan
     t = float(scene.fourlegs.timestep)
-    compute_rel = relevancy_pass and frames_in_ranges(relevancy_frames(scene), frame)
+    compute_rel = relevancy_pass and frames_in_ranges(relevancy_frames(scene, plan), frame)
     camera = scene_camera(scene, depsgraph, width, height)
-    data = gather_gaussians(scene, t, compute_rel)
+    data = gather_gaussians(scene, t, compute_rel, plan)
     out: dict[str, np.ndarray] = {}
     if data is None:
         out["rgba"] = np.zeros((height, width, 4), np.float32)
@@ -156,27 +194,34 @@ def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *,
             out["relevancy"] = np.zeros((height, width, 1), np.float32)
         return out
     rasterize = engine_module("render").rasterize
-    tens = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in data.items()}
+    with warnings.catch_warnings():  # read-only memmap rows are shared, not copied: the rasterizer never writes them
+        warnings.filterwarnings("ignore", message="The given NumPy array is not writable")
+        tens = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in data.items()}
     outputs = ["rgb", "alpha"] + (["depth"] if depth else []) + (["features"] if compute_rel else [])
     with torch.no_grad():
         res = rasterize(tens["means"], tens["rotations"], tens["log_scales"], tens["opacity_logits"], camera,
                         colors=tens["colors"], features=tens["relevancy"][:, None] if compute_rel else None,
                         outputs=tuple(outputs))
-    alpha = res["alpha"].numpy().astype(np.float32)
-    rgb = convert.srgb_to_linear(res["rgb"].numpy())  # Blender's Combined is scene-linear
-    a = alpha if scene.render.film_transparent else np.ones_like(alpha)
-    out["rgba"] = np.concatenate([rgb, a], axis=2)
-    if depth:
-        out["depth"] = np.where(alpha > 1e-3, res["depth"].numpy().astype(np.float32), EMPTY_DEPTH).astype(np.float32)
-    else:
-        out["depth"] = np.full((height, width, 1), EMPTY_DEPTH, np.float32)
-    if relevancy_pass:
-        if compute_rel:
-            feat = res["features"].numpy().astype(np.float32)
-            rel = np.where(alpha > 1e-3, feat / np.maximum(alpha, 1e-3), 0.0)
-            out["relevancy"] = np.clip(np.nan_to_num(rel), 0.0, 1.0).astype(np.float32)
+        alpha = res["alpha"].to(torch.float32)
+        rgba = torch.empty((height, width, 4), dtype=torch.float32)
+        srgb_to_linear_torch(res["rgb"], out=rgba[..., :3])  # Blender's Combined is scene-linear
+        if scene.render.film_transparent:
+            rgba[..., 3:].copy_(alpha)
         else:
-            out["relevancy"] = np.zeros((height, width, 1), np.float32)
+            rgba[..., 3].fill_(1.0)
+        out["rgba"] = rgba.numpy()
+        hit = alpha > 1e-3
+        if depth:
+            out["depth"] = torch.where(hit, res["depth"].to(torch.float32), EMPTY_DEPTH).numpy()
+        else:
+            out["depth"] = np.full((height, width, 1), EMPTY_DEPTH, np.float32)
+        if relevancy_pass:
+            if compute_rel:
+                feat = res["features"].to(torch.float32)
+                rel = torch.where(hit, feat / alpha.clamp(min=1e-3), 0.0)
+                out["relevancy"] = torch.nan_to_num(rel, nan=0.0).clamp_(0.0, 1.0).numpy()
+            else:
+                out["relevancy"] = np.zeros((height, width, 1), np.float32)
     out["relevancy_computed"] = np.array(compute_rel)
     return out
 
@@ -219,11 +264,12 @@ class FourlegsRenderEngine(bpy.types.RenderEngine):
         if want_rel:
             self.add_pass(RELEVANCY_PASS, 1, "X", layer=view_layer.name)
         start = time.perf_counter()
+        plan = plan_of(scene)
+        want_depth = depth_wanted(scene, view_layer, scene.frame_current, plan)
         result = self.begin_result(0, 0, width, height, layer=view_layer.name)
         try:
             arrays = render_arrays(scene, depsgraph, width, height, frame=scene.frame_current,
-                                   relevancy_pass=want_rel,
-                                   depth=depth_wanted(scene, view_layer, scene.frame_current))
+                                   relevancy_pass=want_rel, depth=want_depth, plan=plan)
         except KeyboardInterrupt:  # Ctrl-C inside the rasterizer: no traceback, the frame is dropped
             stats["cancelled"] = True
             self.end_result(result, cancel=True)
@@ -244,7 +290,7 @@ class FourlegsRenderEngine(bpy.types.RenderEngine):
                 write_pass(rel_pass, arrays["relevancy"])
         self.end_result(result)
         stats["frames"] += 1
-        if depth_wanted(scene, view_layer, scene.frame_current):
+        if want_depth:
             stats["depth_frames"].append(scene.frame_current)
         if bool(arrays.get("relevancy_computed", False)):
             stats["relevancy_frames"].append(scene.frame_current)

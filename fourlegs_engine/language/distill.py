@@ -7,7 +7,9 @@ Modes (geometry frozen in all of them):
     w_i(p) = α_i T_i. The lift is the rendering-weighted average of the encoded teacher latents
     L_i ∝ Σ_v Σ_p w_i(p) e_v(p) / Σ_v Σ_p w_i(p), L2-normalized — one rasterizer pass per view. Where
     every pixel sees a single Gaussian this is exactly the direction of the least-squares solution.
-    Gaussians no training pixel sees keep a zero latent.
+    Gaussians no training pixel sees keep a zero latent. Computed by one splat pass per view
+    (:func:`~fourlegs_engine.render.splat`, the transpose of rendering: Σ_p w·[e, 1] per Gaussian
+    without materializing the weights; equal to the weights-based sum up to float32 summation order).
 ``optimize`` (the paper)
     Latents start at 0 and are smoothed by single-head self-attention over each Gaussian's 20 nearest
     neighbours (kNN once per timestep); the smoothed latents are rendered and compared with L1 to the
@@ -186,8 +188,9 @@ class ViewOperator:
         pixel, gaussian = pixel.long(), gaussian.long()
         weight = weight.detach().to(torch.float32)
         self.num_pixels, self.num_gaussians = int(num_pixels), int(num_gaussians)
-        order = torch.argsort(pixel, stable=True)
-        pixel, gaussian, weight = pixel[order], gaussian[order], weight[order]
+        if pixel.numel() > 1 and not bool((pixel[1:] >= pixel[:-1]).all()):  # the rasterizer's rows are sorted
+            order = torch.argsort(pixel, stable=True)
+            pixel, gaussian, weight = pixel[order], gaussian[order], weight[order]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             self.A = torch.sparse_csr_tensor(_crow(pixel, num_pixels), gaussian, weight,

@@ -271,9 +271,22 @@ def crop_means(tube: torch.Tensor, grid: Any) -> torch.Tensor:
     Equal to ``scale_crops(tube, grid).mean((3, 4))``, computed from a float64 summed-area table
     (4 lookups per crop instead of k² additions).
     """
+    return _sat_crop_means(summed_area_table(tube), grid).to(tube.dtype)
+
+
+def summed_area_table(tube: torch.Tensor) -> torch.Tensor:
+    """(L,C,H,W) -> (L,C,H+1,W+1) float64 inclusive 2-D prefix sums with a zero first row/column."""
     L, C, H, W = tube.shape
     sat = torch.zeros(L, C, H + 1, W + 1, dtype=torch.float64)
-    sat[:, :, 1:, 1:] = tube.to(torch.float64).cumsum(2).cumsum(3)
+    torch.cumsum(tube.to(torch.float64), 2, out=sat[:, :, 1:, 1:])
+    sat[:, :, 1:, 1:].cumsum_(3)
+    return sat
+
+
+def _sat_crop_means(sat: torch.Tensor, grid: Any) -> torch.Tensor:
+    """Crop means (n, L, C) float64 of one scale from a :func:`summed_area_table`."""
+    L, C = sat.shape[:2]
+    H, W = sat.shape[2] - 1, sat.shape[3] - 1
     k, p = grid.kernel, grid.padding
     y0 = torch.arange(grid.ny) * grid.stride - p          # crop rows y0 .. y0+k-1 (may leave the image)
     x0 = torch.arange(grid.nx) * grid.stride - p
@@ -281,13 +294,15 @@ def crop_means(tube: torch.Tensor, grid: Any) -> torch.Tensor:
     xa, xb = x0.clamp(0, W), (x0 + k).clamp(0, W)
     total = (sat[:, :, yb][:, :, :, xb] - sat[:, :, ya][:, :, :, xb]
              - sat[:, :, yb][:, :, :, xa] + sat[:, :, ya][:, :, :, xa])   # (L, C, ny, nx)
-    means = (total / float(k * k)).to(tube.dtype)
+    means = total / float(k * k)
     return means.reshape(L, C, grid.ny * grid.nx).permute(2, 0, 1).contiguous()
 
 
 def frame_crop_means(frame: torch.Tensor, layout: PyramidLayout) -> torch.Tensor:
-    """(C,H,W) one frame -> (num_crops, C) channel means of all its crops (all scales, layout order)."""
-    return torch.cat([crop_means(frame[None], g)[:, 0] for g in layout.scales])
+    """(C,H,W) one frame -> (num_crops, C) channel means of all its crops (all scales, layout order);
+    one summed-area table serves every scale."""
+    sat = summed_area_table(frame[None])
+    return torch.cat([_sat_crop_means(sat, g)[:, 0] for g in layout.scales]).to(frame.dtype)
 
 
 class _Batcher:

@@ -181,12 +181,10 @@ def _lerp_axis(grid: torch.Tensor, axis: int, i0: torch.Tensor, w: torch.Tensor)
     """Interpolate ``grid`` along ``axis`` at positions (i0, w): out = (1-w)*g[i0] + w*g[i0+1]."""
     count = grid.shape[axis]
     i1 = torch.clamp(i0 + 1, max=count - 1)
-    lo = grid.index_select(axis, i0)
-    hi = grid.index_select(axis, i1)
     shape = [1] * grid.dim()
     shape[axis] = -1
-    w = w.to(grid.dtype).view(shape)
-    return lo + (hi - lo) * w
+    # one fused pass (torch.lerp) instead of three; equal up to float rounding
+    return torch.lerp(grid.index_select(axis, i0), grid.index_select(axis, i1), w.to(grid.dtype).view(shape))
 
 
 def interpolate_grid(layout: PyramidLayout, crop_features: torch.Tensor, xs: torch.Tensor,

@@ -18,8 +18,6 @@ import bpy
 from . import compositor, render_engine
 
 FORMATS = ("MP4", "PNG", "EXR")
-#: zlib effort of the intermediate PNG frames of an MP4 job (Blender's default is 15)
-INTERMEDIATE_PNG_COMPRESSION = 15
 
 
 class OutputExists(FileExistsError):
@@ -149,27 +147,22 @@ def compositing_frames(scene: bpy.types.Scene) -> Optional[set[int]]:
 
 
 def render_frames(scene: bpy.types.Scene, frames_dir: str | Path, *,
-                  on_frame: Optional[Callable[[int, int], None]] = None,
-                  png_compression: int = INTERMEDIATE_PNG_COMPRESSION) -> list[Path]:
+                  on_frame: Optional[Callable[[int, int], None]] = None) -> list[Path]:
     """Render every frame of the range to ``frames_dir/frame_####.png``, skipping frames already there.
 
     Each frame is written to a temporary name and renamed when complete, so an interrupted run
     resumes at the first missing frame. The compositor runs only on frames where the plan's
     desaturation is non-zero (:func:`compositing_frames`). Returns the frame files in order.
-    ``png_compression`` (0-100): these frames are intermediate (encoded, then deleted), so the default
-    trades disk for time.
     """
     frames_dir = Path(frames_dir)
     frames_dir.mkdir(parents=True, exist_ok=True)
     frames = list(range(scene.frame_start, scene.frame_end + 1))
     old_path = scene.render.filepath
     old_compositing = scene.render.use_compositing
-    old_compression = scene.render.image_settings.compression
     composite = compositing_frames(scene)
     out = []
     try:
         configure_output(scene, "PNG")
-        scene.render.image_settings.compression = int(png_compression)
         for i, frame in enumerate(frames):
             target = frames_dir / f"frame_{frame:04d}.png"
             if not target.is_file():
@@ -191,7 +184,6 @@ def render_frames(scene: bpy.types.Scene, frames_dir: str | Path, *,
     finally:
         scene.render.filepath = old_path
         scene.render.use_compositing = old_compositing
-        scene.render.image_settings.compression = old_compression
     return out
 
 

@@ -59,3 +59,17 @@ def test_splat_rejects_bad_pixel_values():
     bad[3, 4, 1] = float("nan")
     with pytest.raises(InputError, match="NaN"):
         splat(*(scene[k] for k in GEOM), cam, bad)
+
+
+def test_splat_accumulates_into_out_across_views():
+    scene = random_scene(50, seed=11)
+    cams = view_cameras(20, 14)[:2]
+    vals = [torch.randn(14, 20, 3, generator=torch.Generator().manual_seed(i), dtype=torch.float64) for i in range(2)]
+    separate = sum(splat(*(scene[k] for k in GEOM), c, v) for c, v in zip(cams, vals))
+    acc = torch.zeros(50, 3, dtype=torch.float64)
+    for c, v in zip(cams, vals):
+        returned = splat(*(scene[k] for k in GEOM), c, v, out=acc)
+        assert returned is acc
+    torch.testing.assert_close(acc, separate, rtol=1e-12, atol=1e-12)
+    with pytest.raises(InputError, match="out"):
+        splat(*(scene[k] for k in GEOM), cams[0], vals[0], out=torch.zeros(50, 3))   # float32 != float64

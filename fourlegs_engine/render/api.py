@@ -62,7 +62,7 @@ def rasterize(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Te
 
 def splat(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Tensor,
           opacity_logits: torch.Tensor, camera: Camera, pixel_values: torch.Tensor, *,
-          options: RasterOptions | None = None) -> torch.Tensor:
+          options: RasterOptions | None = None, out: torch.Tensor | None = None) -> torch.Tensor:
     """The transpose of rendering features: per-Gaussian sums of per-pixel values weighted by α·T.
 
     ``splat(..., v)[i] = Σ_p w_i(p) v(p)`` with w_i(p) = α_i T_i the blending weights of Gaussian i
@@ -74,6 +74,8 @@ def splat(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Tensor
         means, rotations, log_scales, opacity_logits, camera: as for :func:`rasterize`.
         pixel_values: (H,W,S) values per pixel of ``camera``'s image (any float dtype).
         options: :class:`RasterOptions`.
+        out: optional (N,S) tensor of the working dtype to add the sums to (accumulating several
+            views without a temporary per view); it is returned.
     Returns:
         (N,S) in the working dtype (that of ``means``: float32 or float64).
     """
@@ -90,8 +92,12 @@ def splat(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Tensor
                          field="pixel_values")
     if not _all_finite(pixel_values):
         raise InputError("contains NaN or Inf", field="pixel_values")
+    if out is not None and (tuple(out.shape) != (means.shape[0], pixel_values.shape[2]) or out.dtype != dtype
+                            or out.device != means.device):
+        raise InputError(f"must be a ({means.shape[0]}, {pixel_values.shape[2]}) {dtype} tensor on {means.device}, "
+                         f"got {_shape(out)}", field="out")
     return splat_torch(means.detach().to(dtype), rotations.detach(), log_scales.detach(), opacity_logits.detach(),
-                       camera, pixel_values.detach().to(device=means.device, dtype=dtype), options, dtype)
+                       camera, pixel_values.detach().to(device=means.device, dtype=dtype), options, dtype, out)
 
 
 def render_frame(frame, camera: Camera, outputs: Sequence[str] = ("rgb",), features: torch.Tensor | None = None,

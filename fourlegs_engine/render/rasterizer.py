@@ -193,7 +193,7 @@ def _chunks(tables, tg: TileGeometry, k_max: int, opts: RasterOptions, chunk: in
 
 def rasterize_forward(geom: torch.Tensor, values: torch.Tensor, binning: Binning, opts: RasterOptions,
                       want_median: bool = False, want_weights: bool = False,
-                      splat: torch.Tensor | None = None) -> RasterResult:
+                      splat: torch.Tensor | None = None, splat_out: torch.Tensor | None = None) -> RasterResult:
     """Blend every tile front to back (no autograd).
 
     Args:
@@ -201,6 +201,8 @@ def rasterize_forward(geom: torch.Tensor, values: torch.Tensor, binning: Binning
         splat: (Hp·Wp, S) per-pixel values on the tile-padded grid (zero outside the image), or None.
             When given, ``splatted`` (N,S) = Σ_p w_i(p)·splat(p) is accumulated in the same pass — the
             transpose of blending, without materializing the weights.
+        splat_out: (N, S) working-dtype tensor the splatted sums are added to (and returned as
+            ``splatted``) instead of a new zero tensor.
     """
     P = binning.tile_size ** 2
     n_tiles = binning.num_tiles
@@ -215,7 +217,7 @@ def rasterize_forward(geom: torch.Tensor, values: torch.Tensor, binning: Binning
     splatted = None
     if splat is not None:
         S = splat.shape[1]
-        splatted = torch.zeros(geom.shape[0], S, device=device, dtype=dtype)
+        splatted = torch.zeros(geom.shape[0], S, device=device, dtype=dtype) if splat_out is None else splat_out
     with torch.no_grad():
         tables = pair_coefficients(geom, binning)
         for tiles, k_max in tile_batches(binning, opts.batch_elements, chunk):

@@ -80,7 +80,7 @@ def _over_background(accum: torch.Tensor, trans: torch.Tensor, background: torch
 
 def splat_torch(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Tensor,
                 opacity_logits: torch.Tensor, camera: Camera, pixel_values: torch.Tensor,
-                options: RasterOptions, dtype: torch.dtype) -> torch.Tensor:
+                options: RasterOptions, dtype: torch.dtype, out: torch.Tensor | None = None) -> torch.Tensor:
     """(H,W,S) per-pixel values -> (N,S) Σ_p w_i(p)·values(p); see :func:`~fourlegs_engine.render.splat`."""
     from .rasterizer import rasterize_forward
     with torch.no_grad():
@@ -92,5 +92,5 @@ def splat_torch(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.
         padded = pixel_values.new_zeros(binning.tiles_y * ts, binning.tiles_x * ts, S)
         padded[:binning.height, :binning.width] = pixel_values
         res = rasterize_forward(geom, geom.new_zeros(geom.shape[0], 0), binning, options,
-                                splat=padded.reshape(-1, S))
+                                splat=padded.reshape(-1, S), splat_out=out)
     return res.splatted

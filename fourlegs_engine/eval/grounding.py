@@ -25,7 +25,7 @@ from ..errors import InputError
 from ..scene.camera import Camera
 from ..scene.scene import Scene
 from .baseline2d import Features2D, ViewPrediction
-from .ground_truth import CoverageVideo, GroundTruth, default_eval_cameras, ensure_ground_truth, scene_labels, \
+from .ground_truth import CoverageVideo, default_eval_cameras, ensure_ground_truth, scene_labels, \
     scene_queries
 from .metrics import METRIC_NAMES, aggregate_views, format_percent, grounding_metrics
 

@@ -169,7 +169,6 @@ class FrameSource:
         return torch.stack([self.frame(k, cam_index) for k in tube_indices(t, self.scene.num_timesteps)])
 
     def _render(self, t: int, cam_index: int) -> torch.Tensor:
-        from ..render import render_frame
         g = self.scene.gaussians
         frame = g.at(t)
         full = self.scene.cameras.cameras(t, self.split)[cam_index]

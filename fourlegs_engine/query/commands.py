@@ -113,7 +113,7 @@ def _open(args: argparse.Namespace):
 
 
 def run_query(args: argparse.Namespace) -> int:
-    from ..errors import InputError, OutputExistsError
+    from ..errors import OutputExistsError
     from ..fileio import write_json_atomic
     from .exr import write_exr
     from .plots import plot_temporal

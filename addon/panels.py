@@ -38,13 +38,17 @@ class FOURLEGS_PT_main(bpy.types.Panel):
         layout.operator("fourlegs.import_scene", text="Import Another", icon="IMPORT")
 
 
-class FOURLEGS_PT_query(bpy.types.Panel):
-    bl_idname = "FOURLEGS_PT_query"
-    bl_label = "Query"
+class _SidebarSubPanel:
+    """Placement shared by the sub-panels of the 4-LEGS sidebar tab."""
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "4-LEGS"
     bl_parent_id = "FOURLEGS_PT_main"
+
+
+class FOURLEGS_PT_query(_SidebarSubPanel, bpy.types.Panel):
+    bl_idname = "FOURLEGS_PT_query"
+    bl_label = "Query"
 
     def draw(self, context):
         layout = self.layout
@@ -72,13 +76,9 @@ class FOURLEGS_PT_query(bpy.types.Panel):
         row.operator("fourlegs.show_relevancy", text="Colours").show = False
 
 
-class FOURLEGS_PT_highlight(bpy.types.Panel):
+class FOURLEGS_PT_highlight(_SidebarSubPanel, bpy.types.Panel):
     bl_idname = "FOURLEGS_PT_highlight"
     bl_label = "Highlight"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "4-LEGS"
-    bl_parent_id = "FOURLEGS_PT_main"
 
     def draw(self, context):
         layout = self.layout
@@ -93,13 +93,9 @@ class FOURLEGS_PT_highlight(bpy.types.Panel):
             layout.label(text=f"Frames {context.scene.frame_start}-{context.scene.frame_end}")
 
 
-class FOURLEGS_PT_render(bpy.types.Panel):
+class FOURLEGS_PT_render(_SidebarSubPanel, bpy.types.Panel):
     bl_idname = "FOURLEGS_PT_render"
     bl_label = "Render"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "4-LEGS"
-    bl_parent_id = "FOURLEGS_PT_main"
 
     def draw(self, context):
         layout = self.layout

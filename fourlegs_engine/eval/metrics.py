@@ -111,8 +111,9 @@ def average_precision(scores: Any, labels: Any, *, zero_division: float = 0.0) -
     tp = np.cumsum(y[order], dtype=np.int64)
     ends = np.append(np.flatnonzero(np.diff(s_sorted)), s.size - 1)  # last item of each tie group
     precision = tp[ends] / (ends + 1.0)
-    recall = tp[ends] / float(positives)
-    return float(np.sum(np.diff(recall, prepend=0.0) * precision))
+    new_positives = np.diff(tp[ends], prepend=0)  # recall step of each tie group, times `positives`
+    # One division at the end keeps a perfect ranking at exactly 1.0 (summing 1/P steps drifts).
+    return float(np.sum(new_positives * precision) / positives)
 
 
 # -------------------------------------------------------------------------------------------- frames

@@ -17,6 +17,8 @@ Dependency choice (Blender 4.2 - 5.0 run Python 3.11 and ship numpy 1.x, so cp31
   ~15 NVIDIA wheels (> 2 GB) that Blender's wheel installer does not resolve. The add-on checks for
   torch on use and tells the user the one command that installs it into Blender's Python; a
   platform-specific build can bundle a torch wheel the user provides with ``--extra-wheel``.
+- not bundled: ``numba`` (+ llvmlite, ~40 MB per platform). It only speeds up the CPU splat the lift
+  uses (:mod:`fourlegs_engine.render.cpu_kernels`); without it the engine takes the torch path.
 - not needed inside Blender: numpy (Blender ships it), matplotlib (the panel draws the s_t curve
   itself), OpenEXR (Blender writes EXR).
 

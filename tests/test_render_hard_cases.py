@@ -190,9 +190,14 @@ def test_float16_features():
     out = rasterize(scene["means"], scene["rotations"], scene["log_scales"], scene["opacity_logits"], CAM,
                     features=f16, outputs=("features",))
     ref = rasterize(scene["means"], scene["rotations"], scene["log_scales"], scene["opacity_logits"], CAM,
-                    features=f16.detach().float(), outputs=("features",))
+                    features=f16.detach().float(), outputs=("features",), options=RasterOptions(cpu_kernel=False))
     assert out["features"].dtype == torch.float32  # blended in the working dtype
     assert torch.equal(out["features"], ref["features"])
+    # without a gradient to track, the fused CPU kernel widens float16 the same way
+    fused = rasterize(scene["means"], scene["rotations"], scene["log_scales"], scene["opacity_logits"], CAM,
+                      features=f16.detach(), outputs=("features",))
+    assert fused["features"].dtype == torch.float32
+    torch.testing.assert_close(fused["features"], ref["features"], rtol=1e-4, atol=1e-5)
     out["features"].square().sum().backward()
     assert f16.grad.dtype == torch.float16 and torch.isfinite(f16.grad).all() and f16.grad.abs().sum() > 0
 

@@ -6,16 +6,22 @@ import pytest
 import torch
 
 from fourlegs_engine.errors import InputError
-from fourlegs_engine.render import RasterOptions, rasterize, splat
+from fourlegs_engine.render import RasterOptions, cpu_kernels, rasterize, splat
 
 from _render_helpers import random_scene, view_cameras
 
 GEOM = ("means", "rotations", "log_scales", "opacity_logits")
 
 
+needs_numba = pytest.mark.skipif(not cpu_kernels.available(), reason="numba is not installed")
+PATHS = [pytest.param(RasterOptions(), id="kernel", marks=needs_numba),
+         pytest.param(RasterOptions(tile_size=8, chunk=5), id="kernel-tile8", marks=needs_numba),
+         pytest.param(RasterOptions(cpu_kernel=False), id="torch"),
+         pytest.param(RasterOptions(tile_size=8, chunk=5, cpu_kernel=False), id="torch-tile8-chunk5")]
+
+
 @pytest.mark.parametrize("cam_index", [0, 3, 4, 5])
-@pytest.mark.parametrize("opts", [RasterOptions(), RasterOptions(tile_size=8, chunk=5)],
-                         ids=["default", "tile8-chunk5"])
+@pytest.mark.parametrize("opts", PATHS)
 def test_splat_equals_the_weights_transpose(cam_index, opts):
     scene = random_scene(120, seed=3)
     cam = view_cameras(29, 21)[cam_index]           # odd size: tile padding is exercised
@@ -30,13 +36,14 @@ def test_splat_equals_the_weights_transpose(cam_index, opts):
     assert ref.abs().sum() > 0
 
 
-def test_splat_is_the_adjoint_of_rendering_features():
+@pytest.mark.parametrize("opts", PATHS)
+def test_splat_is_the_adjoint_of_rendering_features(opts):
     scene = random_scene(80, seed=5, channels=3)
     cam = view_cameras(32, 24)[0]
     v = torch.randn(cam.height, cam.width, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     rendered = rasterize(*(scene[k] for k in GEOM), cam, features=scene["features"], outputs=("features",))
     lhs = (rendered["features"] * v).sum()
-    rhs = (scene["features"] * splat(*(scene[k] for k in GEOM), cam, v)).sum()
+    rhs = (scene["features"] * splat(*(scene[k] for k in GEOM), cam, v, options=opts)).sum()
     torch.testing.assert_close(lhs, rhs, rtol=1e-12, atol=1e-12)
 
 
@@ -73,3 +80,22 @@ def test_splat_accumulates_into_out_across_views():
     torch.testing.assert_close(acc, separate, rtol=1e-12, atol=1e-12)
     with pytest.raises(InputError, match="out"):
         splat(*(scene[k] for k in GEOM), cams[0], vals[0], out=torch.zeros(50, 3))   # float32 != float64
+
+
+@needs_numba
+@pytest.mark.parametrize("tile_size", [4, 16])
+def test_fused_kernel_matches_the_torch_path_where_pixels_saturate(tile_size):
+    """Many opaque, overlapping Gaussians: most pixels stop early (T < 1e-4), α hits the 0.99 cap, and
+    faint fragments fall under 1/255; the fused per-pixel loop must make the same decisions."""
+    scene = random_scene(400, seed=21, dtype=torch.float32)
+    scene["opacity_logits"] = scene["opacity_logits"] + 6.0          # nearly opaque: α capped, early stops
+    cam = view_cameras(37, 23)[1]
+    values = torch.rand(cam.height, cam.width, 129, generator=torch.Generator().manual_seed(4))
+    kernel = splat(*(scene[k] for k in GEOM), cam, values, options=RasterOptions(tile_size=tile_size))
+    reference = splat(*(scene[k] for k in GEOM), cam, values,
+                      options=RasterOptions(tile_size=tile_size, cpu_kernel=False))
+    alpha = rasterize(*(scene[k] for k in GEOM), cam, outputs=("alpha",))["alpha"]
+    assert int((alpha > 0.999).sum()) >= 20                          # many pixels saturate and stop early
+    assert torch.all(torch.isfinite(kernel))
+    torch.testing.assert_close(kernel, reference, rtol=1e-4, atol=1e-4)
+    assert float(reference.abs().sum()) > 1.0

@@ -41,6 +41,8 @@ import math
 import shutil
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -68,6 +70,8 @@ DEFAULT_ITERATIONS = {"optimize": 2000, "lift": 0, "lift+refine": 200}
 #: lift's splat pass: 64-entry chunks are faster for the wide (d+1)-channel splat; same result up to
 #: float32 summation order
 LIFT_RASTER_OPTIONS = RasterOptions(chunk=64)
+#: lift's view accumulators (see :func:`_lift_timestep`)
+LIFT_STREAMS = 2
 
 
 @dataclass
@@ -376,34 +380,68 @@ def _lift_timestep(frame: Any, cameras: Sequence[Any], encoder: FeatureEncoder, 
                    start: float) -> tuple[np.ndarray, TimestepTiming]:
     """``lift`` without materializing the blending weights: one splat pass per view (the transpose
     of rendering, :func:`~fourlegs_engine.render.splat`) accumulates Σ_p w·[teacher, 1] per Gaussian.
-    Equal to :func:`lift_latents` over :func:`view_operator` maps up to float32 summation order."""
+    Equal to :func:`lift_latents` over :func:`view_operator` maps up to float32 summation order.
+
+    Views alternate between :data:`LIFT_STREAMS` accumulators that are summed at the end; with two or
+    more torch threads the streams run concurrently (the per-view work is a long series of small
+    tensor ops that one thread cannot keep two cores busy with). The stream count is fixed, so the
+    summation order, and the result, do not depend on the number of threads.
+    """
     from ..render import splat
-    sums = None  # (N, d+1) Σ_views Σ_p w·[e, 1], accumulated in place by every view's splat
-    w_s = te_s = 0.0
-    for cam, layout, off in zip(cameras, layouts, offsets):
-        view = cam if config.view_scale == 1.0 else cam.scaled(config.view_scale)
-        s = time.perf_counter()
-        teacher = teacher_latents(encoder, layout, feats[off:off + layout.num_crops], config.teacher_stride,
-                                  view.width, view.height)
-        te_s += time.perf_counter() - s
-        s = time.perf_counter()
-        values = torch.cat([teacher, torch.ones(teacher.shape[0], 1)], dim=1).view(view.height, view.width, -1)
-        if sums is None:
-            dtype = frame.means.dtype if frame.means.dtype in (torch.float32, torch.float64) else torch.float32
-            sums = torch.zeros(frame.num_gaussians, values.shape[-1], dtype=dtype, device=frame.means.device)
-        splat(frame.means, frame.rotations, frame.log_scales, frame.opacity_logits, view, values,
-              options=LIFT_RASTER_OPTIONS, out=sums)
-        w_s += time.perf_counter() - s
+    if not cameras:
+        raise InputError(f"timestep {t} has no {config.split} cameras to lift from", field="cameras")
+    views = [(cam if config.view_scale == 1.0 else cam.scaled(config.view_scale), layout, off)
+             for cam, layout, off in zip(cameras, layouts, offsets)]
+    dtype = frame.means.dtype if frame.means.dtype in (torch.float32, torch.float64) else torch.float32
+    width = encoder.dims[-1] + 1
+    sums = [torch.zeros(frame.num_gaussians, width, dtype=dtype, device=frame.means.device)
+            for _ in range(min(LIFT_STREAMS, len(views)))]
+    seconds = [[0.0, 0.0] for _ in sums]  # per stream: splat (weights) s, teacher s
+
+    def stream(k: int) -> None:
+        for view, layout, off in views[k::len(sums)]:
+            s = time.perf_counter()
+            teacher = teacher_latents(encoder, layout, feats[off:off + layout.num_crops], config.teacher_stride,
+                                      view.width, view.height)
+            seconds[k][1] += time.perf_counter() - s
+            s = time.perf_counter()
+            values = torch.cat([teacher, torch.ones(teacher.shape[0], 1)], dim=1).view(view.height, view.width, -1)
+            splat(frame.means, frame.rotations, frame.log_scales, frame.opacity_logits, view, values,
+                  options=LIFT_RASTER_OPTIONS, out=sums[k])
+            seconds[k][0] += time.perf_counter() - s
+
+    threads = torch.get_num_threads()
+    if threads >= 2 and len(sums) > 1:
+        with torch_threads(max(1, threads // len(sums))), ThreadPoolExecutor(len(sums)) as pool:
+            list(pool.map(stream, range(len(sums))))
+    else:
+        for k in range(len(sums)):
+            stream(k)
     s = time.perf_counter()
-    sums = sums.float()
-    num, den = sums[:, :-1], sums[:, -1]
+    total = sums[0]
+    for part in sums[1:]:
+        total += part
+    total = total.float()
+    num, den = total[:, :-1], total[:, -1]
     seen = den > 1e-12
     out = torch.zeros_like(num)
     out[seen] = num[seen] / den[seen, None]
     out = l2_normalize(out)
     lift_s = time.perf_counter() - s
+    w_s, te_s = sum(x[0] for x in seconds), sum(x[1] for x in seconds)
     timing = TimestepTiming(t, time.perf_counter() - start, w_s, te_s, lift_s, 0.0, 0, None)
     return out.numpy(), timing
+
+
+@contextmanager
+def torch_threads(count: int):
+    """Run the block with ``count`` torch intra-op threads, then restore the previous setting."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 # ------------------------------------------------------------------------------------- scene

@@ -177,14 +177,20 @@ def lerp_coefficients(centers_first: float, step: float, count: int,
     return i0, w
 
 
-def _lerp_axis(grid: torch.Tensor, axis: int, i0: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Interpolate ``grid`` along ``axis`` at positions (i0, w): out = (1-w)*g[i0] + w*g[i0+1]."""
-    count = grid.shape[axis]
-    i1 = torch.clamp(i0 + 1, max=count - 1)
-    shape = [1] * grid.dim()
-    shape[axis] = -1
-    # one fused pass (torch.lerp) instead of three; equal up to float rounding
-    return torch.lerp(grid.index_select(axis, i0), grid.index_select(axis, i1), w.to(grid.dtype).view(shape))
+def lerp_matrix(centers_first: float, step: float, count: int, queries: torch.Tensor,
+                dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """The interpolation of :func:`lerp_coefficients` as a dense (m, count) matrix (two taps per row).
+
+    Interpolating along an axis is then one matrix product, which BLAS runs far faster than
+    gathering both neighbours of every query (the grids here have at most a few dozen nodes).
+    """
+    i0, w = lerp_coefficients(centers_first, step, count, queries)
+    m = queries.shape[0]
+    mat = torch.zeros(m, count, dtype=torch.float64, device=queries.device)
+    rows = torch.arange(m, device=queries.device)
+    mat.index_put_((rows, i0), 1.0 - w, accumulate=True)
+    mat.index_put_((rows, torch.clamp(i0 + 1, max=count - 1)), w, accumulate=True)
+    return mat.to(dtype)
 
 
 def interpolate_grid(layout: PyramidLayout, crop_features: torch.Tensor, xs: torch.Tensor,
@@ -199,15 +205,17 @@ def interpolate_grid(layout: PyramidLayout, crop_features: torch.Tensor, xs: tor
         (m_y, m_x, D): mean over scales of the bilinearly interpolated crop features.
     """
     _check_features(layout, crop_features)
-    out = None
+    dtype, D = crop_features.dtype, crop_features.shape[1]
+    along_x, row_weights = [], []
     for g in layout.scales:
-        feats = crop_features[g.offset:g.offset + g.num_crops].view(g.ny, g.nx, -1)
-        iy, wy = lerp_coefficients(g.first_center, g.stride, g.ny, ys.to(torch.float64))
-        ix, wx = lerp_coefficients(g.first_center, g.stride, g.nx, xs.to(torch.float64))
-        rows = _lerp_axis(feats, 0, iy, wy)          # (m_y, nx, D)
-        val = _lerp_axis(rows, 1, ix, wx)            # (m_y, m_x, D)
-        out = val if out is None else out + val
-    return out / len(layout.scales)
+        feats = crop_features[g.offset:g.offset + g.num_crops].view(g.ny, g.nx, D)
+        wx = lerp_matrix(g.first_center, g.stride, g.nx, xs.to(torch.float64), dtype)       # (m_x, nx)
+        along_x.append(torch.matmul(wx, feats))                                              # (ny, m_x, D)
+        row_weights.append(lerp_matrix(g.first_center, g.stride, g.ny, ys.to(torch.float64), dtype))
+    # every scale's y-interpolation and the mean over scales in one product: (m_y, Σny) @ (Σny, m_x·D)
+    rows = torch.cat(row_weights, dim=1) / len(layout.scales)
+    stacked = torch.cat(along_x, dim=0)
+    return torch.matmul(rows, stacked.view(stacked.shape[0], -1)).view(ys.shape[0], xs.shape[0], D)
 
 
 def interpolate_points(layout: PyramidLayout, crop_features: torch.Tensor, xs: torch.Tensor,
@@ -254,10 +262,12 @@ def upsample_to_pixels(values: torch.Tensor, width: int, height: int, stride: in
     """Bilinearly upsample (h, w, C) values sampled by :func:`pixel_features` to (height, width, C)."""
     if stride == 1:
         return values
-    h, w = values.shape[:2]
-    iy, wy = lerp_coefficients((stride - 1) / 2.0, stride, h, torch.arange(height, dtype=torch.float64))
-    ix, wx = lerp_coefficients((stride - 1) / 2.0, stride, w, torch.arange(width, dtype=torch.float64))
-    return _lerp_axis(_lerp_axis(values, 0, iy, wy), 1, ix, wx)
+    h, w, C = values.shape
+    first = (stride - 1) / 2.0
+    wy = lerp_matrix(first, stride, h, torch.arange(height, dtype=torch.float64), values.dtype)   # (H, h)
+    wx = lerp_matrix(first, stride, w, torch.arange(width, dtype=torch.float64), values.dtype)    # (W, w)
+    along_x = torch.matmul(wx, values)                                                            # (h, W, C)
+    return torch.matmul(wy, along_x.view(h, -1)).view(height, width, C)
 
 
 def _check_features(layout: PyramidLayout, crop_features: torch.Tensor) -> None:

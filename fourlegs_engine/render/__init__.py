@@ -10,6 +10,7 @@ Public API::
 See :func:`rasterize` for shapes. ``reference`` holds the straightforward dense implementation used as
 the speed/accuracy baseline.
 """
+from . import cpu_kernels
 from .api import rasterize, render_frame, splat
 from .options import OUTPUT_NAMES, BlendWeights, RasterOptions
 

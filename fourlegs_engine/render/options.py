@@ -42,6 +42,10 @@ class RasterOptions:
             pixels are all saturated (T < transmittance_min) stop early.
         validate: check inputs for NaN/Inf and shapes (one pass over the data; turn off in tight loops
             whose inputs are known to be good).
+        cpu_kernel: on the CPU, when numba is installed and no gradient is tracked, blend (rgb,
+            features, depth, alpha) and :func:`~fourlegs_engine.render.splat` through the fused kernels
+            of :mod:`.cpu_kernels`; ``False`` forces the batched torch path (the reference the
+            kernels are tested against; it also serves gradients, "depth_median" and "weights").
     """
 
     tile_size: int = 4
@@ -54,6 +58,7 @@ class RasterOptions:
     batch_elements: int = 1 << 21
     chunk: int = 32
     validate: bool = True
+    cpu_kernel: bool = True
 
     def check(self) -> "RasterOptions":
         if not (isinstance(self.tile_size, int) and 1 <= self.tile_size <= 256):

@@ -4,6 +4,7 @@ from __future__ import annotations
 import torch
 
 from ..scene.camera import Camera
+from . import cpu_kernels
 from .binning import bin_gaussians
 from .options import BlendWeights, RasterOptions
 from .projection import project_gaussians
@@ -45,10 +46,14 @@ def composite(geom: torch.Tensor, depths: torch.Tensor, binning, *, colors, feat
         values = parts[0] if parts[0].dtype in (dtype, torch.float16, torch.bfloat16) else parts[0].to(dtype)
     else:
         values = torch.cat([p.to(dtype) for p in parts], dim=-1) if parts else geom.new_zeros(N, 0)
-    accum_t, trans_t, median_t, pix, gid, wt = RasterizeTiles.apply(
-        geom, values, binning, options, "depth_median" in outputs, "weights" in outputs)
-    accum = tiles_to_image(accum_t, binning)
-    trans = tiles_to_image(trans_t, binning)  # (H,W,1)
+    want_median, want_weights = "depth_median" in outputs, "weights" in outputs
+    if not (want_median or want_weights) and cpu_kernels.usable(options, geom, values):
+        accum, trans = cpu_kernels.blend_tiles(geom, binning, values, options, dtype)  # (H,W,C), (H,W,1)
+    else:
+        accum_t, trans_t, median_t, pix, gid, wt = RasterizeTiles.apply(
+            geom, values, binning, options, want_median, want_weights)
+        accum = tiles_to_image(accum_t, binning)
+        trans = tiles_to_image(trans_t, binning)  # (H,W,1)
     alpha = 1.0 - trans
     out: dict = {}
     if "rgb" in outputs:
@@ -87,6 +92,11 @@ def splat_torch(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.
         proj = project_gaussians(means, rotations, log_scales, opacity_logits, camera, options, dtype)
         binning = bin_gaussians(proj, camera.width, camera.height, options.tile_size)
         geom = torch.cat([proj.means2d, proj.conics, proj.opacities[:, None]], dim=-1)
+        if cpu_kernels.usable(options, geom, pixel_values):
+            S = pixel_values.shape[-1]
+            if out is None:
+                out = torch.zeros(means.shape[0], S, dtype=dtype)
+            return cpu_kernels.splat_tiles(geom, binning, pixel_values.reshape(-1, S), options, out)
         ts = binning.tile_size
         S = pixel_values.shape[-1]
         padded = pixel_values.new_zeros(binning.tiles_y * ts, binning.tiles_x * ts, S)

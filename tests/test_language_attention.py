@@ -10,7 +10,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from fourlegs_engine.errors import InputError
-from fourlegs_engine.language.attention import (NeighbourhoodAttention, brute_force_knn, knn_indices,
+from fourlegs_engine.language import attention_kernels
+from fourlegs_engine.language.attention import (NeighbourhoodAttention, _attend, brute_force_knn, knn_indices,
                                                 neighbour_blur, smoothness_loss)
 from fourlegs_engine.language.autoencoder import FeatureAutoencoder, l2_normalize, reconstruction_loss
 
@@ -177,3 +178,35 @@ def test_autoencoder_overfits_a_small_set():
     cos = torch.nn.functional.cosine_similarity(r, x, dim=1)
     assert float(cos.mean()) > 0.97
     assert float(loss.detach()) < 0.01
+
+
+@pytest.mark.skipif(not attention_kernels.available(), reason="numba is not installed")
+@pytest.mark.parametrize("n,k", [(1, 1), (37, 5), (200, 20)])
+def test_fused_attention_kernels_match_the_gathered_form_and_gradcheck(n, k):
+    """The numba forward/backward against the gathered torch form (float64), and torch's gradcheck."""
+    g = torch.Generator().manual_seed(n)
+    q = torch.randn(n, 8, generator=g, dtype=torch.float64) * 3.0      # peaked softmax rows too
+    lat = torch.randn(n, 8, generator=g, dtype=torch.float64)
+    nbr = knn_indices(torch.randn(n, 3, generator=g), k)
+    q1, l1 = q.clone().requires_grad_(True), lat.clone().requires_grad_(True)
+    q2, l2 = q.clone().requires_grad_(True), lat.clone().requires_grad_(True)
+    fused = attention_kernels.NeighbourAttend.apply(q1, l1, nbr)
+    gathered = _attend(q2, l2, nbr)
+    torch.testing.assert_close(fused, gathered, rtol=1e-12, atol=1e-12)
+    weights = torch.randn(n, 8, generator=g, dtype=torch.float64)
+    (fused * weights).sum().backward()
+    (gathered * weights).sum().backward()
+    torch.testing.assert_close(q1.grad, q2.grad, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(l1.grad, l2.grad, rtol=1e-10, atol=1e-10)
+    if n <= 40:
+        assert torch.autograd.gradcheck(lambda a, b: attention_kernels.NeighbourAttend.apply(a, b, nbr),
+                                        (q.clone().requires_grad_(True), lat.clone().requires_grad_(True)))
+
+
+@pytest.mark.skipif(not attention_kernels.available(), reason="numba is not installed")
+def test_fused_attention_is_stable_for_huge_logits():
+    nbr = knn_indices(torch.randn(6, 3, generator=torch.Generator().manual_seed(0)), 3)
+    lat = torch.full((6, 4), 1e18)
+    out = attention_kernels.NeighbourAttend.apply(torch.full((6, 4), 1e18), lat, nbr)
+    assert torch.isfinite(out).all()
+    torch.testing.assert_close(out, lat)

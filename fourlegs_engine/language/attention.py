@@ -110,40 +110,62 @@ class NeighbourhoodAttention(nn.Module):
             self.out.bias.zero_()
         return self
 
-    def forward(self, latents: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
-        """latents (N,d), neighbours (N,k) int64 -> smoothed latents (N,d)."""
+    def forward(self, latents: torch.Tensor, neighbours: torch.Tensor,
+                rows: torch.Tensor | None = None) -> torch.Tensor:
+        """latents (N,d), neighbours (N,k) int64 -> smoothed latents (N,d), or (R,d) for the Gaussians
+        ``rows`` (R,) only (an optimizer step that renders one view needs just the Gaussians it sees).
+
+        Computed in an equivalent form that gathers each neighbourhood once instead of twice:
+        q_i·k_j = (W_kᵀq_i)·l_j + q_i·b_k, and the second term is constant over j, so the softmax
+        only needs q̃_i = W_kᵀq_i against the raw latents; Σ_j a_ij v_j = W_v(Σ_j a_ij l_j) + b_v
+        because the weights sum to 1.
+        """
         if latents.dim() != 2 or latents.shape[1] != self.dim:
             raise InputError(f"latents have shape {tuple(latents.shape)}, expected (N,{self.dim})",
                              field="latents")
         if neighbours.shape[0] != latents.shape[0]:
             raise InputError(f"{neighbours.shape[0]} neighbour rows for {latents.shape[0]} latents",
                              field="neighbours")
-        n = latents.shape[0]
-        if n == 0:
+        if latents.shape[0] == 0:
             return latents.clone()
-        q, key, val = self.q(latents), self.k(latents), self.v(latents)
-        if n <= self.chunk:
-            mixed = _attend(q, key, val, neighbours)
+        source, nbr = latents, neighbours
+        if rows is not None:
+            source, nbr = latents.index_select(0, rows), neighbours.index_select(0, rows)
+        q_tilde = (self.q(source) @ self.k.weight) / math.sqrt(self.dim)         # (R,d)
+        return self.out(self.v(neighbour_attend(q_tilde, latents, nbr, chunk=self.chunk)))
+
+
+def neighbour_attend(q_tilde: torch.Tensor, latents: torch.Tensor, neighbours: torch.Tensor,
+                     chunk: int = 16384) -> torch.Tensor:
+    """Σ_j softmax_j(q̃_i·l_j) l_j over each row's neighbours: (N,d), (N,d), (N,k) -> (N,d).
+
+    On the CPU with numba the fused kernels of :mod:`.attention_kernels` do it without materializing
+    the (N,k,d) neighbourhood tensors (forward and backward); otherwise (and as their test reference)
+    the gathered form runs in chunks of ``chunk`` rows with activation checkpointing.
+    """
+    from . import attention_kernels
+
+    if attention_kernels.usable(q_tilde, latents):
+        return attention_kernels.NeighbourAttend.apply(q_tilde, latents, neighbours)
+    n = q_tilde.shape[0]
+    if n <= chunk:
+        return _attend(q_tilde, latents, neighbours)
+    parts = []
+    for s in range(0, n, chunk):
+        sl = slice(s, min(n, s + chunk))
+        if torch.is_grad_enabled():
+            parts.append(checkpoint(_attend, q_tilde[sl], latents, neighbours[sl], use_reentrant=False))
         else:
-            parts = []
-            for s in range(0, n, self.chunk):
-                sl = slice(s, min(n, s + self.chunk))
-                if torch.is_grad_enabled():
-                    parts.append(checkpoint(_attend, q[sl], key, val, neighbours[sl], use_reentrant=False))
-                else:
-                    parts.append(_attend(q[sl], key, val, neighbours[sl]))
-            mixed = torch.cat(parts, 0)
-        return self.out(mixed)
+            parts.append(_attend(q_tilde[sl], latents, neighbours[sl]))
+    return torch.cat(parts, 0)
 
 
-def _attend(q: torch.Tensor, key: torch.Tensor, val: torch.Tensor, nbr: torch.Tensor) -> torch.Tensor:
-    """q (n,d) of the chunk; key/val (N,d) of all; nbr (n,k) -> (n,d)."""
+def _attend(q_tilde: torch.Tensor, latents: torch.Tensor, nbr: torch.Tensor) -> torch.Tensor:
+    """q̃ (n,d) of the chunk; latents (N,d) of all; nbr (n,k) -> (n,d)."""
     n, k = nbr.shape
-    flat = nbr.reshape(-1)
-    k_n = key.index_select(0, flat).view(n, k, -1)                 # (n,k,d); backward is an index_add
-    logits = torch.bmm(k_n, q.unsqueeze(2)).squeeze(2) / math.sqrt(q.shape[-1])
-    weights = torch.softmax(logits, dim=-1)                        # stable (max-subtracted) softmax
-    return torch.bmm(weights.unsqueeze(1), val.index_select(0, flat).view(n, k, -1)).squeeze(1)
+    l_n = latents.index_select(0, nbr.reshape(-1)).view(n, k, -1)        # (n,k,d); backward is an index_add
+    weights = torch.softmax(torch.bmm(l_n, q_tilde.unsqueeze(2)).squeeze(2), dim=-1)  # max-subtracted softmax
+    return torch.bmm(weights.unsqueeze(1), l_n).squeeze(1)
 
 
 def neighbour_blur(latents: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:

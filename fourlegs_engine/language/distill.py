@@ -184,7 +184,8 @@ class ViewOperator:
     """Rendering of per-Gaussian features for one view with frozen geometry, as sparse matrices.
 
     ``render(L)`` = A @ L with A (P×N), A[p,i] = α_i T_i at pixel p — what the rasterizer's
-    ``features`` output computes (background 0) — and ``splat(E)`` = Aᵀ @ E.
+    ``features`` output computes (background 0) — and ``splat(E)`` = Aᵀ @ E. Only the Gaussians the
+    view sees (``columns``, sorted ids) are stored; :meth:`render_columns` takes their values directly.
     """
 
     def __init__(self, pixel: torch.Tensor, gaussian: torch.Tensor, weight: torch.Tensor, num_pixels: int,
@@ -195,13 +196,14 @@ class ViewOperator:
         if pixel.numel() > 1 and not bool((pixel[1:] >= pixel[:-1]).all()):  # the rasterizer's rows are sorted
             order = torch.argsort(pixel, stable=True)
             pixel, gaussian, weight = pixel[order], gaussian[order], weight[order]
+        self.columns = torch.unique(gaussian)                              # (C,) sorted ids seen by the view
+        column = torch.searchsorted(self.columns, gaussian)
+        C = int(self.columns.numel())
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            self.A = torch.sparse_csr_tensor(_crow(pixel, num_pixels), gaussian, weight,
-                                             (num_pixels, num_gaussians))
-            by_g = torch.argsort(gaussian, stable=True)
-            self.At = torch.sparse_csr_tensor(_crow(gaussian[by_g], num_gaussians), pixel[by_g], weight[by_g],
-                                              (num_gaussians, num_pixels))
+            self.A = torch.sparse_csr_tensor(_crow(pixel, num_pixels), column, weight, (num_pixels, C))
+            by_c = torch.argsort(column, stable=True)
+            self.At = torch.sparse_csr_tensor(_crow(column[by_c], C), pixel[by_c], weight[by_c], (C, num_pixels))
         self.weight_sum = torch.bincount(gaussian, weights=weight.double(), minlength=num_gaussians).float()
         self.nnz = int(weight.numel())
 
@@ -212,11 +214,17 @@ class ViewOperator:
 
     def render(self, latents: torch.Tensor) -> torch.Tensor:
         """(N,d) -> (P,d), differentiable w.r.t. the latents."""
-        return _SparseRender.apply(latents, self)
+        return _SparseRender.apply(latents.index_select(0, self.columns), self)
+
+    def render_columns(self, values: torch.Tensor) -> torch.Tensor:
+        """(C,d) values of the ``columns`` Gaussians -> (P,d), differentiable."""
+        return _SparseRender.apply(values, self)
 
     def splat(self, values: torch.Tensor) -> torch.Tensor:
         """(P,d) -> (N,d): Σ_p w_i(p) values(p)."""
-        return self.At @ values
+        out = values.new_zeros(self.num_gaussians, values.shape[1])
+        out[self.columns] = self.At @ values
+        return out
 
 
 def _crow(sorted_rows: torch.Tensor, num_rows: int) -> torch.Tensor:
@@ -304,20 +312,23 @@ def optimize_latents(ops: Sequence[ViewOperator], teachers: Sequence[torch.Tenso
         groups.append({"params": list(attention.parameters()), "lr": config.lr_attention})
     opt = torch.optim.Adam(groups, eps=1e-15)
 
-    def smooth(x: torch.Tensor) -> torch.Tensor:
+    def smooth(x: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """Smoothed latents of all Gaussians (N,d), or of ``rows`` only (R,d)."""
         if config.smoothing == "attention":
             # refining a lift: residual attention that starts as the identity
-            return x + attention(x, neighbours) if init is not None else attention(x, neighbours)
+            mixed = attention(x, neighbours, rows)
+            return (x if rows is None else x.index_select(0, rows)) + mixed if init is not None else mixed
         if config.smoothing == "blur":
-            return neighbour_blur(x, neighbours)
-        return x
+            return neighbour_blur(x, neighbours if rows is None else neighbours.index_select(0, rows))
+        return x if rows is None else x.index_select(0, rows)
 
     k = min(config.views_per_iteration, len(ops))
     loss_value = None
     for _ in range(config.num_iterations):
         views = rng.choice(len(ops), size=k, replace=False)
-        smoothed = smooth(latents)
-        loss = sum((ops[v].render(smoothed) - teachers[v]).abs().mean() for v in views) / k
+        # a view's loss depends only on the Gaussians it sees: smooth just those (same gradient)
+        loss = sum((ops[v].render_columns(smooth(latents, ops[v].columns)) - teachers[v]).abs().mean()
+                   for v in views) / k
         if config.smoothness > 0:
             loss = loss + config.smoothness * smoothness_loss(latents, neighbours)
         opt.zero_grad(set_to_none=True)

@@ -40,7 +40,7 @@ def headless_argv(args: argparse.Namespace) -> list[str]:
     """Re-create the command line of the headless job from parsed ``fourlegs highlight`` arguments."""
     argv = [] if args.scene is None else [args.scene]
     argv += [args.query, "--demo-size", args.demo_size, "--preset", args.preset, "-o", args.output, "--format", args.format,
-             "--query-path", args.query_path]
+             "--query-path", args.query_path, "--spatial", args.spatial]
     if args.encoder != "auto":  # "auto" is the default, not one of the encoder choices
         argv += ["--encoder", args.encoder]
     if args.demo:

@@ -39,6 +39,11 @@ OUTPUT_NAMES = {"video": "highlight.mp4", "blend": "highlight.blend", "plan": "p
                 "report": "report.json", "plot": "scores.png"}
 
 
+#: the main job's query paths (measured against the exact ones in docs/bench/accuracy_time_bench.md)
+DEFAULT_QUERY_PATH = "exact"
+DEFAULT_SPATIAL = "exact"
+
+
 def build_parser(parser: Optional[argparse.ArgumentParser] = None) -> argparse.ArgumentParser:
     """The options of the main job (shared with ``fourlegs highlight``)."""
     from ._engine import engine_module
@@ -62,8 +67,13 @@ def build_parser(parser: Optional[argparse.ArgumentParser] = None) -> argparse.A
     p.add_argument("--format", default="MP4", choices=("MP4", "PNG", "EXR"), help="video or image sequence")
     p.add_argument("--no-effect", action="append", default=[], metavar="EFFECT",
                    help="leave out the preset's shots with this effect (repeatable)")
-    p.add_argument("--query-path", default="exact", choices=("exact", "codebook"),
-                   help="per-Gaussian relevancy path of the query engine (default exact)")
+    p.add_argument("--query-path", default=DEFAULT_QUERY_PATH, choices=("exact", "codebook"),
+                   help="per-Gaussian relevancy path of the query engine (default %(default)s; see "
+                        "`fourlegs bench accuracy-time` for what each costs and scores)")
+    p.add_argument("--spatial", default=DEFAULT_SPATIAL, choices=("exact", "fast"),
+                   help="relevancy maps for the best view and the action centre: exact (128-channel render, "
+                        "per-pixel decode, paper) or fast (1-channel per-Gaussian relevancy render); "
+                        "default %(default)s")
     engine_module("language.encoders").add_encoder_arguments(p, default="auto")
     return p
 
@@ -164,7 +174,8 @@ def open_query_engine(args: argparse.Namespace, scene: Any):
     from ._engine import engine_module
 
     field = engine_module("language.field").LanguageField.open(scene.root)
-    return engine_module("query.engine").QueryEngine(scene, field, text_encoder(args, scene), path=args.query_path)
+    return engine_module("query.engine").QueryEngine(scene, field, text_encoder(args, scene), path=args.query_path,
+                                                     spatial=getattr(args, "spatial", DEFAULT_SPATIAL))
 
 
 def write_scores_plot(path: Path, scores: Sequence[float], positive: Sequence[bool], segment, peak,
@@ -390,6 +401,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "shots": [{"name": s["name"], "effect": s["effect"], "frames": [s["frame_start"], s["frame_end"]]}
                   for s in plan["shots"]],
         "localization": loc, "passes": plan.get("passes"), "messages": plan.get("messages", []),
+        "query_paths": {"temporal": args.query_path, "spatial": getattr(args, "spatial", DEFAULT_SPATIAL)},
         "query_stats": dict(engine.stats) if engine is not None else {},
         "render": render_info, "timings_s": timer.timings,
         "total_seconds": round(time.perf_counter() - started, 3),

@@ -39,6 +39,12 @@ def test_exact_temporal_matches_float64_oracle(setup):
     assert eng.stats["decoded_latents"] == scene.num_timesteps * scene.num_gaussians
     np.testing.assert_allclose(eng.gaussian_relevancy(Q, 1).numpy(), oracle_relevancy(field, enc, Q)[1],
                                atol=2e-3)
+    # the per-Gaussian scores of the temporal pass are reused, not decoded again, and equal a fresh decode
+    assert eng.stats["decoded_latents"] == scene.num_timesteps * scene.num_gaussians
+    fresh = QueryEngine(scene, field, enc, chunk=17)
+    for t in range(scene.num_timesteps):
+        np.testing.assert_array_equal(eng.gaussian_relevancy(Q, t).numpy(), fresh.gaussian_relevancy(Q, t).numpy())
+    assert fresh.stats["decoded_latents"] == scene.num_timesteps * scene.num_gaussians
 
 
 def test_codebook_path_equals_exact_and_never_decodes_latents(setup, tmp_path):

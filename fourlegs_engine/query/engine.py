@@ -39,6 +39,7 @@ __all__ = ["QueryEngine", "TemporalResult", "Localization", "ViewResult", "Centr
 NEEDS = frozenset({"temporal", "best_view", "action_centre"})
 DEFAULT_CODEBOOK_SIZE = 4096
 GAUSSIAN_CACHE_SIZE = 16  # per-Gaussian relevancy vectors (query, t) kept for reuse
+TEMPORAL_SCORE_BYTES = 512 << 20  # exact temporal scores (T·N float32 per query) kept for per-frame reuse
 
 
 class QueryEngine:
@@ -113,6 +114,8 @@ class QueryEngine:
         self._code_scores: dict[str, torch.Tensor] = {}
         self._background_score: dict[str, float] = {}
         self._gaussian_cache: dict[tuple[str, int], torch.Tensor] = {}
+        # per-Gaussian scores the exact temporal pass already computed: query -> {t: (N,) row}
+        self._temporal_scores: dict[str, dict[int, np.ndarray]] = {}
 
     # ------------------------------------------------------------------ embeddings
     @property
@@ -210,6 +213,8 @@ class QueryEngine:
         key = (query, int(t))
         if key in self._gaussian_cache:  # e.g. one fast map per camera in a best-view search
             return self._gaussian_cache[key]
+        if int(t) in self._temporal_scores.get(query, {}):  # decoded once by the temporal pass
+            return torch.from_numpy(self._temporal_scores[query][int(t)])
         if self.scene.num_gaussians == 0:
             out = torch.zeros(0)
         elif self.path == "codebook":
@@ -221,6 +226,25 @@ class QueryEngine:
         while len(self._gaussian_cache) > GAUSSIAN_CACHE_SIZE:
             self._gaussian_cache.pop(next(iter(self._gaussian_cache)))
         return out
+
+    def _gaussian_relevancy_many(self, queries: list[str], t: int) -> torch.Tensor:
+        """(N,Q) float32 relevancy of every Gaussian at ``t`` for several queries; the latents of
+        ``t`` are decoded at most once for all queries not already cached."""
+        missing = [q for q in dict.fromkeys(queries) if (q, int(t)) not in self._gaussian_cache
+                   and int(t) not in self._temporal_scores.get(q, {})]
+        if self.path == "exact" and len(missing) > 1 and self.scene.num_gaussians:
+            lat = self._read_latents(int(t))
+            qs = torch.stack([self.embed_query(q) for q in missing])
+            scores = torch.cat([self._score_many(self._decode(lat[s:s + self.chunk]), qs)
+                                for s in range(0, lat.shape[0], self.chunk)])           # (N, len(missing))
+            self.stats["decoded_latents"] += int(lat.shape[0])
+            for j, q in enumerate(missing):
+                self._gaussian_cache[(q, int(t))] = scores[:, j].contiguous()
+            while len(self._gaussian_cache) > max(GAUSSIAN_CACHE_SIZE, len(missing)):
+                self._gaussian_cache.pop(next(iter(self._gaussian_cache)))
+        if not queries:
+            return torch.zeros(self.scene.num_gaussians, 0)
+        return torch.stack([self._gaussian_relevancy(q, t).to(torch.float32) for q in queries], 1)
 
     # ------------------------------------------------------------------ temporal
     def temporal(self, query: str, *, stride: Optional[int] = None) -> TemporalResult:
@@ -251,6 +275,13 @@ class QueryEngine:
                     scores[:, i, s:s + self.chunk] = self._score_many(self._decode(lat[s:s + self.chunk]), qs).T.numpy()
                 self.stats["decoded_latents"] += N
             stats = [counts_from_relevancy(scores[j]) for j in range(Q)]
+            per_query = len(ts) * N * 4
+            for j, q in enumerate(queries if per_query <= TEMPORAL_SCORE_BYTES else []):
+                # later per-timestep lookups (fast maps, desaturation frames) reuse them
+                self._temporal_scores.pop(q, None)
+                self._temporal_scores[q] = {int(t): scores[j, i] for i, t in enumerate(ts)}
+                while len(self._temporal_scores) * per_query > TEMPORAL_SCORE_BYTES:
+                    self._temporal_scores.pop(next(iter(self._temporal_scores)))
         return [localize_counts(c, ts, T, dilation=self.dilation, r_avg=a, num_relevant=n, query=q,
                                 num_gaussians=N) for q, (c, a, n) in zip(queries, stats)]
 
@@ -319,7 +350,7 @@ class QueryEngine:
             return {k: empty[k] for k in outputs}
         render_outputs = ("features", "alpha") + (("depth",) if "depth" in outputs else ())
         if fast:
-            per_gaussian = torch.stack([self._gaussian_relevancy(q, t).to(torch.float32) for q in queries], 1)
+            per_gaussian = self._gaussian_relevancy_many(list(queries), t)
             out = self._rasterize(t, cam, per_gaussian, render_outputs)
             self.stats["render_relevancy"] += 1
             alpha = out["alpha"].reshape(H, W)

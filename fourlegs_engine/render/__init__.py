@@ -14,4 +14,4 @@ from . import cpu_kernels
 from .api import rasterize, render_frame, splat
 from .options import OUTPUT_NAMES, BlendWeights, RasterOptions
 
-__all__ = ["rasterize", "render_frame", "splat", "RasterOptions", "BlendWeights", "OUTPUT_NAMES"]
+__all__ = ["rasterize", "render_frame", "splat", "RasterOptions", "BlendWeights", "OUTPUT_NAMES", "cpu_kernels"]

@@ -71,7 +71,12 @@ def _slot_channelbag(id_data: bpy.types.ID, action: bpy.types.Action):
         if slot is None:
             slot = action.slots.new(id_type=id_data.id_type, name=id_data.name)
             ad.action_slot = slot
-        return anim_utils.action_ensure_channelbag_for_slot(action, slot)
+        if hasattr(anim_utils, "action_ensure_channelbag_for_slot"):  # Blender 5.0+
+            return anim_utils.action_ensure_channelbag_for_slot(action, slot)
+        # 4.4 / 4.5: slotted actions without the helper: layer -> keyframe strip -> channelbag
+        layer = action.layers[0] if len(action.layers) else action.layers.new("Layer")
+        strip = layer.strips[0] if len(layer.strips) else layer.strips.new(type="KEYFRAME")
+        return strip.channelbag(slot, ensure=True)
     return action  # Blender < 4.4: Action.fcurves
 
 

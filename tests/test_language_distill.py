@@ -101,7 +101,7 @@ def test_view_operator_matches_the_rasterizer_values_and_gradients(prepared):
     (gm,) = torch.autograd.grad((mine * g).sum(), feats)
     torch.testing.assert_close(gm, gr, atol=1e-5, rtol=1e-5)
     # background pixels render zero; weights per pixel sum to alpha <= 1
-    alpha = op.A @ torch.ones(frame.num_gaussians, 1)
+    alpha = op.render(torch.ones(frame.num_gaussians, 1))
     assert float(alpha.max()) <= 1.0 + 1e-6
 
 

@@ -622,7 +622,7 @@ def render_fidelity(reference: list[tuple[ViewOperator, torch.Tensor]], latents:
     l1s, coss = [], []
     for op, teacher in reference:
         rendered = op.render(latents)
-        alpha = op.A @ torch.ones(op.num_gaussians, 1)
+        alpha = op.render(torch.ones(op.num_gaussians, 1))
         covered = alpha[:, 0] > min_alpha
         if not covered.any():
             continue

@@ -53,6 +53,9 @@ def register_bench(bench_subparsers: Any) -> None:
     p.add_argument("--json", metavar="PATH", help="results JSON (default OUT/accuracy_time.json)")
     p.add_argument("--out", metavar="DIR", help="output directory (default <bundle>/bench/accuracy_time)")
     p.add_argument("--skip", default="", help="comma-separated knob groups to skip (e.g. distill,knn)")
+    p.add_argument("--distill-iterations", default="25,100",
+                   help="optimize iteration counts of the distillation rows, comma-separated (default 25,100; "
+                        "the paper uses 2000, affordable on the tiny scene)")
     p.add_argument("--distill-timesteps", type=int, default=0,
                    help="distillation variants: distil every k-th timestep only (0: automatic)")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")

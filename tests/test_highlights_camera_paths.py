@@ -184,8 +184,12 @@ def test_property_orbit_is_proper_finite_and_continuous(centre, eye, q, arc, rs,
     coarse = max(rotation_angle(a.rotation, b.rotation) for a, b in zip(poses, poses[1:]))
     fine_poses = _orbit(start, centre, arc, rs, hs, 121)
     fine = max(rotation_angle(a.rotation, b.rotation) for a, b in zip(fine_poses, fine_poses[1:]))
-    assert fine <= 0.6 * coarse + 1e-7
-    assert coarse < 0.5
+    # halving the step shrinks the largest step (≈ 0.5x, more where the turn rate varies fast near the
+    # centre); a flip would keep it at the flip's size
+    assert fine <= 0.75 * coarse + 1e-7
+    # and steps stay small unless the path runs close to the centre, where aiming turns quickly
+    closest = min(np.linalg.norm(p.position - centre) for p in fine_poses)
+    assert coarse < 0.5 or closest < 0.3 * np.linalg.norm(rel)
 
 
 @given(a=unit_quat, b=unit_quat)

@@ -34,6 +34,26 @@ def available() -> bool:
     return numba is not None
 
 
+def _tile_pixels_py(tile, tiles_x, tile_size, width, height, rows, lxs, lys, transmittance):  # pragma: no cover
+    """Pack the pixels of ``tile`` that lie inside the image: their row in the (H·W) image, their
+    tile-local centre (x + 0.5, y + 0.5) and T = 1. Returns how many there are."""
+    x0 = (tile % tiles_x) * tile_size
+    y0 = (tile // tiles_x) * tile_size
+    live = 0
+    for py in range(tile_size):
+        for px in range(tile_size):
+            if y0 + py < height and x0 + px < width:
+                rows[live] = (y0 + py) * width + x0 + px
+                lxs[live] = px + 0.5
+                lys[live] = py + 0.5
+                transmittance[live] = 1.0
+                live += 1
+    return live
+
+
+_tile_pixels = numba.njit(nogil=True, cache=True, inline="always")(_tile_pixels_py) if numba is not None else None
+
+
 def _blend_tiles_py(tiles, coef, gids, tile_offsets, tiles_x, tile_size, width, height, values, alpha_floor,
                     alpha_max, transmittance_min, accum, transmittance_out):  # pragma: no cover - numba
     """accum[p] += Σ_g w_g(p)·values[g] and transmittance_out[p] = T after blending, for the pixels of
@@ -56,18 +76,8 @@ def _blend_tiles_py(tiles, coef, gids, tile_offsets, tiles_x, tile_size, width, 
         end = tile_offsets[tile + 1]
         if start == end:
             continue
-        x0 = (tile % tiles_x) * tile_size
-        y0 = (tile // tiles_x) * tile_size
-        live = 0
-        for py in range(tile_size):
-            for px in range(tile_size):
-                if y0 + py < height and x0 + px < width:
-                    rows[live] = (y0 + py) * width + x0 + px
-                    lxs[live] = px + 0.5
-                    lys[live] = py + 0.5
-                    transmittance[live] = 1.0
-                    stopped[live] = False
-                    live += 1
+        live = _tile_pixels(tile, tiles_x, tile_size, width, height, rows, lxs, lys, transmittance)
+        stopped[:live] = False
         saturated = 0
         for m in range(start, end):
             c0, c1, c2, c3, c4, c5 = coef[m, 0], coef[m, 1], coef[m, 2], coef[m, 3], coef[m, 4], coef[m, 5]
@@ -130,17 +140,7 @@ def _splat_tiles_py(coef, gids, tile_offsets, tiles_x, tile_size, width, height,
         end = tile_offsets[tile + 1]
         if start == end:
             continue
-        x0 = (tile % tiles_x) * tile_size
-        y0 = (tile // tiles_x) * tile_size
-        live = 0  # pixels of this tile inside the image, packed first
-        for py in range(tile_size):
-            for px in range(tile_size):
-                if y0 + py < height and x0 + px < width:
-                    rows[live] = (y0 + py) * width + x0 + px
-                    lxs[live] = px + 0.5
-                    lys[live] = py + 0.5
-                    transmittance[live] = 1.0
-                    live += 1
+        live = _tile_pixels(tile, tiles_x, tile_size, width, height, rows, lxs, lys, transmittance)
         for m in range(start, end):
             c0, c1, c2, c3, c4, c5 = coef[m, 0], coef[m, 1], coef[m, 2], coef[m, 3], coef[m, 4], coef[m, 5]
             touched = False

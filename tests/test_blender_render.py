@@ -34,7 +34,9 @@ def _render_passes(bl, frame: int, path) -> dict[str, np.ndarray]:
     scene = bl.context.scene
     scene.frame_set(frame)
     bl.ops.render.render()
-    scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    if hasattr(scene.render.image_settings, "media_type"):  # Blender 5.0+
+        scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    scene.render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
     bl.data.images["Render Result"].save_render(str(path))
     out = {}
     for part in OpenEXR.File(str(path)).parts:

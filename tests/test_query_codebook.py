@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from fourlegs_engine.query import codebook as cb
@@ -79,3 +80,81 @@ def test_lookup_temporal_counts_equal_exact_counts_when_codes_are_exact():
     coded = counts_from_code_histogram(score(book.centroids.astype(np.float64)), book.histogram)
     np.testing.assert_array_equal(exact[0], coded[0])
     assert exact[2] == coded[2]
+
+
+# ----------------------------------------------------------------------------- exact re-scoring near thresholds
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from fourlegs_engine.query.temporal import counts_from_codes_refined  # noqa: E402
+
+
+def _coded_problem(seed: int, S: int = 6, N: int = 300, K: int = 12):
+    """Codes (S,N), code scores (K,), exact per-Gaussian scores near their code's score, histogram."""
+    rng = np.random.default_rng(seed)
+    codes = rng.integers(0, K, size=(S, N))
+    code_scores = rng.uniform(0.3, 0.8, size=K)
+    exact = np.clip(code_scores[codes] + rng.normal(scale=0.03, size=(S, N)), 0, 1)
+    hist = np.stack([np.bincount(codes[t], minlength=K) for t in range(S)]).astype(np.int32)
+    return codes, code_scores, exact, hist
+
+
+def _rescorer(codes, exact, calls):
+    def rescore(which):
+        calls.append(np.asarray(which))
+        mask = np.isin(codes, which)
+        rows, _ = np.nonzero(mask)
+        return rows, exact[mask]
+    return rescore
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000))
+def test_refined_counts_with_full_margin_equal_exact_counts(seed):
+    codes, code_scores, exact, hist = _coded_problem(seed)
+    got = counts_from_codes_refined(code_scores, hist, _rescorer(codes, exact, []), 1.0)
+    want = counts_from_relevancy(torch.from_numpy(exact))
+    np.testing.assert_array_equal(got[0], want[0])
+    assert got[1] == pytest.approx(want[1], abs=1e-12) and got[2] == want[2] and got[3] == codes.size
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000))
+def test_refined_counts_with_zero_margin_equal_lookup(seed):
+    codes, code_scores, _, hist = _coded_problem(seed)
+    calls = []
+    got = counts_from_codes_refined(code_scores, hist, _rescorer(codes, None, calls), 0.0)
+    want = counts_from_code_histogram(code_scores, hist)
+    np.testing.assert_array_equal(got[0], want[0])
+    assert got[1] == pytest.approx(want[1]) and got[2] == want[2] and got[3] == 0 and not calls
+
+
+def test_refined_counts_rescore_only_codes_near_the_thresholds():
+    codes, code_scores, exact, hist = _coded_problem(7, K=40)
+    calls = []
+    counts, r_avg, n_rel, rescored = counts_from_codes_refined(code_scores, hist, _rescorer(codes, exact, calls),
+                                                               0.02)
+    done = np.concatenate(calls)
+    assert len(np.unique(done)) == len(done)  # no code is re-scored twice
+    near = (np.abs(code_scores - 0.5) < 0.02) | (np.abs(code_scores - r_avg) < 0.02)
+    assert set(np.nonzero(near)[0]) <= set(done.tolist())  # every code near a final threshold is exact
+    assert 0 < rescored == np.isin(codes, done).sum() < codes.size
+    # the result is the exact counting of a hybrid score array: exact where re-scored, code score elsewhere
+    hybrid = np.where(np.isin(codes, done), exact, code_scores[codes])
+    np.testing.assert_array_equal(counts, counts_from_relevancy(torch.from_numpy(hybrid))[0])
+
+
+def test_members_index_lists_each_codes_gaussians(tmp_path):
+    rng = np.random.default_rng(3)
+    lat = rng.normal(size=(5, 90, 4)).astype(np.float32)
+    book = cb.build_codebook(lat, 16, out_dir=tmp_path)
+    codes = np.asarray(book.codes, dtype=np.int64)
+    for k in (0, 5, 15):
+        np.testing.assert_array_equal(book.members_of(np.array([k])), np.flatnonzero(codes.reshape(-1) == k))
+    np.testing.assert_array_equal(book.members_of(np.array([2, 9])),
+                                  np.flatnonzero(np.isin(codes.reshape(-1), [2, 9])))
+    assert (tmp_path / "members_16.npy").is_file()
+    (tmp_path / "members_16.npy").unlink()  # a codebook stored before the index existed
+    legacy = cb.load_codebook(tmp_path, 16, lat)
+    assert legacy.members is None
+    np.testing.assert_array_equal(legacy.members_of(np.array([5])), np.flatnonzero(codes.reshape(-1) == 5))

@@ -159,3 +159,26 @@ def test_negative_phrases_suppress_an_absent_query(setup):
     enc.table["a ball"] = dirs[4]
     neg = QueryEngine(scene, field, enc, negatives=["a ball"]).gaussian_relevancy("a dog", 1)
     assert plain.max() > 0.5 and neg.max() < 0.5
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+def test_codebook_refine_full_margin_equals_exact_path(setup, tmp_path, stride):
+    scene, field, enc, _ = setup
+    exact = QueryEngine(scene, field, enc, temporal_stride=stride).temporal(Q)
+    coarse = QueryEngine(scene, field, enc, path="codebook", codebook_size=2, codebook_dir=tmp_path,
+                         temporal_stride=stride, codebook_refine=1.0)
+    res = coarse.temporal(Q)
+    np.testing.assert_allclose(res.scores, exact.scores, atol=1e-12)
+    assert res.segment == exact.segment and res.r_avg == pytest.approx(exact.r_avg, abs=1e-6)
+    T, N = scene.num_timesteps, scene.num_gaussians
+    assert coarse.stats["rescored_latents"] == len(range(0, T, stride)) * N  # only the scored timesteps
+
+
+def test_codebook_refine_margin_zero_decodes_nothing_and_bad_margin_is_refused(setup, tmp_path):
+    scene, field, enc, _ = setup
+    eng = QueryEngine(scene, field, enc, path="codebook", codebook_size=2, codebook_dir=tmp_path)
+    eng.temporal(Q)
+    assert eng.stats["rescored_latents"] == 0 and eng.stats["decoded_latents"] == 0
+    for bad in (-0.1, 2.0, float("nan")):
+        with pytest.raises(InputError, match="refine"):
+            QueryEngine(scene, field, enc, path="codebook", codebook_refine=bad)

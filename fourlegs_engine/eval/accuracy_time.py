@@ -87,6 +87,7 @@ class HeldField:
         self.latents = latents
         self.canonical_phrases = base.canonical_phrases
         self.encoder_name = base.encoder_name
+        self.decoder = getattr(base, "decoder", None)
 
     def decode(self, z) -> torch.Tensor:
         return self.base.decode(z)
@@ -177,11 +178,18 @@ def variants(skip: Sequence[str]) -> list[Variant]:
     rows = [Variant("reference", "exact", {})]
     rows += [Variant("codebook", f"codebook K={k}", {"path": "codebook", "codebook_size": k})
              for k in (65536, 4096, 256)]
+    # exact re-scoring of the Gaussians whose code relevancy is within the margin of a temporal threshold
+    rows += [Variant("codebook", f"codebook K={k} + exact re-scoring ±{m:g}",
+                     {"path": "codebook", "codebook_size": k, "codebook_refine": m})
+             for k, m in ((65536, 0.005), (4096, 0.02))]
     rows += [Variant("stride", f"temporal stride {s}", {"temporal_stride": s}) for s in (2, 5, 10)]
     rows += [Variant("scale", f"resolution scale {s}", {"resolution_scale": s}) for s in (0.5, 0.25)]
     rows += [Variant("spatial", "fast 1-channel maps", {"spatial": "fast"}),
              Variant("spatial", "fast maps + codebook K=4096", {"spatial": "fast", "path": "codebook",
-                                                                 "codebook_size": 4096})]
+                                                                 "codebook_size": 4096}),
+             Variant("spatial", "fast maps + codebook K=65536 ±0.005", {"spatial": "fast", "path": "codebook",
+                                                                       "codebook_size": 65536,
+                                                                       "codebook_refine": 0.005})]
     # precision: on the cheapest configuration (its decodes are the K codes and the background), because
     # float16 matrix products on a CPU are several times slower than float32; latents are stored float16
     rows += [Variant("precision", f"fast maps + codebook K=4096, decoder {n}",
@@ -218,8 +226,8 @@ def run_accuracy_time(scene: Any, *, out_dir: Path, skip: Sequence[str] = (), di
         # fast maps on the exact path score every Gaussian at every scored frame: the temporal pass of the
         # same engine already has those scores, so such rows run (and are charged) their own temporal pass
         own_pass = spatial == "fast" and opts.get("path", "exact") == "exact"
-        temporal_key = (field_key, opts.get("path", "exact"), opts.get("codebook_size"), opts.get("temporal_stride", 1),
-                        "own" if own_pass else "")
+        temporal_key = (field_key, opts.get("path", "exact"), opts.get("codebook_size"), opts.get("codebook_refine", 0.0),
+                        opts.get("temporal_stride", 1), "own" if own_pass else "")
         map_key = (field_key, spatial, opts.get("resolution_scale", 1.0)) + (
             (opts.get("path", "exact"), opts.get("codebook_size")) if spatial == "fast" else ())
         fld = v.field_factory() if v.field_factory else (

@@ -5,7 +5,10 @@ query), scores them, and
 
 * scores every Gaussian by lookup ``R[codes[t]]`` (``gaussian_relevancy``), and
 * answers a temporal query from the per-timestep code histogram (T,K): the counts of the temporal
-  localization become a (T,K) reduction, so T x N latents are never decoded.
+  localization become a (T,K) reduction, so T x N latents are never decoded;
+* optionally re-scores exactly the Gaussians of the few codes whose relevancy lies near the temporal
+  thresholds (0.5 and R_avg): ``members`` lists, per code, which (t, g) hold it, so those latents
+  are read without scanning the field.
 
 K-means stays feasible on a CPU for 300k x 150 latents by training on a sample and, for large K, a
 two-level (coarse K1 x fine K2 = K) quantizer: a point is assigned to its nearest coarse centroid, then
@@ -14,6 +17,8 @@ matmuls. Files (inside the bundle's ``language/`` directory, each written atomic
 
     codebook_K.npz   centroids (K,d) float32, histogram (T,K) int32, coarse (K1,d), meta (json string)
     codes_K.npy      (T,N) uint16 (K <= 65536) or int32 code index of every Gaussian at every timestep
+    members_K.npy    (T*N,) flat indices t*N+g sorted by code (int32, or int64 past 2**31 entries);
+                     code k's members are members[offsets[k]:offsets[k+1]], offsets from the histogram
 """
 from __future__ import annotations
 
@@ -44,6 +49,8 @@ class Codebook:
         histogram: (T,K) int32 number of Gaussians holding each code at each timestep.
         coarse: (K1,d) coarse centroids of the two-level quantizer (K1 = 1 when flat).
         meta: build settings and the fingerprint of the latents it was built from.
+        members: (T*N,) flat indices t*N+g grouped by code (memmap when loaded; built on first use when
+            the file is missing).
     """
 
     centroids: np.ndarray
@@ -51,10 +58,25 @@ class Codebook:
     histogram: np.ndarray
     coarse: np.ndarray
     meta: dict
+    members: Any = None
 
     @property
     def size(self) -> int:
         return int(self.centroids.shape[0])
+
+    def member_offsets(self) -> np.ndarray:
+        """(K+1,) int64 start of each code's run in :attr:`members`."""
+        per_code = np.asarray(self.histogram).sum(axis=0, dtype=np.int64)
+        return np.concatenate([[0], np.cumsum(per_code)])
+
+    def members_of(self, codes: np.ndarray) -> np.ndarray:
+        """(M,) int64 sorted flat indices t*N+g of every Gaussian holding one of ``codes`` at any timestep."""
+        if self.members is None:
+            self.members = member_index(self.codes)
+        off = self.member_offsets()
+        codes = np.asarray(codes, dtype=np.int64)
+        parts = [np.asarray(self.members[off[k]:off[k + 1]], dtype=np.int64) for k in codes]
+        return np.sort(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
 
     def quantization_error(self, latents, timesteps=None, max_points: int = 200_000) -> float:
         """Mean squared distance between latents and their codes over (a sample of) the field."""
@@ -213,6 +235,13 @@ def assign(x: torch.Tensor, coarse: torch.Tensor, fine: torch.Tensor) -> torch.T
 
 
 # ----------------------------------------------------------------------------- build / load
+def member_index(codes) -> np.ndarray:
+    """(T,N) codes -> (T*N,) flat indices t*N+g ordered by code (stable: by t, then g, within a code)."""
+    flat = np.asarray(codes).reshape(-1)
+    order = np.argsort(flat, kind="stable")
+    return order.astype(np.int32) if flat.size < 2 ** 31 else order.astype(np.int64)
+
+
 def fingerprint(latents) -> dict:
     """What the codebook depends on: the latents' shape, dtype, file identity and a few sampled values."""
     T, N, d = (int(s) for s in latents.shape)
@@ -286,16 +315,23 @@ def build_codebook(latents, k: int, *, out_dir: Optional[Path] = None, seed: int
     meta = {"version": CODEBOOK_VERSION, "k": k, "levels": [int(coarse.shape[0]), k // int(coarse.shape[0])],
             "seed": seed, "sample_size": int(sample_size), "iters": iters, "latents": fingerprint(latents)}
     book = Codebook(centroids=fine.numpy().astype(np.float32), codes=codes, histogram=hist,
-                    coarse=coarse.numpy().astype(np.float32), meta=meta)
+                    coarse=coarse.numpy().astype(np.float32), meta=meta, members=member_index(codes))
     if out_dir is not None:
         save_codebook(book, Path(out_dir), k)
         book.codes = load_npy(codes_path, mmap=True, field="codes")
+        book.members = load_npy(Path(out_dir) / f"members_{k}.npy", mmap=True, field="members")
     return book
 
 
 def save_codebook(book: Codebook, out_dir: Path, k: int) -> None:
+    """Write the codebook's files; the .npz goes last and is removed first, so a crash in between
+    leaves no codebook that pairs new codes with an old header."""
     out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / f"codebook_{k}.npz").unlink(missing_ok=True)
     save_npy_atomic(out_dir / f"codes_{k}.npy", np.asarray(book.codes))
+    if book.members is None:
+        book.members = member_index(book.codes)
+    save_npy_atomic(out_dir / f"members_{k}.npy", np.asarray(book.members))
     with atomic_path(out_dir / f"codebook_{k}.npz") as tmp:
         np.savez(tmp, centroids=book.centroids, histogram=book.histogram, coarse=book.coarse,
                  meta=np.array(json.dumps(book.meta)))
@@ -319,6 +355,11 @@ def load_codebook(out_dir: Path, k: int, latents=None) -> Optional[Codebook]:
     if latents is not None and meta.get("latents") != fingerprint(latents):
         return None
     book.codes = load_npy(codes_path, mmap=True, field="codes")
+    members_path = Path(out_dir) / f"members_{k}.npy"
+    if members_path.is_file():
+        book.members = load_npy(members_path, mmap=True, field="members")
+        if book.members.shape != (int(np.prod(book.codes.shape)),):
+            book.members = None  # a stale index is rebuilt in memory on first use
     return book
 
 

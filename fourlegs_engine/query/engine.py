@@ -4,7 +4,8 @@ Paths (each selectable, each measured against the exact one by ``fourlegs bench 
 
 * temporal / per-Gaussian relevancy — ``path="exact"`` decodes every latent (streamed in chunks, never
   T x N x 768 at once); ``path="codebook"`` decodes only the K codes (once per engine) and scores
-  Gaussians by lookup, a temporal query being a (T,K) histogram reduction;
+  Gaussians by lookup, a temporal query being a (T,K) histogram reduction; ``codebook_refine`` > 0
+  re-scores exactly the Gaussians of codes whose relevancy is that close to a temporal threshold;
 * ``temporal_stride`` scores every k-th timestep only;
 * spatial maps — ``spatial="exact"`` renders the 128-channel latents, decodes every pixel and scores
   it (paper §3.2); ``spatial="fast"`` renders one channel, the per-Gaussian relevancy;
@@ -29,10 +30,12 @@ from ..scene.camera import Camera
 from ..scene.scene import Scene
 from . import spatial, viewpoint
 from .codebook import Codebook, ensure_codebook
+from .head import RelevancyHead
 from .relevancy import (RELEVANCY_SCALE, as_tensor, l2_normalize, reference_set, relevancy, relevancy_many,
                         relevancy_of_unit_features)
 from .results import CentreResult, Localization, TemporalResult, ViewResult
-from .temporal import counts_from_code_histogram, counts_from_relevancy, localize_counts, sampled_timesteps
+from .temporal import (counts_from_code_histogram, counts_from_codes_refined, counts_from_relevancy, localize_counts,
+                       sampled_timesteps)
 
 __all__ = ["QueryEngine", "TemporalResult", "Localization", "ViewResult", "CentreResult"]
 
@@ -52,6 +55,8 @@ class QueryEngine:
         text_encoder: ``encode_text(list[str]) -> (n,D)`` of the encoder the field was distilled from.
         path: "exact" or "codebook" (per-Gaussian relevancy and temporal localization).
         codebook_size: K of the codebook path.
+        codebook_refine: margin of the codebook path's exact re-scoring: the Gaussians of every code whose
+            relevancy is within this distance of 0.5 or of R_avg are decoded exactly (0: lookup only).
         codebook: a prebuilt :class:`Codebook` (else loaded from / stored in ``codebook_dir``, by default
             the bundle's ``language/`` directory, or built in memory).
         negatives: scene-specific negative phrases added to the canonical set.
@@ -68,6 +73,7 @@ class QueryEngine:
 
     def __init__(self, scene: Scene, field: Any, text_encoder: Any, *, path: str = "exact",
                  codebook_size: int = DEFAULT_CODEBOOK_SIZE, codebook: Optional[Codebook] = None,
+                 codebook_refine: float = 0.0,
                  codebook_dir: Optional[Path] = None, negatives: Sequence[str] = (), temporal_stride: int = 1,
                  spatial: str = "exact", resolution_scale: float = 1.0, dilation: int = 1, chunk: int = 32768,
                  latent_dtype: Optional[str] = None, camera_split: str = "all", render_options: Any = None,
@@ -93,6 +99,10 @@ class QueryEngine:
         self.text_encoder = text_encoder
         self.path = path
         self.codebook_size = int(codebook_size)
+        if not (np.isfinite(codebook_refine) and 0.0 <= codebook_refine <= 1.0):
+            raise InputError(f"codebook refine margin must be in [0, 1], got {codebook_refine}",
+                             field="codebook_refine")
+        self.codebook_refine = float(codebook_refine)
         self.codebook_dir = codebook_dir if codebook_dir is not None else (
             Path(scene.root) / "language" if scene.root is not None else None)
         self._codebook = codebook
@@ -111,6 +121,7 @@ class QueryEngine:
         self._text_cache: dict[str, torch.Tensor] = {}
         self._refs: Optional[tuple[torch.Tensor, Optional[torch.Tensor]]] = None
         self._decoded_codes: Optional[torch.Tensor] = None
+        self._head: Any = None  # RelevancyHead, False when the decoder has none, None before the first use
         self._code_scores: dict[str, torch.Tensor] = {}
         self._background_score: dict[str, float] = {}
         self._gaussian_cache: dict[tuple[str, int], torch.Tensor] = {}
@@ -174,12 +185,30 @@ class QueryEngine:
             out = self.field.decode(x)
         return as_tensor(out)
 
+    @property
+    def head(self) -> Optional[RelevancyHead]:
+        """Relevancy straight from latents (None when the field's decoder has no such form)."""
+        if self._head is None:
+            self._head = RelevancyHead.from_decoder(getattr(self.field, "decoder", None)) or False
+        return self._head or None
+
+    def _score_latents_many(self, latents: np.ndarray | torch.Tensor, qs: torch.Tensor) -> torch.Tensor:
+        """(M,d) latents (per Gaussian or rendered per pixel), (Q,D) unit queries -> (M,Q) relevancy of
+        their decoded features; one chunk (at most ``self.chunk`` rows) at a time by the caller."""
+        head = self.head
+        if head is None:
+            return self._score_many(self._decode(latents), qs)
+        canon, neg = self.reference_embeddings()
+        with torch.inference_mode():
+            return head.relevancy_many(torch.as_tensor(latents), qs, reference_set(canon, neg),
+                                       scale=self.relevancy_scale).cpu()
+
     def _score_latents(self, latents: np.ndarray, q: torch.Tensor) -> torch.Tensor:
         """(M,d) latents -> (M,) relevancy, decoded in chunks of ``self.chunk``."""
         M = latents.shape[0]
         out = torch.empty(M, dtype=torch.float32)
         for s in range(0, M, self.chunk):
-            out[s:s + self.chunk] = self._score_many(self._decode(latents[s:s + self.chunk]), q[None])[:, 0]
+            out[s:s + self.chunk] = self._score_latents_many(latents[s:s + self.chunk], q[None])[:, 0]
         self.stats["decoded_latents"] += M
         return out
 
@@ -202,6 +231,26 @@ class QueryEngine:
             self._code_scores[query] = relevancy_of_unit_features(
                 self._decoded_codes, self.embed_query(query), refs, scale=self.relevancy_scale)
         return self._code_scores[query]
+
+    def _rescore_members(self, query: str, codes: np.ndarray, timesteps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Exact relevancy of every Gaussian holding one of ``codes`` at one of the sorted ``timesteps``.
+
+        Returns:
+            rows (M,) int64 index into ``timesteps``, scores (M,) float64.
+        """
+        N = self.scene.num_gaussians
+        flat = self.codebook.members_of(codes)
+        t_of, g_of = np.divmod(flat, N)
+        pos = np.searchsorted(timesteps, t_of)
+        keep = (pos < len(timesteps)) & (timesteps[np.minimum(pos, len(timesteps) - 1)] == t_of)
+        t_of, g_of, pos = t_of[keep], g_of[keep], pos[keep]
+        scores = np.empty(t_of.shape[0], dtype=np.float64)
+        q = self.embed_query(query)
+        bounds = np.searchsorted(t_of, np.unique(t_of))
+        for a, b in zip(bounds, list(bounds[1:]) + [len(t_of)]):
+            lat = np.asarray(self.latents[int(t_of[a])][g_of[a:b]], dtype=self.latent_dtype or np.float32)
+            scores[a:b] = self._score_latents(lat, q).double().numpy()
+        return pos, scores
 
     # ------------------------------------------------------------------ per Gaussian
     def gaussian_relevancy(self, query: str, t: int) -> torch.Tensor:
@@ -235,7 +284,7 @@ class QueryEngine:
         if self.path == "exact" and len(missing) > 1 and self.scene.num_gaussians:
             lat = self._read_latents(int(t))
             qs = torch.stack([self.embed_query(q) for q in missing])
-            scores = torch.cat([self._score_many(self._decode(lat[s:s + self.chunk]), qs)
+            scores = torch.cat([self._score_latents_many(lat[s:s + self.chunk], qs)
                                 for s in range(0, lat.shape[0], self.chunk)])           # (N, len(missing))
             self.stats["decoded_latents"] += int(lat.shape[0])
             for j, q in enumerate(missing):
@@ -263,6 +312,15 @@ class QueryEngine:
         Q = len(queries)
         if N == 0:
             stats = [(np.zeros(len(ts), np.int64), 0.0, 0)] * Q
+        elif self.path == "codebook" and self.codebook_refine > 0:
+            hist = self.codebook.histogram[ts]
+            stats = []
+            for q in queries:
+                c, a, n, rescored = counts_from_codes_refined(
+                    self._codes_scores(q).double().numpy(), hist,
+                    lambda codes, q=q: self._rescore_members(q, codes, ts), self.codebook_refine)
+                self.stats["rescored_latents"] += rescored
+                stats.append((c, a, n))
         elif self.path == "codebook":
             hist = self.codebook.histogram[ts]
             stats = [counts_from_code_histogram(self._codes_scores(q).double().numpy(), hist) for q in queries]
@@ -272,7 +330,7 @@ class QueryEngine:
             for i, t in enumerate(ts):
                 lat = self._read_latents(int(t))
                 for s in range(0, N, self.chunk):
-                    scores[:, i, s:s + self.chunk] = self._score_many(self._decode(lat[s:s + self.chunk]), qs).T.numpy()
+                    scores[:, i, s:s + self.chunk] = self._score_latents_many(lat[s:s + self.chunk], qs).T.numpy()
                 self.stats["decoded_latents"] += N
             stats = [counts_from_relevancy(scores[j]) for j in range(Q)]
             per_query = len(ts) * N * 4
@@ -363,7 +421,7 @@ class QueryEngine:
             pix = out["features"].reshape(H * W, -1)
             rel = torch.empty(Q, H * W, dtype=torch.float32)
             for s in range(0, H * W, self.chunk):
-                rel[:, s:s + self.chunk] = self._score_many(self._decode(pix[s:s + self.chunk]), qs).T
+                rel[:, s:s + self.chunk] = self._score_latents_many(pix[s:s + self.chunk], qs).T
             self.stats["decoded_pixels"] += H * W
             rel = rel.reshape(Q, H, W)
             alpha = out["alpha"].reshape(H, W)

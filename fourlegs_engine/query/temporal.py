@@ -19,7 +19,7 @@ nearest scored timestep before normalizing, so s_t still has one entry per times
 """
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -75,6 +75,64 @@ def counts_from_code_histogram(code_scores, histogram) -> tuple[np.ndarray, floa
     if counts.sum() == 0:
         counts = hist @ rel.astype(hist.dtype)
     return counts.astype(np.int64), r_avg, n_rel
+
+
+def counts_from_codes_refined(code_scores, histogram, rescore: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+                              margin: float) -> tuple[np.ndarray, float, int, int]:
+    """:func:`counts_from_code_histogram` with exact scores for the Gaussians near the thresholds.
+
+    A Gaussian is counted by its code's relevancy r_k only when r_k is at least ``margin`` away from both
+    decisions the localization takes (R > 0.5 and R > R_avg); the members of every other code are
+    re-scored exactly by ``rescore``. R_avg itself mixes both kinds of scores, so the codes near it are
+    selected again until the set stops growing (it only grows, so this ends).
+
+    Args:
+        code_scores: (K,) relevancy of each code.
+        histogram: (S,K) Gaussians holding each code at each scored timestep.
+        rescore: codes (C,) -> (rows (M,) index into the S scored timesteps, scores (M,)) of their members.
+        margin: half-width of the band around each threshold that is re-scored (0 = plain lookup).
+    Returns:
+        counts (S,), R_avg, number of relevant (g,t) pairs, number of re-scored (g,t) pairs.
+    """
+    r = np.asarray(code_scores.double().numpy() if isinstance(code_scores, torch.Tensor) else code_scores,
+                   dtype=np.float64)
+    hist = np.asarray(histogram)
+    S = hist.shape[0]
+    per_code = hist.sum(axis=0, dtype=np.int64)
+    exact_codes = np.zeros(r.shape[0], dtype=bool)
+    rows, scores = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.float64)
+
+    def relevant_stats() -> tuple[int, float]:
+        coded = ~exact_codes & (r > RELEVANT)
+        rel = scores > RELEVANT
+        n = int(per_code[coded].sum()) + int(rel.sum())
+        total = float(per_code[coded] @ r[coded]) + float(scores[rel].sum())
+        return n, (total / n if n else 0.0)
+
+    n_rel, r_avg = relevant_stats()
+    while margin > 0:
+        near = np.abs(r - RELEVANT) < margin
+        if n_rel:
+            near |= np.abs(r - r_avg) < margin
+        new = near & ~exact_codes & (per_code > 0)
+        if not new.any():
+            break
+        new_rows, new_scores = rescore(np.nonzero(new)[0])
+        rows = np.concatenate([rows, np.asarray(new_rows, dtype=np.int64)])
+        scores = np.concatenate([scores, np.asarray(new_scores, dtype=np.float64)])
+        exact_codes |= new
+        n_rel, r_avg = relevant_stats()
+    if n_rel == 0:
+        return np.zeros(S, dtype=np.int64), 0.0, 0, int(scores.size)
+
+    def count(threshold: float) -> np.ndarray:
+        coded = hist @ (~exact_codes & (r > threshold)).astype(hist.dtype)
+        return coded.astype(np.int64) + np.bincount(rows[scores > threshold], minlength=S)[:S]
+
+    counts = count(r_avg)
+    if counts.sum() == 0:  # every relevant score equal (see counts_from_relevancy)
+        counts = count(RELEVANT)
+    return counts, r_avg, n_rel, int(scores.size)
 
 
 def expand_counts(counts: np.ndarray, timesteps: np.ndarray, num_timesteps: int) -> np.ndarray:

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from fourlegs_engine.errors import InputError
 from fourlegs_engine.query.engine import QueryEngine
@@ -182,3 +181,21 @@ def test_codebook_refine_margin_zero_decodes_nothing_and_bad_margin_is_refused(s
     for bad in (-0.1, 2.0, float("nan")):
         with pytest.raises(InputError, match="refine"):
             QueryEngine(scene, field, enc, path="codebook", codebook_refine=bad)
+
+
+def test_codebook_refine_on_a_memmapped_field_reads_the_same_rows(setup, tmp_path):
+    from _query_helpers import LinearField
+
+    scene, field, enc, _ = setup
+    np.save(tmp_path / "latents.npy", np.asarray(field.latents, dtype=np.float16))
+    mm = np.load(tmp_path / "latents.npy", mmap_mode="r")
+    mapped = LinearField(mm, field.weight.numpy())
+    eng = QueryEngine(scene, mapped, enc, path="codebook", codebook_size=3, codebook_dir=tmp_path,
+                      codebook_refine=1.0)
+    sparse = eng._sparse_latents()
+    assert sparse is not mm and isinstance(sparse, np.ndarray)
+    np.testing.assert_array_equal(sparse, mm)  # same bytes through the second mapping (header skipped)
+    exact = QueryEngine(scene, mapped, enc).temporal(Q)
+    res = eng.temporal(Q)
+    np.testing.assert_allclose(res.scores, exact.scores, atol=1e-12)
+    assert res.segment == exact.segment

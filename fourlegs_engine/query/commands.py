@@ -76,6 +76,9 @@ def register_bench(bench_subparsers: Any) -> None:
     s.add_argument("--codebook", default="4096,65536", help="comma-separated K values (default 4096,65536)")
     s.add_argument("--refine", default="0,0.005",
                    help="comma-separated exact re-scoring margins timed for each K (default 0,0.005)")
+    s.add_argument("--rescore-share", type=float, default=0.0019,
+                   help="re-scoring rows: time the exact re-scoring of this share of all (t,g) pairs (random "
+                        "latents need none; default 0.0019, what K=65536 ±0.005 re-scored on bench)")
     s.add_argument("--repeats", type=int, default=5, help="timed queries per configuration (default 5)")
     s.add_argument("--exact-timesteps", type=int, default=3,
                    help="exact path: time this many timesteps and extrapolate to all (0: all)")

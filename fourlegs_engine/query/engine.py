@@ -17,6 +17,7 @@ for; ``localize(query, need)`` computes only the parts named in ``need``.
 """
 from __future__ import annotations
 
+import mmap
 import time
 from collections import Counter
 from pathlib import Path
@@ -121,6 +122,7 @@ class QueryEngine:
         self._text_cache: dict[str, torch.Tensor] = {}
         self._refs: Optional[tuple[torch.Tensor, Optional[torch.Tensor]]] = None
         self._decoded_codes: Optional[torch.Tensor] = None
+        self._sparse: Any = None  # latents mapped for scattered reads (see _sparse_latents)
         self._head: Any = None  # RelevancyHead, False when the decoder has none, None before the first use
         self._code_scores: dict[str, torch.Tensor] = {}
         self._background_score: dict[str, float] = {}
@@ -232,6 +234,20 @@ class QueryEngine:
                 self._decoded_codes, self.embed_query(query), refs, scale=self.relevancy_scale)
         return self._code_scores[query]
 
+    def _sparse_latents(self) -> Any:
+        """The latents for scattered row reads: a memmap is mapped a second time with random-access
+        advice, so reading one 256-byte row pages in one page instead of a readahead window (the
+        re-scoring's resident memory stays proportional to the rows it reads)."""
+        if self._sparse is None:
+            lat = self.latents
+            self._sparse = lat
+            if isinstance(lat, np.memmap) and lat.flags.c_contiguous and hasattr(mmap, "MADV_RANDOM"):
+                with open(lat.filename, "rb") as f:
+                    mapped = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+                mapped.madvise(mmap.MADV_RANDOM)
+                self._sparse = np.ndarray(lat.shape, dtype=lat.dtype, buffer=mapped, offset=lat.offset)
+        return self._sparse
+
     def _rescore_members(self, query: str, codes: np.ndarray, timesteps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Exact relevancy of every Gaussian holding one of ``codes`` at one of the sorted ``timesteps``.
 
@@ -244,13 +260,12 @@ class QueryEngine:
         pos = np.searchsorted(timesteps, t_of)
         keep = (pos < len(timesteps)) & (timesteps[np.minimum(pos, len(timesteps) - 1)] == t_of)
         t_of, g_of, pos = t_of[keep], g_of[keep], pos[keep]
-        scores = np.empty(t_of.shape[0], dtype=np.float64)
-        q = self.embed_query(query)
+        source = self._sparse_latents()
+        lat = np.empty((t_of.shape[0], int(self.latents.shape[-1])), dtype=self.latent_dtype or np.float32)
         bounds = np.searchsorted(t_of, np.unique(t_of))
-        for a, b in zip(bounds, list(bounds[1:]) + [len(t_of)]):
-            lat = np.asarray(self.latents[int(t_of[a])][g_of[a:b]], dtype=self.latent_dtype or np.float32)
-            scores[a:b] = self._score_latents(lat, q).double().numpy()
-        return pos, scores
+        for a, b in zip(bounds, list(bounds[1:]) + [len(t_of)]):  # one read per timestep, scored together
+            lat[a:b] = source[int(t_of[a])][g_of[a:b]]
+        return pos, self._score_latents(lat, self.embed_query(query)).double().numpy()
 
     # ------------------------------------------------------------------ per Gaussian
     def gaussian_relevancy(self, query: str, t: int) -> torch.Tensor:

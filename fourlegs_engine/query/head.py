@@ -28,6 +28,10 @@ from torch import nn
 
 from ..language.autoencoder import NORM_EPS, FeatureDecoder
 
+#: below this many rows a product goes through torch: switching between torch's and BLAS's thread pools
+#: costs more than scipy's faster kernels save on small batches
+BLAS_MIN_ROWS = 8192
+
 
 def _fold(linear: nn.Linear, bn: Optional[nn.BatchNorm1d]) -> tuple[torch.Tensor, torch.Tensor]:
     """(W, b) of ``bn(linear(x))`` in eval mode, computed in float64."""
@@ -86,7 +90,7 @@ class RelevancyHead:
 
     def _last_hidden(self, z: torch.Tensor) -> torch.Tensor:
         """(M,d) -> (M,H) last hidden activations (folded BatchNorm, ReLU)."""
-        if z.device.type != "cpu" or z.shape[0] == 0:
+        if z.device.type != "cpu" or z.shape[0] < BLAS_MIN_ROWS:
             h = z
             for w, b in self.hidden:
                 h = torch.addmm(b, h, w.T).clamp_min_(0.0)
@@ -101,7 +105,7 @@ class RelevancyHead:
     def _project(self, h: torch.Tensor) -> torch.Tensor:
         """(M,H) -> u = h Rᵀ + β. On the CPU uᵀ = R hᵀ is one in-place triangular BLAS product on h's
         memory (h is C-contiguous, so hᵀ is the Fortran-ordered (H,M) array strmm wants)."""
-        if h.device.type != "cpu" or h.shape[0] == 0:
+        if h.device.type != "cpu" or h.shape[0] < BLAS_MIN_ROWS:
             return torch.addmm(self.beta, h, self.r_t)
         h = h.contiguous()
         blas.strmm(1.0, self.r_fortran, h.numpy().T, side=0, lower=0, trans_a=0, overwrite_b=1)

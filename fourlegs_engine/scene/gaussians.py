@@ -264,9 +264,13 @@ def quaternions_need_normalizing(q: Any, tol: float = 1e-3) -> bool:
 
 
 def _all_finite(arr: np.ndarray, chunk: int = 1 << 22) -> bool:
-    flat = arr.reshape(-1)
-    for s in range(0, flat.shape[0], chunk):
-        if not np.isfinite(flat[s:s + chunk]).all():
+    """Whether every value is finite, checked in slabs of about ``chunk`` values along the first axis
+    (no copy of a memmap or a broadcast view is ever made whole)."""
+    if arr.ndim == 0:
+        return bool(np.isfinite(arr))
+    rows = max(1, chunk // max(1, int(np.prod(arr.shape[1:]))))
+    for s in range(0, arr.shape[0], rows):
+        if not np.isfinite(arr[s:s + rows]).all():
             return False
     return True
 

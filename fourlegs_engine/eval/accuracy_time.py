@@ -6,7 +6,8 @@ the six grounding metrics (vAP, vIoU, tIoU, tRec, tPrec, tAP; mean over the test
 the exact ground truth. Groups:
 
 * ``reference`` — exact temporal path, exact (128-channel) maps, full resolution, every timestep.
-* ``codebook`` — K = 65536, 4096, 256 (codebook build reported as precomputation).
+* ``codebook`` — K = 65536, 4096, 256 (codebook build reported as precomputation), and K = 65536 / 4096
+  with exact re-scoring of the Gaussians whose code relevancy is within ±0.005 / ±0.02 of a threshold.
 * ``stride`` — temporal stride 2, 5, 10.
 * ``scale`` — maps at 0.5 and 0.25 of the camera resolution (upsampled for scoring).
 * ``spatial`` — fast 1-channel relevancy render instead of the 128-channel render.
@@ -28,6 +29,7 @@ row's time is what that configuration costs on its own.
 """
 from __future__ import annotations
 
+import shlex
 import sys
 import time
 from dataclasses import dataclass, field
@@ -152,7 +154,8 @@ def _distill_variants(scene: Any, base_field: Any, every: int, out_root: Path, p
         latents = hold_fill(files, T, vdir / "held_latents.npy")
         out.append(Variant(group, name, dict(DISTILL_QUERY_OPTIONS),
                            field_factory=lambda lat=latents: HeldField(base_field, lat),
-                           note=f"distilled {len(steps)}/{T} timesteps (every {every}), others held; "
+                           note=f"distilled {len(steps)}/{T} timesteps" +
+                                (f" (every {every}), others held; " if len(steps) < T else "; ") +
                                 f"{'%.2f' % per_t if per_t else 'cached'} s/timestep" +
                                 ("" if per_t else f" ({spent:.1f} s reused)") + "; fast maps"))
         out[-1].options["distill_s_per_timestep"] = per_t
@@ -356,8 +359,9 @@ def run_accuracy_time_cli(args: Any) -> int:
     table = markdown_table(report)
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(json_path, report, overwrite=True)
+    command = "fourlegs " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:] else ""
     with atomic_path(md_path) as tmp:
-        tmp.write_text(table + "\n", encoding="utf-8")
+        tmp.write_text((f"Command: `{command}`\n\n" if command else "") + table + "\n", encoding="utf-8")
     pareto_plot(report, png_path)
     print(table)
     print(f"\ntotal {report['total_seconds']:.1f} s; wrote {json_path}, {md_path}, {png_path}")

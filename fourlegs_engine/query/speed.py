@@ -82,6 +82,18 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _resident_mb(kind: str) -> float:
+    """Current resident memory of one kind ("RssAnon": the process's own allocations, "RssFile": pages
+    of mapped files, shared with the page cache) in MB; NaN where /proc is unavailable."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(kind + ":"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
 def _time(fn, repeats: int) -> tuple[float, list[float], Any]:
     times, out = [], None
     for _ in range(max(1, repeats)):
@@ -132,7 +144,13 @@ def codebook_query_timings(workdir: Path, k: int, margin: float, repeats: int, t
         eng.embed_query(q)
     encode = (time.perf_counter() - t0) / len(texts)
     queries = iter(texts)
-    warm, times, _ = _time(lambda: eng.temporal(next(queries)), repeats)
+    anon = [_resident_mb("RssAnon")]
+
+    def query() -> None:
+        eng.temporal(next(queries))
+        anon.append(_resident_mb("RssAnon"))
+
+    warm, times, _ = _time(query, repeats)
     forced: dict[str, Any] = {}
     if rescore_share > 0:
         rng = np.random.default_rng(0)
@@ -140,14 +158,19 @@ def codebook_query_timings(workdir: Path, k: int, margin: float, repeats: int, t
         order = rng.permutation(np.nonzero(per_code)[0])
         picked = order[:int(np.searchsorted(np.cumsum(per_code[order]), rescore_share * T * N)) + 1]
         ts = np.arange(T)
-        rescore_s, rescore_times, (_, scores) = _time(lambda: eng._rescore_members(QUERY, picked, ts), 3)
+        def rescore():
+            out = eng._rescore_members(QUERY, picked, ts)
+            anon.append(_resident_mb("RssAnon"))
+            return out
+
+        rescore_s, rescore_times, (_, scores) = _time(rescore, 3)
         forced = {"forced_rescore_share": rescore_share, "forced_rescored_latents": int(scores.shape[0]),
                   "forced_rescore_s": rescore_s, "forced_rescore_times_s": rescore_times}
         warm += rescore_s
     return {"first_query_s": cold, "query_s": warm, "query_times_s": times, "text_encode_s": encode, **forced,
             "refine_margin": margin, "rescored_latents_per_query": int(eng.stats["rescored_latents"]) // (len(texts) + 1),
             "decoded_latents": int(eng.stats["decoded_latents"]), "peak_rss_mb": _peak_rss_mb(),
-            "rss_scope": "query process"}
+            "anon_rss_mb": max(anon), "file_rss_mb": _resident_mb("RssFile"), "rss_scope": "query process"}
 
 
 def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int], repeats: int,
@@ -238,24 +261,32 @@ def _print_row(row: dict) -> None:
 
 def markdown(report: dict) -> str:
     lines = ["Codebook rows: timed in a fresh process that opens the stored codebook (its peak RSS is the "
-             "query's own); the exact row: in the benchmark process.", "",
+             "query's own); the exact row: in the benchmark process. Own memory: the largest anonymous "
+             "resident memory (RssAnon) seen after each query; mapped file pages: resident pages of the "
+             "memory-mapped latents and codebook (RssFile, shared with the page cache, which the kernel maps "
+             "in around every touched page).", "",
              f"Temporal query over {report['num_gaussians']:,} Gaussians x {report['num_timesteps']} timesteps x "
              f"128-d latents (random, float16 memmap), torch threads {report['torch_threads']}", "",
              "| path | seconds per query | first query (s) | re-scored latents per query | codebook build (s) | "
-             "peak RSS (MB) |", "|---|---|---|---|---|---|"]
+             "peak RSS (MB) | own memory (MB) | mapped file pages (MB) |", "|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
         q = f"{r['query_s']:.4f}" + (f" (extrapolated from {r['timed_timesteps']} timesteps)" if r.get("extrapolated") else "")
         rss = f"{r['peak_rss_mb']:.0f}" + (" (whole benchmark process)" if r.get("rss_scope", "").startswith("whole")
                                            else "")
         rescored = r.get("forced_rescored_latents", r.get("rescored_latents_per_query", ""))
         lines.append(f"| {r['path']} | {q} | {r.get('first_query_s', float('nan')):.3f} | "
-                     f"{rescored} | {r.get('build_s', float('nan')):.1f} | {rss} |")
+                     f"{rescored} | {r.get('build_s', float('nan')):.1f} | {rss} | "
+                     f"{_mb(r.get('anon_rss_mb'))} | {_mb(r.get('file_rss_mb'))} |")
     if report.get("spatial"):
         lines += ["", "| relevancy map | resolution | Gaussians | seconds |", "|---|---|---|---|"]
         for r in report["spatial"]:
             lines.append(f"| {r['path']} | {r['width']}x{r['height']} | {r['num_gaussians']:,} ({r['scene']}) | "
                          f"{r['seconds']:.3f} |")
     return "\n".join(lines)
+
+
+def _mb(value: Any) -> str:
+    return "" if value is None or value != value else f"{value:.0f}"
 
 
 def run_query_speed_cli(args) -> int:

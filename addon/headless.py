@@ -230,23 +230,16 @@ def blender_log_silenced():
         os.close(devnull)
 
 
-@contextlib.contextmanager
 def torch_threads(n: Optional[int]):
-    """Run the block with ``n`` torch intra-op threads (None or < 1: leave torch's setting), then restore it.
+    """The engine's scoped torch thread count (None or < 1: leave torch's setting).
 
     The per-frame rasterization is thousands of small tensor ops: on a busy machine a second
     OpenMP thread spends its time waiting at barriers (measured on the 2-core demo render, load ~13:
     1.26 CPU-s and 4.6 s wall per frame with 2 threads, 0.19 CPU-s and 0.42 s wall with 1).
     """
-    import torch
+    from ._engine import engine_module
 
-    before = torch.get_num_threads()
-    if n is not None and n >= 1:
-        torch.set_num_threads(int(n))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
+    return engine_module("threads").torch_threads(n)
 
 
 #: glibc ``mallopt`` parameters and their defaults

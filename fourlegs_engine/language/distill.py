@@ -42,7 +42,6 @@ import shutil
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -54,6 +53,7 @@ from ..errors import ConfigMismatchError, InputError
 from ..fileio import atomic_path, load_npy, read_json
 from ..render.options import RasterOptions
 from ..scene.scene import Scene
+from ..threads import torch_threads
 from .attention import NeighbourhoodAttention, knn_indices, neighbour_blur, smoothness_loss
 from .autoencoder import AE_REPORT, DECODER_FILE, ENCODER_FILE, FeatureEncoder, l2_normalize, load_encoder
 from .encoders import CANONICAL_PHRASES
@@ -442,17 +442,6 @@ def _lift_timestep(frame: Any, cameras: Sequence[Any], encoder: FeatureEncoder, 
     w_s, te_s = sum(x[0] for x in seconds), sum(x[1] for x in seconds)
     timing = TimestepTiming(t, time.perf_counter() - start, w_s, te_s, lift_s, 0.0, 0, None)
     return out.numpy(), timing
-
-
-@contextmanager
-def torch_threads(count: int):
-    """Run the block with ``count`` torch intra-op threads, then restore the previous setting."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 # ------------------------------------------------------------------------------------- scene

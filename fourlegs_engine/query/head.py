@@ -22,8 +22,8 @@ from typing import Any, Optional
 
 import numpy as np
 import torch
-from scipy.linalg import blas
 import torch.nn.functional as F
+from scipy.linalg import blas
 from torch import nn
 
 from ..language.autoencoder import NORM_EPS, FeatureDecoder
@@ -104,7 +104,8 @@ class RelevancyHead:
 
     def _project(self, h: torch.Tensor) -> torch.Tensor:
         """(M,H) -> u = h Rᵀ + β. On the CPU uᵀ = R hᵀ is one in-place triangular BLAS product on h's
-        memory (h is C-contiguous, so hᵀ is the Fortran-ordered (H,M) array strmm wants)."""
+        memory (h is C-contiguous, so hᵀ is the Fortran-ordered (H,M) array strmm wants); ``h`` must be
+        a temporary of the caller's (``margins`` always passes one)."""
         if h.device.type != "cpu" or h.shape[0] < BLAS_MIN_ROWS:
             return torch.addmm(self.beta, h, self.r_t)
         h = h.contiguous()

@@ -465,6 +465,30 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     return 0
 
 
+def exit_process(code: int) -> None:
+    """End the headless process with ``code``.
+
+    bpy 4.5 (seen with 4.5.15 LTS) can deadlock in its C++ static destructors at interpreter exit: the
+    main thread destroys a condition variable (``GlobalState::~GlobalState``) that bpy's own
+    ``delayed_close_thread_run`` thread still waits on, so the process never ends although the job is
+    done and every output is closed. There the process leaves through ``os._exit`` after flushing
+    Python's streams, skipping only those destructors; bpy 5.0 exits normally.
+    """
+    try:
+        import bpy
+        old_bpy = tuple(bpy.app.version) < (5, 0, 0)
+    except ImportError:
+        old_bpy = False
+    if not old_bpy:
+        sys.exit(code)
+    import logging
+
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
-    sys.exit(main())
+    exit_process(main())

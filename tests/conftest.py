@@ -17,3 +17,21 @@ if not os.environ.get("FOURLEGS_CACHE"):
 settings.register_profile("ci", deadline=None, max_examples=40,
                           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 settings.load_profile("ci")
+
+
+def pytest_sessionfinish(session, exitstatus):
+    session.config.fourlegs_exit_status = int(exitstatus)
+
+
+def pytest_unconfigure(config):
+    """Under bpy 4.x end the test process without C++ static destructors: bpy 4.5 deadlocks in one at
+    interpreter exit (see ``fourlegs_addon.headless.exit_process``), which would hang the run after
+    its summary. bpy 5.0 and runs that never imported bpy exit normally."""
+    import sys
+
+    bpy = sys.modules.get("bpy")
+    if bpy is None or tuple(bpy.app.version) >= (5, 0, 0):
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(getattr(config, "fourlegs_exit_status", 0))

@@ -67,24 +67,10 @@ def random_latents(path: Path, T: int, N: int, d: int = 128, seed: int = 0) -> n
     return np.load(path, mmap_mode="r")
 
 
-def _peak_rss_mb() -> float:
-    """Peak resident memory of this process image in MB.
-
-    Linux: ``VmHWM`` of /proc/self/status, the high-water mark of this address space (``ru_maxrss`` would
-    carry over the forking parent's peak into a spawned child); elsewhere ``getrusage``.
-    """
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
 def _resident_mb(kind: str) -> float:
-    """Current resident memory of one kind ("RssAnon": the process's own allocations, "RssFile": pages
-    of mapped files, shared with the page cache) in MB; NaN where /proc is unavailable."""
+    """One memory figure of this process from /proc/self/status in MB ("VmHWM": peak resident memory of
+    this address space, "RssAnon": the process's own allocations, "RssFile": pages of mapped files,
+    shared with the page cache); NaN where /proc is unavailable."""
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
             if line.startswith(kind + ":"):
@@ -92,6 +78,13 @@ def _resident_mb(kind: str) -> float:
     except OSError:
         pass
     return float("nan")
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this process image in MB: ``VmHWM`` on Linux (``ru_maxrss`` would carry
+    the forking parent's peak over into a spawned child), else ``getrusage``."""
+    peak = _resident_mb("VmHWM")
+    return peak if peak == peak else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _time(fn, repeats: int) -> tuple[float, list[float], Any]:

@@ -465,28 +465,33 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     return 0
 
 
-def exit_process(code: int) -> None:
-    """End the headless process with ``code``.
+def bpy_deadlocks_at_exit() -> bool:
+    """Whether the loaded bpy is one whose C++ static destructors can deadlock at interpreter exit.
 
-    bpy 4.5 (seen with 4.5.15 LTS) can deadlock in its C++ static destructors at interpreter exit: the
-    main thread destroys a condition variable (``GlobalState::~GlobalState``) that bpy's own
-    ``delayed_close_thread_run`` thread still waits on, so the process never ends although the job is
-    done and every output is closed. There the process leaves through ``os._exit`` after flushing
-    Python's streams, skipping only those destructors; bpy 5.0 exits normally.
+    bpy 4.5 (seen with 4.5.15 LTS): the main thread destroys a condition variable
+    (``GlobalState::~GlobalState``) that bpy's own ``delayed_close_thread_run`` thread still waits on,
+    so the process never ends although its work is done and every output is closed. bpy 5.0 exits
+    normally.
     """
-    try:
-        import bpy
-        old_bpy = tuple(bpy.app.version) < (5, 0, 0)
-    except ImportError:
-        old_bpy = False
-    if not old_bpy:
-        sys.exit(code)
+    bpy = sys.modules.get("bpy")
+    return bpy is not None and tuple(bpy.app.version) < (5, 0, 0)
+
+
+def exit_without_destructors(code: int) -> None:
+    """Flush Python's streams and logging, then end the process with ``code`` through ``os._exit``."""
     import logging
 
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(code)
+
+
+def exit_process(code: int) -> None:
+    """End the headless process with ``code``, stepping around bpy's exit deadlock where it exists."""
+    if bpy_deadlocks_at_exit():
+        exit_without_destructors(code)
+    sys.exit(code)
 
 
 if __name__ == "__main__":

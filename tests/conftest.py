@@ -25,13 +25,13 @@ def pytest_sessionfinish(session, exitstatus):
 
 def pytest_unconfigure(config):
     """Under bpy 4.x end the test process without C++ static destructors: bpy 4.5 deadlocks in one at
-    interpreter exit (see ``fourlegs_addon.headless.exit_process``), which would hang the run after
-    its summary. bpy 5.0 and runs that never imported bpy exit normally."""
+    interpreter exit, which would hang the run after its summary. bpy 5.0 and runs that never
+    imported bpy exit normally."""
     import sys
 
-    bpy = sys.modules.get("bpy")
-    if bpy is None or tuple(bpy.app.version) >= (5, 0, 0):
+    if "bpy" not in sys.modules:
         return
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(getattr(config, "fourlegs_exit_status", 0))
+    from fourlegs_addon import headless
+
+    if headless.bpy_deadlocks_at_exit():
+        headless.exit_without_destructors(getattr(config, "fourlegs_exit_status", 0))

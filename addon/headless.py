@@ -41,9 +41,9 @@ OUTPUT_NAMES = {"video": "highlight.mp4", "blend": "highlight.blend", "plan": "p
 
 #: the main job's query paths, chosen from docs/bench/accuracy_time_bench: the fast (1-channel) maps
 #: score the same as the exact ones there (vAP 47.7 vs 47.9, same tIoU) for a fraction of the time; the
-#: codebook temporal path by lookup loses tIoU (45.1 vs 49.9 at K=4096) and its accurate form (exact
-#: re-scoring near the thresholds) first needs a codebook built, which costs more than one exact pass
-#: for the single query of a highlight job, so the temporal path stays exact
+#: codebook temporal path by lookup loses tIoU (45.1 vs 49.9 at K=4096) and its accurate form (K=65536,
+#: sampled R_avg and exact re-scoring where a decision needs it) first needs a codebook built, which costs
+#: more than one exact pass for the single query of a highlight job, so the temporal path stays exact
 DEFAULT_QUERY_PATH = "exact"
 DEFAULT_SPATIAL = "fast"
 

@@ -88,14 +88,16 @@ def test_query_speed_bench_runs_small(tmp_path):
 
     rep = run_query_speed(gaussians=300, timesteps=3, codebook_sizes=[16], repeats=2, exact_timesteps=0,
                           spatial_scene="none", workdir=tmp_path, progress=False, refine_margins=(0.0, 0.01),
-                          rescore_share=0.1)
+                          rescore_share=0.1, sample_count=50)
     paths = [r["path"] for r in rep["rows"]]
-    assert paths == ["codebook K=16", "codebook K=16 + exact re-scoring ±0.01 (re-scoring 10% of the field, timed)",
-                     "exact"]
+    assert paths == ["codebook K=16", "codebook K=16 + exact re-scoring ±0.01 (lookup + 50 sampled + 10% of the "
+                     "field re-scored, timed)", "exact"]
     cb, refined, exact = rep["rows"]
     assert cb["decoded_latents"] == 0 and cb["query_s"] >= 0 and not exact["extrapolated"]
     # whole codes are re-scored until the share is reached: at least 10% of the 900 (t, g) pairs
     assert 90 <= refined["forced_rescored_latents"] < 900 and refined["query_s"] >= refined["forced_rescore_s"] > 0
+    assert refined["forced_sampled_latents"] == 50
+    assert refined["rescored_latents_per_query"] == refined["sampled_latents_per_query"] == 0  # timed as lookups
     # the query rows ran in a fresh process: their peak RSS is theirs, not the benchmark's
     assert cb["rss_scope"] == "query process" and exact["rss_scope"] == "whole benchmark process"
     assert "| codebook K=16 |" in markdown(rep)

@@ -86,36 +86,86 @@ def test_lookup_temporal_counts_equal_exact_counts_when_codes_are_exact():
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-from fourlegs_engine.query.temporal import counts_from_codes_refined  # noqa: E402
+from fourlegs_engine.query.temporal import (_sampled_r_avg, counts_from_codes_refined,  # noqa: E402
+                                            localize_counts, tied_segment_rows)
 
 
-def _coded_problem(seed: int, S: int = 6, N: int = 300, K: int = 12):
-    """Codes (S,N), code scores (K,), exact per-Gaussian scores near their code's score, histogram."""
+def _coded_problem(seed: int, S: int = 6, N: int = 300, K: int = 12, noise: float = 0.03, bounded: bool = False):
+    """Codes (S,N), code scores (K,), exact per-Gaussian scores near their code's score, histogram.
+    ``bounded``: every exact score within ``noise`` of its code's (uniform), else Gaussian noise."""
     rng = np.random.default_rng(seed)
     codes = rng.integers(0, K, size=(S, N))
     code_scores = rng.uniform(0.3, 0.8, size=K)
-    exact = np.clip(code_scores[codes] + rng.normal(scale=0.03, size=(S, N)), 0, 1)
+    jitter = rng.uniform(-noise, noise, size=(S, N)) if bounded else rng.normal(scale=noise, size=(S, N))
+    exact = np.clip(code_scores[codes] + jitter, 0, 1)
     hist = np.stack([np.bincount(codes[t], minlength=K) for t in range(S)]).astype(np.int32)
     return codes, code_scores, exact, hist
 
 
-def _rescorer(codes, exact, calls):
-    def rescore(which):
-        calls.append(np.asarray(which))
-        mask = np.isin(codes, which)
-        rows, _ = np.nonzero(mask)
-        return rows, exact[mask]
-    return rescore
+def _callbacks(codes, exact, calls, seed=0):
+    """members / score / sample callbacks over an in-memory problem, recording what they were asked."""
+    rng = np.random.default_rng(seed)
+
+    def members(which, rows):
+        calls.append(("members", np.asarray(which), np.asarray(rows)))
+        mask = np.isin(codes, which) & np.isin(np.arange(codes.shape[0]), rows)[:, None]
+        at, _ = np.nonzero(mask)
+        handles = np.flatnonzero(mask.reshape(-1))  # row-major: same order as ``at``
+        return at, codes.reshape(-1)[handles], handles
+
+    def score(handles):
+        calls.append(("score", np.asarray(handles)))
+        return exact.reshape(-1)[np.asarray(handles)]
+
+    def sample(groups, sizes):
+        calls.append(("sample", groups, sizes))
+        out = []
+        for which, size in zip(groups, sizes):
+            pick = rng.permutation(np.flatnonzero(np.isin(codes, which)))[:size]
+            out.append((codes.reshape(-1)[pick], exact.reshape(-1)[pick]))
+        return out
+    return members, score, sample
 
 
-@settings(max_examples=30, deadline=None)
-@given(st.integers(0, 10_000))
-def test_refined_counts_with_full_margin_equal_exact_counts(seed):
-    codes, code_scores, exact, hist = _coded_problem(seed)
-    got = counts_from_codes_refined(code_scores, hist, _rescorer(codes, exact, []), 1.0)
-    want = counts_from_relevancy(torch.from_numpy(exact))
-    np.testing.assert_array_equal(got[0], want[0])
-    assert got[1] == pytest.approx(want[1], abs=1e-12) and got[2] == want[2] and got[3] == codes.size
+def _refined(code_scores, hist, codes, exact, margin, calls, samples=10 ** 9, seed=0, **kw):
+    members, score, sample = _callbacks(codes, exact, calls, seed)
+    return counts_from_codes_refined(code_scores, hist, members=members, score=score, sample=sample,
+                                     margin=margin, samples=samples, **kw)
+
+
+def _scored(calls, N):
+    """Rows and flat handles re-scored through the ``score`` callback."""
+    handles = np.concatenate([c[1] for c in calls if c[0] == "score"] or [np.zeros(0, int)])
+    return handles // N, handles
+
+
+def _positives(counts, S):
+    return localize_counts(counts, np.arange(S), S).positive
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10_000), st.sampled_from([0.01, 0.03, 1.0]))
+def test_refined_counts_decide_every_timestep_as_exact_counting(seed, margin):
+    # every exact score within the margin of its code's, R_avg from a sample of every pair: R_avg and |Rel|
+    # are exact, and against the total it returns every timestep is decided as its exact count would be
+    # (the total itself keeps the lookup estimate where no decision needed more)
+    codes, code_scores, exact, hist = _coded_problem(seed, noise=0.9 * margin, bounded=True)
+    calls = []
+    counts, r_avg, n_rel, rescored, sampled = _refined(code_scores, hist, codes, exact, margin, calls)
+    want_counts, want_r_avg, want_n = counts_from_relevancy(torch.from_numpy(exact))
+    S = codes.shape[0]
+    total = int(counts.sum())
+    np.testing.assert_array_equal(counts * S > total, want_counts * S > total)
+    assert r_avg == pytest.approx(want_r_avg, abs=1e-12) and n_rel == want_n
+    rows, handles = _scored(calls, codes.shape[1])
+    assert rescored == handles.size == np.unique(handles).size  # no Gaussian re-scored twice
+    # a timestep whose band members were all re-scored has its exact count
+    band_rows = [c for c in calls if c[0] == "members"]
+    for i in np.unique(rows):
+        members_i = sum(int(np.isin(codes[i], c[1]).sum()) for c in band_rows if i in c[2])
+        if np.sum(rows == i) == members_i:
+            assert counts[i] == want_counts[i]
+    assert np.isfinite(counts).all() and (counts >= 0).all()
 
 
 @settings(max_examples=30, deadline=None)
@@ -123,25 +173,73 @@ def test_refined_counts_with_full_margin_equal_exact_counts(seed):
 def test_refined_counts_with_zero_margin_equal_lookup(seed):
     codes, code_scores, _, hist = _coded_problem(seed)
     calls = []
-    got = counts_from_codes_refined(code_scores, hist, _rescorer(codes, None, calls), 0.0)
+    got = _refined(code_scores, hist, codes, None, 0.0, calls)
     want = counts_from_code_histogram(code_scores, hist)
     np.testing.assert_array_equal(got[0], want[0])
-    assert got[1] == pytest.approx(want[1]) and got[2] == want[2] and got[3] == 0 and not calls
+    assert got[1] == pytest.approx(want[1]) and got[2] == want[2] and got[3:] == (0, 0) and not calls
 
 
-def test_refined_counts_rescore_only_codes_near_the_thresholds():
-    codes, code_scores, exact, hist = _coded_problem(7, K=40)
+def _segment_problem(seed: int, S: int = 40, N: int = 400, K: int = 64, ramp: float = 0.14):
+    """A query present in timesteps 10..24: many relevant Gaussians there, few elsewhere, and timesteps 9
+    and 25 near the mean count (their decision needs exact scores)."""
+    rng = np.random.default_rng(seed)
+    code_scores = np.sort(rng.uniform(0.2, 0.9, size=K))
+    codes = np.empty((S, N), dtype=np.int64)
+    for t in range(S):
+        high = 0.35 if 10 <= t <= 24 else (ramp if t in (9, 25) else 0.03)
+        codes[t] = np.where(rng.random(N) < high, rng.integers(K // 2, K, N), rng.integers(0, K // 2, N))
+    exact = np.clip(code_scores[codes] + rng.uniform(-0.009, 0.009, size=(S, N)), 0, 1)
+    hist = np.stack([np.bincount(codes[t], minlength=K) for t in range(S)]).astype(np.int32)
+    return codes, code_scores, exact, hist
+
+
+def test_refined_counts_rescore_only_the_timesteps_a_decision_depends_on():
+    codes, code_scores, exact, hist = _segment_problem(0)
     calls = []
-    counts, r_avg, n_rel, rescored = counts_from_codes_refined(code_scores, hist, _rescorer(codes, exact, calls),
-                                                               0.02)
-    done = np.concatenate(calls)
-    assert len(np.unique(done)) == len(done)  # no code is re-scored twice
-    near = (np.abs(code_scores - 0.5) < 0.02) | (np.abs(code_scores - r_avg) < 0.02)
-    assert set(np.nonzero(near)[0]) <= set(done.tolist())  # every code near a final threshold is exact
-    assert 0 < rescored == np.isin(codes, done).sum() < codes.size
-    # the result is the exact counting of a hybrid score array: exact where re-scored, code score elsewhere
-    hybrid = np.where(np.isin(codes, done), exact, code_scores[codes])
-    np.testing.assert_array_equal(counts, counts_from_relevancy(torch.from_numpy(hybrid))[0])
+    counts, r_avg, n_rel, rescored, sampled = _refined(code_scores, hist, codes, exact, 0.01, calls, samples=512)
+    S = codes.shape[0]
+    want_counts, want_r_avg, _ = counts_from_relevancy(torch.from_numpy(exact))
+    np.testing.assert_array_equal(_positives(counts, S), _positives(want_counts, S))
+    assert abs(r_avg - want_r_avg) < 0.01  # 512 samples (the sampled-R_avg test checks its error)
+    rows, handles = _scored(calls, codes.shape[1])
+    assert set(np.unique(rows).tolist()) <= {8, 9, 10, 24, 25, 26}  # only the edges depend on the band
+    assert 0 < sampled <= 512 and 0 < rescored == handles.size < codes.size // 10
+    band = [c[1] for c in calls if c[0] == "members"]
+    assert all(np.all(np.abs(code_scores[b] - r_avg) < 0.01 + 0.01) for b in band)  # codes near R_avg only
+    assert np.isin(codes.reshape(-1)[handles], np.concatenate(band)).all()
+
+
+def test_sampled_r_avg_is_exact_with_every_pair_and_within_its_error_otherwise():
+    codes, code_scores, exact, hist = _coded_problem(5, S=8, N=2000, K=50, noise=0.02)
+    per_code = hist.sum(axis=0).astype(np.int64)
+    want = float(exact[exact > 0.5].astype(np.float64).mean())
+    full = _sampled_r_avg(code_scores, per_code, per_code > 0, _callbacks(codes, exact, [])[2], 0.01, 10 ** 9)
+    assert full[0] == pytest.approx(want, abs=1e-12) and full[1] == 0.0 and full[2] == int((exact > 0.5).sum())
+    errors = []
+    for seed in range(20):
+        r_avg, se, n_rel, sampled = _sampled_r_avg(code_scores, per_code, per_code > 0,
+                                                   _callbacks(codes, exact, [], seed)[2], 0.01, 400)
+        assert sampled <= 400 and se > 0
+        errors.append((r_avg - want) / se)
+    assert np.all(np.abs(errors) < 4) and np.sqrt(np.mean(np.square(errors))) < 2  # se is honest
+
+
+def test_sampled_r_avg_finds_nothing_when_no_pair_is_relevant():
+    codes, _, _, hist = _coded_problem(1)
+    low = np.full(12, 0.2)
+    exact = np.full(codes.shape, 0.2)
+    counts, r_avg, n_rel, rescored, sampled = _refined(low, hist, codes, exact, 0.02, [])
+    assert (counts == 0).all() and r_avg == 0.0 and n_rel == 0 and rescored == 0
+
+
+def test_tied_segment_rows_lists_each_longest_segment_and_maps_strided_rows():
+    positive = np.array([1, 1, 0, 0, 0, 1, 1, 0, 1, 0], dtype=bool)
+    tied = tied_segment_rows(positive, np.arange(10), 10, dilation=0)
+    assert [t.tolist() for t in tied] == [[0, 1], [5, 6]]
+    assert tied_segment_rows(np.array([1, 1, 1, 0, 1, 0, 0, 0, 0, 0], bool), np.arange(10), 10, 0) == []
+    # stride 2: rows 0..4 stand for timesteps 0..9, each row its nearest timesteps
+    tied = tied_segment_rows(np.array([1, 0, 0, 1, 0], bool), np.arange(0, 10, 2), 10, dilation=0)
+    assert [t.tolist() for t in tied] == [[0, 0], [3, 3]]
 
 
 def test_members_index_lists_each_codes_gaussians(tmp_path):

@@ -161,16 +161,52 @@ def test_negative_phrases_suppress_an_absent_query(setup):
 
 
 @pytest.mark.parametrize("stride", [1, 2])
-def test_codebook_refine_full_margin_equals_exact_path(setup, tmp_path, stride):
+def test_codebook_refine_full_margin_decides_as_the_exact_path(setup, tmp_path, stride):
     scene, field, enc, _ = setup
     exact = QueryEngine(scene, field, enc, temporal_stride=stride).temporal(Q)
     coarse = QueryEngine(scene, field, enc, path="codebook", codebook_size=2, codebook_dir=tmp_path,
-                         temporal_stride=stride, codebook_refine=1.0)
+                         temporal_stride=stride, codebook_refine=1.0, codebook_samples=10 ** 9)
     res = coarse.temporal(Q)
-    np.testing.assert_allclose(res.scores, exact.scores, atol=1e-12)
+    np.testing.assert_array_equal(res.positive, exact.positive)
     assert res.segment == exact.segment and res.r_avg == pytest.approx(exact.r_avg, abs=1e-6)
+    assert res.num_relevant == exact.num_relevant
     T, N = scene.num_timesteps, scene.num_gaussians
-    assert coarse.stats["rescored_latents"] == len(range(0, T, stride)) * N  # only the scored timesteps
+    scored = len(range(0, T, stride))
+    assert coarse.stats["sampled_latents"] == scored * N  # every pair, at the scored timesteps only
+    assert coarse.stats["rescored_latents"] <= scored * N
+    again = QueryEngine(scene, field, enc, path="codebook", codebook_size=2, codebook_dir=tmp_path,
+                        temporal_stride=stride, codebook_refine=1.0, codebook_samples=10 ** 9).temporal(Q)
+    np.testing.assert_array_equal(again.scores, res.scores)  # the same answer every time
+
+
+def test_codebook_refine_samples_at_the_scored_timesteps_only(setup, tmp_path):
+    scene, field, enc, _ = setup
+    eng = QueryEngine(scene, field, enc, path="codebook", codebook_size=2, codebook_dir=tmp_path,
+                      temporal_stride=2, codebook_refine=0.05)
+    T, N = scene.num_timesteps, scene.num_gaussians
+    ts = np.arange(0, T, 2)
+    seen = []
+    score_pairs = eng._score_pairs
+    eng._score_pairs = lambda q, flat: seen.append(flat) or score_pairs(q, flat)
+    (codes_a, scores_a), (codes_b, scores_b) = eng._sample_members(Q, [np.array([0]), np.array([1])], [7, 5], ts,
+                                                                   np.random.default_rng(0))
+    assert len(seen) == 1  # both groups decoded in one batch
+    flat = np.sort(seen[0])
+    assert len(scores_a) == len(codes_a) == 7 and len(scores_b) == len(codes_b) == 5 and len(np.unique(flat)) == 12
+    assert np.isin(flat // N, ts).all() and (codes_a == 0).all() and (codes_b == 1).all()
+    codes = np.asarray(eng.codebook.codes).reshape(-1)
+    np.testing.assert_array_equal(np.sort(codes[flat]), np.sort(np.concatenate([codes_a, codes_b])))
+    exact = QueryEngine(scene, field, enc)
+    full = {(int(t), int(g)): exact.gaussian_relevancy(Q, int(t)).double().numpy()[g]
+            for t, g in zip(*np.divmod(flat, N))}
+    assert sorted(np.round(np.concatenate([scores_a, scores_b]), 6)) == sorted(np.round(list(full.values()), 6))
+    flat, _ = eng.codebook.sample_members(np.arange(2), 10 ** 9, np.random.default_rng(1))
+    np.testing.assert_array_equal(np.sort(flat), np.arange(T * N))  # every member when they fit
+    seen.clear()
+    [(codes_all, _)] = eng._sample_members(Q, [np.arange(2)], [len(ts) * N], ts, np.random.default_rng(2))
+    np.testing.assert_array_equal(np.sort(seen[0]), np.flatnonzero(np.isin(np.arange(T * N) // N, ts)))
+    with pytest.raises(InputError, match="samples"):
+        QueryEngine(scene, field, enc, path="codebook", codebook_refine=0.1, codebook_samples=1)
 
 
 def test_codebook_refine_margin_zero_decodes_nothing_and_bad_margin_is_refused(setup, tmp_path):
@@ -191,11 +227,12 @@ def test_codebook_refine_on_a_memmapped_field_reads_the_same_rows(setup, tmp_pat
     mm = np.load(tmp_path / "latents.npy", mmap_mode="r")
     mapped = LinearField(mm, field.weight.numpy())
     eng = QueryEngine(scene, mapped, enc, path="codebook", codebook_size=3, codebook_dir=tmp_path,
-                      codebook_refine=1.0)
+                      codebook_refine=1.0, codebook_samples=10 ** 9)
     sparse = eng._sparse_latents()
     assert sparse is not mm and isinstance(sparse, np.ndarray)
     np.testing.assert_array_equal(sparse, mm)  # same bytes through the second mapping (header skipped)
     exact = QueryEngine(scene, mapped, enc).temporal(Q)
     res = eng.temporal(Q)
-    np.testing.assert_allclose(res.scores, exact.scores, atol=1e-12)
+    np.testing.assert_array_equal(res.positive, exact.positive)
+    assert res.r_avg == pytest.approx(exact.r_avg, abs=1e-6)
     assert res.segment == exact.segment

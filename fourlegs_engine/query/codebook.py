@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
@@ -59,24 +59,53 @@ class Codebook:
     coarse: np.ndarray
     meta: dict
     members: Any = None
+    _offsets: Any = field(default=None, repr=False, compare=False)
 
     @property
     def size(self) -> int:
         return int(self.centroids.shape[0])
 
     def member_offsets(self) -> np.ndarray:
-        """(K+1,) int64 start of each code's run in :attr:`members`."""
-        per_code = np.asarray(self.histogram).sum(axis=0, dtype=np.int64)
-        return np.concatenate([[0], np.cumsum(per_code)])
+        """(K+1,) int64 start of each code's run in :attr:`members` (computed once)."""
+        if self._offsets is None:
+            per_code = np.asarray(self.histogram).sum(axis=0, dtype=np.int64)
+            self._offsets = np.concatenate([[0], np.cumsum(per_code)])
+        return self._offsets
 
     def members_of(self, codes: np.ndarray) -> np.ndarray:
         """(M,) int64 sorted flat indices t*N+g of every Gaussian holding one of ``codes`` at any timestep."""
+        return np.sort(self.members_with_codes(codes)[0])
+
+    def members_with_codes(self, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every (t, g) holding one of ``codes``: flat indices t*N+g (M,) int64 and their codes (M,) int64,
+        grouped by code in the order of ``codes``."""
         if self.members is None:
             self.members = member_index(self.codes)
         off = self.member_offsets()
         codes = np.asarray(codes, dtype=np.int64)
         parts = [np.asarray(self.members[off[k]:off[k + 1]], dtype=np.int64) for k in codes]
-        return np.sort(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+        if not parts:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        return np.concatenate(parts), np.repeat(codes, off[codes + 1] - off[codes])
+
+    def sample_members(self, codes: np.ndarray, size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """A uniform sample without replacement of ``size`` (t, g) pairs among those holding one of ``codes``
+        (all of them, in random order, when there are no more than ``size``).
+
+        Returns:
+            flat indices t*N+g (M,) int64 and their codes (M,) int64, M = min(size, population).
+        """
+        if self.members is None:
+            self.members = member_index(self.codes)
+        off = self.member_offsets()
+        codes = np.asarray(codes, dtype=np.int64)
+        per_code = off[codes + 1] - off[codes]
+        ends = np.cumsum(per_code)
+        population = int(ends[-1]) if len(ends) else 0
+        picks = rng.permutation(population) if population <= size else rng.choice(population, size, replace=False)
+        which = np.searchsorted(ends, picks, side="right")  # the code each pick falls in
+        within = picks - (ends[which] - per_code[which])
+        return np.asarray(self.members[off[codes[which]] + within], dtype=np.int64), codes[which]
 
     def quantization_error(self, latents, timesteps=None, max_points: int = 200_000) -> float:
         """Mean squared distance between latents and their codes over (a sample of) the field."""

@@ -6,6 +6,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+# exact work per found query of `fourlegs bench accuracy-time --scene bench`'s K=65536 ±0.0075 row (100k
+# Gaussians x 60 timesteps), forced by `bench query-speed` on its random latents
+BENCH_RESCORE_SHARE = 0.00023
+BENCH_SAMPLES = 4096
+
 
 def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
@@ -28,9 +33,13 @@ def register(subparsers: Any) -> None:
                    help="per-Gaussian relevancy: exact decode or codebook lookup (default exact)")
     p.add_argument("--codebook-size", type=int, default=4096, help="K of --path codebook (default 4096)")
     p.add_argument("--codebook-refine", type=float, default=0.0, metavar="MARGIN",
-                   help="--path codebook: decode exactly the Gaussians whose code relevancy is within MARGIN "
-                        "of a temporal threshold (0.5, R_avg); 0.005 at K=65536 matched the exact path on "
-                        "the bench scene (default 0: lookup only)")
+                   help="--path codebook: make the temporal decisions exact where they depend on it: R_avg "
+                        "corrected by a sample of exact scores, and the Gaussians of codes within MARGIN of "
+                        "R_avg decoded at the timesteps whose s_t > 1/T decision they can change; 0.0075 at "
+                        "K=65536 matched the exact path on the bench scene (default 0: lookup only)")
+    p.add_argument("--codebook-samples", type=int, default=4096, metavar="N",
+                   help="--codebook-refine: exact scores sampled for R_avg (grown 4x at a time, up to 16x, while "
+                        "R_avg's 3-sigma interval leaves a decision open; default 4096)")
     p.add_argument("--spatial", choices=("exact", "fast"), default="exact",
                    help="maps: 128-channel render + per-pixel decode, or 1-channel relevancy render")
     p.add_argument("--scale", type=float, default=1.0, help="resolution scale of the maps (default 1)")
@@ -74,11 +83,15 @@ def register_bench(bench_subparsers: Any) -> None:
     s.add_argument("--gaussians", type=int, default=300_000)
     s.add_argument("--timesteps", type=int, default=150)
     s.add_argument("--codebook", default="4096,65536", help="comma-separated K values (default 4096,65536)")
-    s.add_argument("--refine", default="0,0.005",
-                   help="comma-separated exact re-scoring margins timed for each K (default 0,0.005)")
-    s.add_argument("--rescore-share", type=float, default=0.0019,
-                   help="re-scoring rows: time the exact re-scoring of this share of all (t,g) pairs (random "
-                        "latents need none; default 0.0019, what K=65536 ±0.005 re-scored on bench)")
+    s.add_argument("--refine", default="0,0.0075",
+                   help="comma-separated exact re-scoring margins timed for each K (default 0,0.0075)")
+    s.add_argument("--rescore-share", type=float, default=BENCH_RESCORE_SHARE,
+                   help="re-scoring rows: also time the exact re-scoring of this share of all (t,g) pairs "
+                        f"(random latents need none; default {BENCH_RESCORE_SHARE:g}, what K=65536 ±0.0075 re-scored "
+                        "per found query on bench)")
+    s.add_argument("--sample-count", type=int, default=BENCH_SAMPLES,
+                   help="re-scoring rows: also time this many exact scores sampled for R_avg (default "
+                        f"{BENCH_SAMPLES}, what K=65536 ±0.0075 sampled per found query on bench)")
     s.add_argument("--repeats", type=int, default=5, help="timed queries per configuration (default 5)")
     s.add_argument("--exact-timesteps", type=int, default=3,
                    help="exact path: time this many timesteps and extrapolate to all (0: all)")
@@ -119,7 +132,7 @@ def _open(args: argparse.Namespace):
                          file=path, field="language")
     scene, field, encoder = ensure_language_field(scene, progress=True)
     engine = QueryEngine(scene, field, encoder, path=args.path, codebook_size=args.codebook_size,
-                         codebook_refine=args.codebook_refine,
+                         codebook_refine=args.codebook_refine, codebook_samples=args.codebook_samples,
                          negatives=args.negatives, temporal_stride=args.stride, spatial=args.spatial,
                          resolution_scale=args.scale, dilation=args.dilation)
     return scene, engine

@@ -5,7 +5,8 @@ Paths (each selectable, each measured against the exact one by ``fourlegs bench 
 * temporal / per-Gaussian relevancy — ``path="exact"`` decodes every latent (streamed in chunks, never
   T x N x 768 at once); ``path="codebook"`` decodes only the K codes (once per engine) and scores
   Gaussians by lookup, a temporal query being a (T,K) histogram reduction; ``codebook_refine`` > 0
-  re-scores exactly the Gaussians of codes whose relevancy is that close to a temporal threshold;
+  re-scores exactly a sample (for R_avg) and, where a timestep's decision depends on them, the Gaussians
+  of codes whose relevancy is that close to R_avg;
 * ``temporal_stride`` scores every k-th timestep only;
 * spatial maps — ``spatial="exact"`` renders the 128-channel latents, decodes every pixel and scores
   it (paper §3.2); ``spatial="fast"`` renders one channel, the per-Gaussian relevancy;
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import mmap
 import time
+import zlib
 from collections import Counter
 from pathlib import Path
 from typing import Any, Iterable, Optional, Sequence
@@ -35,8 +37,8 @@ from .head import RelevancyHead
 from .relevancy import (RELEVANCY_SCALE, as_tensor, l2_normalize, reference_set, relevancy, relevancy_many,
                         relevancy_of_unit_features)
 from .results import CentreResult, Localization, TemporalResult, ViewResult
-from .temporal import (counts_from_code_histogram, counts_from_codes_refined, counts_from_relevancy, localize_counts,
-                       sampled_timesteps)
+from .temporal import (R_AVG_SAMPLES, counts_from_code_histogram, counts_from_codes_refined, counts_from_relevancy,
+                       localize_counts, sampled_timesteps, tied_segment_rows, timestep_weights)
 
 __all__ = ["QueryEngine", "TemporalResult", "Localization", "ViewResult", "CentreResult"]
 
@@ -56,8 +58,11 @@ class QueryEngine:
         text_encoder: ``encode_text(list[str]) -> (n,D)`` of the encoder the field was distilled from.
         path: "exact" or "codebook" (per-Gaussian relevancy and temporal localization).
         codebook_size: K of the codebook path.
-        codebook_refine: margin of the codebook path's exact re-scoring: the Gaussians of every code whose
-            relevancy is within this distance of 0.5 or of R_avg are decoded exactly (0: lookup only).
+        codebook_refine: margin of the codebook path's exact re-scoring (0: lookup only): R_avg is corrected
+            by exact scores of ``codebook_samples`` sampled Gaussians, and at every timestep whose decision
+            (s_t > 1/T) depends on them the Gaussians of the codes within this distance of R_avg are
+            decoded exactly (see :func:`~.temporal.counts_from_codes_refined`).
+        codebook_samples: exact scores spent on R_avg per query with ``codebook_refine`` > 0.
         codebook: a prebuilt :class:`Codebook` (else loaded from / stored in ``codebook_dir``, by default
             the bundle's ``language/`` directory, or built in memory).
         negatives: scene-specific negative phrases added to the canonical set.
@@ -74,7 +79,7 @@ class QueryEngine:
 
     def __init__(self, scene: Scene, field: Any, text_encoder: Any, *, path: str = "exact",
                  codebook_size: int = DEFAULT_CODEBOOK_SIZE, codebook: Optional[Codebook] = None,
-                 codebook_refine: float = 0.0,
+                 codebook_refine: float = 0.0, codebook_samples: int = R_AVG_SAMPLES,
                  codebook_dir: Optional[Path] = None, negatives: Sequence[str] = (), temporal_stride: int = 1,
                  spatial: str = "exact", resolution_scale: float = 1.0, dilation: int = 1, chunk: int = 32768,
                  latent_dtype: Optional[str] = None, camera_split: str = "all", render_options: Any = None,
@@ -104,6 +109,9 @@ class QueryEngine:
             raise InputError(f"codebook refine margin must be in [0, 1], got {codebook_refine}",
                              field="codebook_refine")
         self.codebook_refine = float(codebook_refine)
+        if int(codebook_samples) < 2:
+            raise InputError(f"codebook samples must be >= 2, got {codebook_samples}", field="codebook_samples")
+        self.codebook_samples = int(codebook_samples)
         self.codebook_dir = codebook_dir if codebook_dir is not None else (
             Path(scene.root) / "language" if scene.root is not None else None)
         self._codebook = codebook
@@ -248,24 +256,70 @@ class QueryEngine:
                 self._sparse = np.ndarray(lat.shape, dtype=lat.dtype, buffer=mapped, offset=lat.offset)
         return self._sparse
 
-    def _rescore_members(self, query: str, codes: np.ndarray, timesteps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Exact relevancy of every Gaussian holding one of ``codes`` at one of the sorted ``timesteps``.
+    def _band_members(self, codes: np.ndarray, rows: np.ndarray,
+                      timesteps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every Gaussian holding one of ``codes`` at the scored timesteps ``timesteps[rows]``.
 
         Returns:
-            rows (M,) int64 index into ``timesteps``, scores (M,) float64.
+            rows (M,) int64 index into ``timesteps``, codes (M,) int64, flat indices t*N+g (M,) int64.
         """
         N = self.scene.num_gaussians
-        flat = self.codebook.members_of(codes)
-        t_of, g_of = np.divmod(flat, N)
-        pos = np.searchsorted(timesteps, t_of)
-        keep = (pos < len(timesteps)) & (timesteps[np.minimum(pos, len(timesteps) - 1)] == t_of)
-        t_of, g_of, pos = t_of[keep], g_of[keep], pos[keep]
+        rows = np.sort(np.asarray(rows, dtype=np.int64))
+        wanted = np.asarray(timesteps, dtype=np.int64)[rows]  # sorted, as the scored timesteps are
+        flat, code_of = self.codebook.members_with_codes(codes)
+        keep = np.isin(flat // N, wanted)
+        flat, code_of = flat[keep], code_of[keep]
+        return rows[np.searchsorted(wanted, flat // N)], code_of, flat
+
+    def _score_any(self, query: str, flat: np.ndarray) -> np.ndarray:
+        """(M,) float64 exact relevancy of the Gaussians at flat indices t*N+g, in any order."""
+        flat = np.asarray(flat, dtype=np.int64)
+        order = np.argsort(flat, kind="stable")  # reads in file order
+        scores = np.empty(flat.shape[0], dtype=np.float64)
+        scores[order] = self._score_pairs(query, flat[order])
+        return scores
+
+    def _sample_members(self, query: str, groups: Sequence[np.ndarray], sizes: Sequence[int], timesteps: np.ndarray,
+                        rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
+        """For each group of codes, exact relevancy of a uniform sample without replacement of that many
+        Gaussians holding one of its codes at one of the sorted scored ``timesteps`` (all of them when
+        there are no more); every group is decoded in one batch.
+
+        Returns:
+            per group: their codes (M_j,) int64, scores (M_j,) float64.
+        """
+        N, T = self.scene.num_gaussians, self.scene.num_timesteps
+        timesteps = np.asarray(timesteps, dtype=np.int64)
+        flats, code_ofs = [], []
+        strided = len(timesteps) != T
+        for codes, size in zip(groups, sizes):
+            # members are indexed over every timestep: draw enough to keep ``size`` at the scored ones
+            draw = size
+            if strided:
+                scored = int(np.asarray(self.codebook.histogram)[timesteps][:, np.asarray(codes)].sum())
+                draw = int(np.ceil(size * T / max(len(timesteps), 1) * 1.25)) + 32 if size < scored else 1 << 62
+            flat, code_of = self.codebook.sample_members(codes, draw, rng)
+            if strided:
+                keep = np.isin(flat // N, timesteps)
+                flat, code_of = flat[keep][:size], code_of[keep][:size]
+            flats.append(flat)
+            code_ofs.append(code_of)
+        scores = self._score_any(query, np.concatenate(flats) if flats else np.zeros(0, dtype=np.int64))
+        bounds = np.cumsum([0] + [f.shape[0] for f in flats])
+        return [(c, scores[a:b]) for c, a, b in zip(code_ofs, bounds[:-1], bounds[1:])]
+
+    def _score_pairs(self, query: str, flat: np.ndarray) -> np.ndarray:
+        """(M,) float64 exact relevancy of the Gaussians at sorted flat indices t*N+g."""
+        N = self.scene.num_gaussians
+        t_of, g_of = np.divmod(np.asarray(flat, dtype=np.int64), N)
         source = self._sparse_latents()
         lat = np.empty((t_of.shape[0], int(self.latents.shape[-1])), dtype=self.latent_dtype or np.float32)
         bounds = np.searchsorted(t_of, np.unique(t_of))
         for a, b in zip(bounds, list(bounds[1:]) + [len(t_of)]):  # one read per timestep, scored together
             lat[a:b] = source[int(t_of[a])][g_of[a:b]]
-        return pos, self._score_latents(lat, self.embed_query(query)).double().numpy()
+        if lat.shape[0] == 0:
+            return np.zeros(0, dtype=np.float64)
+        return self._score_latents(lat, self.embed_query(query)).double().numpy()
 
     # ------------------------------------------------------------------ per Gaussian
     def gaussian_relevancy(self, query: str, t: int) -> torch.Tensor:
@@ -329,12 +383,19 @@ class QueryEngine:
             stats = [(np.zeros(len(ts), np.int64), 0.0, 0)] * Q
         elif self.path == "codebook" and self.codebook_refine > 0:
             hist = self.codebook.histogram[ts]
+            weights = timestep_weights(ts, T)
             stats = []
             for q in queries:
-                c, a, n, rescored = counts_from_codes_refined(
+                rng = np.random.default_rng(zlib.crc32(q.encode("utf-8")))  # the same answer every time
+                c, a, n, rescored, sampled = counts_from_codes_refined(
                     self._codes_scores(q).double().numpy(), hist,
-                    lambda codes, q=q: self._rescore_members(q, codes, ts), self.codebook_refine)
+                    members=lambda codes, rows: self._band_members(codes, rows, ts),
+                    score=lambda flat, q=q: self._score_any(q, flat),
+                    sample=lambda groups, sizes, q=q, rng=rng: self._sample_members(q, groups, sizes, ts, rng),
+                    margin=self.codebook_refine, weights=weights, samples=self.codebook_samples,
+                    tied_rows=lambda positive: tied_segment_rows(positive, ts, T, self.dilation))
                 self.stats["rescored_latents"] += rescored
+                self.stats["sampled_latents"] += sampled
                 stats.append((c, a, n))
         elif self.path == "codebook":
             hist = self.codebook.histogram[ts]

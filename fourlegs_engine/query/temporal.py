@@ -77,62 +77,250 @@ def counts_from_code_histogram(code_scores, histogram) -> tuple[np.ndarray, floa
     return counts.astype(np.int64), r_avg, n_rel
 
 
-def counts_from_codes_refined(code_scores, histogram, rescore: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
-                              margin: float) -> tuple[np.ndarray, float, int, int]:
-    """:func:`counts_from_code_histogram` with exact scores for the Gaussians near the thresholds.
+R_AVG_SAMPLES = 4096  # exact scores sampled per query to correct the codebook's R_avg
+# codes within this distance of 0.5 may hold relevant and irrelevant Gaussians alike; on the bench scene the
+# K = 65536 codebook's per-Gaussian error has a std of 0.015, and a band of 0.1 leaves out relevant pairs
+# worth at most 2e-4 of R_avg (0.02 would leave out 2e-3)
+MEMBERSHIP_BAND = 0.1
+R_AVG_Z = 3.0  # R_avg's confidence interval, in standard errors of its sampled estimate
+R_AVG_MAX_SAMPLES_FACTOR = 16  # the sample grows 4x at a time up to this many times the first one
+RESCORE_CHUNKS = 4  # an open timestep's band members are re-scored in this many random chunks
+RESCORE_MIN_CHUNK = 64
 
-    A Gaussian is counted by its code's relevancy r_k only when r_k is at least ``margin`` away from both
-    decisions the localization takes (R > 0.5 and R > R_avg); the members of every other code are
-    re-scored exactly by ``rescore``. R_avg itself mixes both kinds of scores, so the codes near it are
-    selected again until the set stops growing (it only grows, so this ends).
+
+def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.ndarray, np.ndarray], tuple],
+                              score: Callable[[np.ndarray], np.ndarray], sample: Callable[[list, list], list],
+                              margin: float,
+                              weights: Optional[np.ndarray] = None, samples: int = R_AVG_SAMPLES,
+                              tied_rows: Optional[Callable[[np.ndarray], list]] = None
+                              ) -> tuple[np.ndarray, float, int, int, int]:
+    """:func:`counts_from_code_histogram` with exact scores where the localization's decisions need them.
+
+    Two things decide the answer: R_avg, and for every timestep whether its count is above the mean
+    count (s_t > 1/T). The codebook gets both nearly right; this makes them exact where it matters:
+
+    1. R_avg from the code relevancies r_k, corrected by the exact scores of a uniform sample of (g, t)
+       pairs: a control variate, stratified by the code's distance from 0.5 (finest near 0.5, where
+       membership of Rel flips), the ``samples`` water-filled so that a stratum no larger than its share is
+       scored whole (a small relevant set gets its exact R_avg). Pairs whose code is more than
+       max(``MEMBERSHIP_BAND``, 2·margin) below 0.5 are taken as not relevant. Its standard error gives
+       an interval of ±``R_AVG_Z`` errors.
+    2. Per timestep, the count above R_avg is taken from the codes, except for the members of the codes
+       within ``margin`` of that interval; those bound it from below and above. While a timestep's bounds
+       straddle the mean count (the total of the current counts / T), its band members are re-scored
+       exactly, a random 1/``RESCORE_CHUNKS`` of them at a time, each chunk narrowing the bounds. A
+       fully re-scored timestep still open because of R_avg's interval gets a 4x larger sample (up to
+       ``R_AVG_MAX_SAMPLES_FACTOR`` x). Members not re-scored count by their code (the lookup
+       estimate), which keeps every count inside its bounds.
+    3. If ``tied_rows`` finds equally long longest segments, their s_t sums decide: from the bounds when
+       they do not overlap, else from exact counts of every timestep in them.
+
+    So, against the total it returns, every timestep is decided as its exact count would be whenever
+    every member's relevancy is within ``margin`` of its code's and R_avg lies in its interval (it is
+    exact when ``samples`` covers every pair); the total itself mixes exact counts and lookup estimates.
 
     Args:
         code_scores: (K,) relevancy of each code.
         histogram: (S,K) Gaussians holding each code at each scored timestep.
-        rescore: codes (C,) -> (rows (M,) index into the S scored timesteps, scores (M,)) of their members.
-        margin: half-width of the band around each threshold that is re-scored (0 = plain lookup).
+        members: (codes (C,), rows (U,)) -> (rows (M,) into the S scored timesteps, codes (M,), handles (M,)):
+            the Gaussians holding one of ``codes`` at the scored timesteps ``rows``.
+        score: handles (M,) -> (M,) their exact relevancy.
+        sample: (list of codes (C_j,), list of sizes) -> list of (codes (M_j,), scores (M_j,)): for each
+            group of codes, exact relevancy of a uniform sample without replacement of that many of its
+            members at the scored timesteps (all of them when fewer); one call for every stratum.
+        margin: half-width of the band of codes around R_avg whose members are re-scored (0 = lookup).
+        weights: (S,) timesteps each scored timestep stands for after stride expansion (default 1 each).
+        samples: exact scores spent on R_avg.
+        tied_rows: positive (S,) bool -> one array per longest segment when more than one is longest (else
+            none): the scored row of each of its timesteps (see :func:`tied_segment_rows`).
     Returns:
-        counts (S,), R_avg, number of relevant (g,t) pairs, number of re-scored (g,t) pairs.
+        counts (S,), R_avg, number of relevant (g,t) pairs (estimated), latents re-scored, latents sampled.
     """
     r = np.asarray(code_scores.double().numpy() if isinstance(code_scores, torch.Tensor) else code_scores,
                    dtype=np.float64)
     hist = np.asarray(histogram)
+    if margin <= 0:
+        counts, r_avg, n_rel = counts_from_code_histogram(r, hist)
+        return counts, r_avg, n_rel, 0, 0
     S = hist.shape[0]
+    w = np.ones(S, dtype=np.int64) if weights is None else np.asarray(weights, dtype=np.int64)
+    T = int(w.sum())
     per_code = hist.sum(axis=0, dtype=np.int64)
-    exact_codes = np.zeros(r.shape[0], dtype=bool)
-    rows, scores = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.float64)
+    held = per_code > 0
 
-    def relevant_stats() -> tuple[int, float]:
-        coded = ~exact_codes & (r > RELEVANT)
-        rel = scores > RELEVANT
-        n = int(per_code[coded].sum()) + int(rel.sum())
-        total = float(per_code[coded] @ r[coded]) + float(scores[rel].sum())
-        return n, (total / n if n else 0.0)
-
-    n_rel, r_avg = relevant_stats()
-    while margin > 0:
-        near = np.abs(r - RELEVANT) < margin
-        if n_rel:
-            near |= np.abs(r - r_avg) < margin
-        new = near & ~exact_codes & (per_code > 0)
-        if not new.any():
-            break
-        new_rows, new_scores = rescore(np.nonzero(new)[0])
-        rows = np.concatenate([rows, np.asarray(new_rows, dtype=np.int64)])
-        scores = np.concatenate([scores, np.asarray(new_scores, dtype=np.float64)])
-        exact_codes |= new
-        n_rel, r_avg = relevant_stats()
+    # 1. R_avg with a confidence interval; widened samples narrow it while a decision depends on it
+    size = int(samples)
+    r_avg, r_se, n_rel, sampled = _sampled_r_avg(r, per_code, held, sample, margin, size)
     if n_rel == 0:
-        return np.zeros(S, dtype=np.int64), 0.0, 0, int(scores.size)
+        return np.zeros(S, dtype=np.int64), 0.0, 0, 0, sampled
+    r_low, r_high = r_avg - R_AVG_Z * r_se, r_avg + R_AVG_Z * r_se
+    first_low, first_high = r_low, r_high
 
-    def count(threshold: float) -> np.ndarray:
-        coded = hist @ (~exact_codes & (r > threshold)).astype(hist.dtype)
-        return coded.astype(np.int64) + np.bincount(rows[scores > threshold], minlength=S)[:S]
+    # 2. counts above R_avg: by code outside the band (codes within margin of the interval), bounded
+    #    inside it until re-scored; the band is fixed by the first, widest interval
+    band = held & (r > r_low - margin) & (r < r_high + margin)
+    band_codes = np.nonzero(band)[0]
+    band_hist = np.asarray(hist[:, band_codes], dtype=np.int64)  # (S,B)
+    r_band = r[band_codes]
+    # outside the band a code is on the same side of every R in the (first) interval
+    sure = (hist @ (~band & (r > r_avg)).astype(hist.dtype)).astype(np.int64)
+    unsure = band_hist.sum(axis=1)
+    rows_open: dict[int, list] = {}  # row -> [pending codes, pending handles, exact scores so far, chunk]
+    order_rng = np.random.default_rng(0)
+    rescored = 0
 
-    counts = count(r_avg)
-    if counts.sum() == 0:  # every relevant score equal (see counts_from_relevancy)
-        counts = count(RELEVANT)
-    return counts, r_avg, n_rel, int(scores.size)
+    def open_rows(rows: np.ndarray) -> None:
+        rows = np.array([i for i in rows if int(i) not in rows_open], dtype=np.int64)
+        if rows.size == 0:
+            return
+        at, codes_of, handles = (np.asarray(x, dtype=np.int64) for x in members(band_codes, rows))
+        for i in rows:
+            mine = np.flatnonzero(at == i)
+            mine = mine[order_rng.permutation(mine.size)]  # re-scored in random order, a chunk at a time
+            rows_open[int(i)] = [codes_of[mine], handles[mine], np.zeros(0, dtype=np.float64),
+                                 max(RESCORE_MIN_CHUNK, -(-mine.size // RESCORE_CHUNKS))]
+
+    def score_next(rows: np.ndarray, everything: bool = False) -> None:
+        """Exact scores for the next chunk (or all) of the pending band members of ``rows``."""
+        nonlocal rescored
+        open_rows(rows)
+        takes = []
+        for i in rows:
+            codes_i, handles_i, _, chunk = rows_open[int(i)]
+            take = handles_i.size if everything else min(chunk, handles_i.size)
+            if take:
+                takes.append((int(i), take))
+        if not takes:
+            return
+        exact = np.asarray(score(np.concatenate([rows_open[i][1][:k] for i, k in takes])), dtype=np.float64)
+        rescored += int(exact.size)
+        start = 0
+        for i, k in takes:
+            entry = rows_open[i]
+            entry[2] = np.concatenate([entry[2], exact[start:start + k]])
+            entry[0], entry[1] = entry[0][k:], entry[1][k:]
+            start += k
+
+    def state(threshold: float) -> tuple[np.ndarray, np.ndarray]:
+        """(S,) band members above ``threshold`` (exact where re-scored, by code elsewhere) and (S,) still
+        pending."""
+        above = band_hist @ (r_band > threshold)
+        pending = unsure.copy()
+        for i, (codes_i, _, exact_i, _) in rows_open.items():
+            above[i] = int((exact_i > threshold).sum()) + int((r[codes_i] > threshold).sum())
+            pending[i] = codes_i.size
+        return above, pending
+
+    def bounds() -> tuple[np.ndarray, np.ndarray]:
+        low, high = sure.copy(), sure + unsure
+        for i, (codes_i, _, exact_i, _) in rows_open.items():
+            low[i] += int((exact_i > r_high).sum())
+            high[i] = sure[i] + int((exact_i > r_low).sum()) + codes_i.size
+        return low, high
+
+    while True:  # the total is the estimate's; each row's own count is decided from its bounds
+        low, high = bounds()
+        above, pending = state(r_avg)
+        total = int(w @ (sure + above))
+        undecided = (low * T <= total) & (high * T > total)
+        todo = undecided & (pending > 0)
+        if todo.any():
+            score_next(np.nonzero(todo)[0])
+        elif undecided.any() and size < R_AVG_MAX_SAMPLES_FACTOR * samples and r_se > 0:
+            # those rows are exact: only R_avg's interval leaves them open, so estimate it again from a
+            # 4x larger sample, keeping the interval inside the first one (the band was built for it)
+            size *= 4
+            estimate, r_se, n_rel, more = _sampled_r_avg(r, per_code, held, sample, margin, size)
+            sampled += more
+            r_avg = float(np.clip(estimate, first_low, first_high))
+            r_low, r_high = max(first_low, estimate - R_AVG_Z * r_se), min(first_high, estimate + R_AVG_Z * r_se)
+            if r_low > r_high:  # the two estimates disagree beyond their intervals: take the newer one
+                r_low = r_high = r_avg
+        else:
+            break
+
+    counts = sure + state(r_avg)[0]
+    tied = tied_rows(counts * T > int(w @ counts)) if tied_rows is not None and counts.sum() > 0 else []
+    if tied:  # equally long segments: the larger sum of s_t wins, decided from the bounds if they allow
+        low, high = bounds()
+        sums_low = np.array([low[rows].sum() for rows in tied])
+        sums_high = np.array([high[rows].sum() for rows in tied])
+        best = int(np.argmax(sums_low))
+        if np.any(np.delete(sums_high, best) >= sums_low[best]):
+            rows = np.unique(np.concatenate(tied))
+            score_next(rows[unsure[rows] > 0], everything=True)
+            counts = sure + state(r_avg)[0]
+    if counts.sum() == 0:  # every relevant score equal (see counts_from_relevancy): count the relevant
+        counts = (hist @ (~band & (r > RELEVANT)).astype(hist.dtype)).astype(np.int64) + state(RELEVANT)[0]
+    return counts, r_avg, n_rel, rescored, sampled
+
+
+def _sampled_r_avg(r: np.ndarray, per_code: np.ndarray, held: np.ndarray, sample: Callable, margin: float,
+                   samples: int) -> tuple[float, float, int, int]:
+    """R_avg = F / G over Rel from the code relevancies, corrected by the exact-minus-code differences of a
+    stratified sample (a control variate), with its standard error (linearized ratio estimator).
+
+    Returns:
+        R_avg (0 when no pair is relevant), its standard error, estimated |Rel|, latents sampled.
+    """
+    rel = r > RELEVANT
+    F, G = float(per_code[rel] @ r[rel]), float(per_code[rel].sum())
+    # strata by distance from 0.5, finest where membership flips most (water-filled: small ones whole)
+    edges = np.array([-max(MEMBERSHIP_BAND, 2 * margin), -0.05, -0.02, -0.005, 0.005, 0.02, 0.05, 0.1, np.inf])
+    which = np.searchsorted(edges, r - RELEVANT, side="right") - 1
+    strata = [held & (which == i) for i in range(len(edges) - 1)]
+    populations = [int(per_code[s].sum()) for s in strata]
+    budget, requests = samples, []
+    for i in np.argsort(populations, kind="stable"):  # small strata are scored whole, the rest share
+        if populations[i] == 0:
+            continue
+        left = sum(1 for p in populations if p >= populations[i])
+        size = max(1, min(populations[i], budget // max(left, 1)))
+        budget -= size
+        requests.append((int(i), size))
+    drawn = []
+    answers = sample([np.nonzero(strata[i])[0] for i, _ in requests], [size for _, size in requests]) \
+        if requests else []
+    for (i, _), (codes, exact) in zip(requests, answers):
+        exact = np.asarray(exact, dtype=np.float64)
+        if exact.size == 0:
+            continue
+        coded = r[np.asarray(codes, dtype=np.int64)]
+        f = np.where(exact > RELEVANT, exact, 0.0) - np.where(coded > RELEVANT, coded, 0.0)
+        g = (exact > RELEVANT).astype(np.float64) - (coded > RELEVANT)
+        F += populations[i] * float(f.mean())
+        G += populations[i] * float(g.mean())
+        drawn.append((populations[i], f, g))
+    sampled = sum(f.size for _, f, _ in drawn)
+    if not G >= 0.5:  # not one relevant pair (to the sample's resolution)
+        return 0.0, 0.0, 0, sampled
+    r_avg = F / G
+    var = sum(P * P * max(0.0, 1.0 - f.size / P) * float(np.var(f - r_avg * g, ddof=1)) / f.size
+              for P, f, g in drawn if f.size > 1)
+    return float(np.clip(r_avg, RELEVANT, 1.0)), float(np.sqrt(var)) / G, int(round(G)), sampled
+
+
+def timestep_weights(timesteps, num_timesteps: int) -> np.ndarray:
+    """(S,) how many of the ``num_timesteps`` timesteps each scored timestep stands for (see expand_counts)."""
+    S = len(timesteps)
+    return np.bincount(expand_counts(np.arange(S), timesteps, num_timesteps), minlength=S)[:S]
+
+
+def tied_segment_rows(positive: np.ndarray, timesteps, num_timesteps: int, dilation: int) -> list[np.ndarray]:
+    """For each longest segment, when more than one is longest: the scored row of each of its timesteps
+    (their counts sum to the segment's share of s_t, which breaks the tie); else an empty list.
+
+    Args:
+        positive: (S,) bool positivity of the scored timesteps.
+    """
+    full = expand_counts(np.asarray(positive, dtype=np.int64), timesteps, num_timesteps) > 0
+    segments = runs(dilate(full, dilation))
+    longest = max((b - a for a, b in segments), default=0)
+    tied = [(a, b) for a, b in segments if b - a == longest]
+    if len(tied) < 2:
+        return []
+    row_of = expand_counts(np.arange(len(timesteps)), timesteps, num_timesteps)
+    return [row_of[a:b + 1] for a, b in tied]
 
 
 def expand_counts(counts: np.ndarray, timesteps: np.ndarray, num_timesteps: int) -> np.ndarray:

@@ -92,6 +92,10 @@ def register_bench(bench_subparsers: Any) -> None:
     s.add_argument("--sample-count", type=int, default=BENCH_SAMPLES,
                    help="re-scoring rows: also time this many exact scores sampled for R_avg (default "
                         f"{BENCH_SAMPLES}, what K=65536 ±0.0075 sampled per found query on bench)")
+    s.add_argument("--tiled-scene", default="none", choices=("none", "tiny", "demo", "bench"),
+                   help="also time the re-scoring rows on this synthetic scene's distilled field tiled to the "
+                        "benchmark's size, with every scene query and its answers checked against the exact "
+                        "path (default none; bench needs its language field, built on first use)")
     s.add_argument("--repeats", type=int, default=5, help="timed queries per configuration (default 5)")
     s.add_argument("--exact-timesteps", type=int, default=3,
                    help="exact path: time this many timesteps and extrapolate to all (0: all)")

@@ -298,6 +298,9 @@ def markdown(report: dict) -> str:
         lines.append(f"| {r['path']} | {q} | {r.get('first_query_s', float('nan')):.3f} | "
                      f"{rescored} | {r.get('build_s', float('nan')):.1f} | {rss} | "
                      f"{_mb(r.get('anon_rss_mb'))} | {_mb(r.get('file_rss_mb'))} |")
+    if report.get("tiled"):
+        from .speed_tiled import markdown_rows
+        lines += markdown_rows(report["tiled"])
     if report.get("spatial"):
         lines += ["", "| relevancy map | resolution | Gaussians | seconds |", "|---|---|---|---|"]
         for r in report["spatial"]:
@@ -329,6 +332,13 @@ def run_query_speed_cli(args) -> int:
                                  repeats=args.repeats, exact_timesteps=args.exact_timesteps,
                                  spatial_scene=args.spatial_scene, workdir=workdir, refine_margins=margins,
                                  rescore_share=args.rescore_share, sample_count=args.sample_count)
+        if args.tiled_scene != "none":
+            from .speed_tiled import run_tiled_query_speed
+            shutil.rmtree(workdir, ignore_errors=True)  # the random field first: both need the disk space
+            workdir.mkdir()
+            report["tiled"] = run_tiled_query_speed(args.tiled_scene, gaussians=args.gaussians,
+                                                    timesteps=args.timesteps, codebook_sizes=sizes,
+                                                    margins=margins, workdir=workdir)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
     print(markdown(report))

@@ -1,0 +1,187 @@
+"""``fourlegs bench query-speed --tiled-scene bench``: the codebook temporal query with exact re-scoring
+timed on a real distilled field at the paper's size.
+
+The scene's latents are tiled to N Gaussians (whole copies) x T timesteps (each timestep repeated, the
+nearest source timestep), the codebook is built on the tiled field, and every query of the scene is
+timed in a fresh process (so its memory is its own). The answers are checked against the exact path on
+the same tiled field, computed without decoding 45M latents: copies multiply every count and repeats
+weight each source timestep, so the exact per-timestep scores of the source scene determine R_avg and
+every count of the tiled one.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from .codebook import build_codebook, load_codebook
+from .engine import QueryEngine
+from .temporal import RELEVANT, localize_counts
+
+
+class TiledField:
+    """The tiled latents (memmap) with the source field's decoder and canonical phrases."""
+
+    def __init__(self, latents: np.ndarray, source: Any):
+        self.latents = latents
+        self.decoder = getattr(source, "decoder", None)
+        self.canonical_phrases = tuple(getattr(source, "canonical_phrases", ()) or ())
+        self.encoder_name = getattr(source, "encoder_name", "simulated")
+        self._source = source
+
+    def decode(self, z: torch.Tensor) -> torch.Tensor:
+        return self._source.decode(z)
+
+
+def source_timesteps(source_T: int, T: int) -> np.ndarray:
+    """(T,) the source timestep each tiled timestep repeats (nearest, evenly spread)."""
+    return np.round(np.arange(T) * (source_T - 1) / max(T - 1, 1)).astype(np.int64)
+
+
+def write_tiled_latents(path: Path, source_latents: Any, T: int, N: int) -> np.ndarray:
+    """Write (T,N,d) float16 latents: source timestep ``source_timesteps`` of each, Gaussians tiled."""
+    T0, N0, d = (int(s) for s in source_latents.shape)
+    if N % N0:
+        raise InputError(f"{N} Gaussians are not whole copies of the scene's {N0}", field="--gaussians")
+    out = np.lib.format.open_memmap(path, mode="w+", dtype=np.float16, shape=(T, N, d))
+    for t, src in enumerate(source_timesteps(T0, T)):
+        out[t] = np.tile(np.asarray(source_latents[int(src)], dtype=np.float16), (N // N0, 1))
+    out.flush()
+    del out
+    return np.load(path, mmap_mode="r")
+
+
+def exact_tiled_answers(scene: Any, field: Any, encoder: Any, queries: Sequence[str], T: int, N: int,
+                        dilation: int = 1) -> dict[str, Any]:
+    """The exact path's answer on the tiled field, per query, from the scene's exact scores."""
+    eng = QueryEngine(scene, field, encoder, path="exact", dilation=dilation)
+    eng.temporal_many(list(queries))  # decodes each latent once and keeps every query's scores
+    T0, N0 = scene.num_timesteps, scene.num_gaussians
+    src = source_timesteps(T0, T)
+    repeats = np.bincount(src, minlength=T0).astype(np.float64)  # tiled timesteps per source timestep
+    copies = N // N0
+    out = {}
+    for q in queries:
+        scores = np.stack([eng.gaussian_relevancy(q, t).double().numpy() for t in range(T0)])  # (T0, N0)
+        rel = scores > RELEVANT
+        n_rel = float(repeats @ rel.sum(axis=1))
+        if n_rel == 0:
+            counts = np.zeros(T, dtype=np.int64)
+            r_avg = 0.0
+        else:
+            r_avg = float(repeats @ np.where(rel, scores, 0.0).sum(axis=1) / n_rel)
+            counts = copies * (scores > r_avg).sum(axis=1).astype(np.int64)[src]
+        out[q] = localize_counts(counts, np.arange(T), T, dilation=dilation, r_avg=r_avg,
+                                 num_relevant=int(round(copies * n_rel)), query=q, num_gaussians=N)
+    return out
+
+
+def tiled_query_timings(workdir: Path, size: str, k: int, margin: float, threads: int,
+                        queries: Sequence[str]) -> dict:
+    """Every query on the tiled field in this (fresh) process: seconds, answers, exact work, memory."""
+    from ..eval.synthetic import ensure_demo_bundle
+    from ..scene.bundle import load_bundle
+    from .prepare import ensure_language_field
+    from .speed import _flat_scene, _peak_rss_mb, _resident_mb
+
+    torch.set_num_threads(threads)
+    scene, source, encoder = ensure_language_field(load_bundle(ensure_demo_bundle(size)))
+    lat = np.load(workdir / "tiled.npy", mmap_mode="r")
+    T, N = int(lat.shape[0]), int(lat.shape[1])
+    book = load_codebook(workdir / f"tiled_cb{k}", k, lat)
+    if book is None:
+        raise InputError(f"no codebook K={k} for the tiled latents", file=workdir)
+    eng = QueryEngine(_flat_scene(T, N), TiledField(lat, source), encoder, path="codebook", codebook=book,
+                      codebook_refine=margin)
+    eng.reference_embeddings()
+    t0 = time.perf_counter()
+    eng.temporal("a query that is not in the list")  # one-off: decoding the codes, opening the index
+    first = time.perf_counter() - t0
+    rows = []
+    for q in queries:
+        eng.embed_query(q)  # text encoding is the encoder's cost, timed apart
+        before = dict(eng.stats)
+        t0 = time.perf_counter()
+        res = eng.temporal(q)
+        seconds = time.perf_counter() - t0
+        rows.append({"query": q, "seconds": seconds, "segment": list(res.segment) if res.segment else None,
+                     "positive": res.positive.tolist(),
+                     "rescored": int(eng.stats["rescored_latents"] - before.get("rescored_latents", 0)),
+                     "sampled": int(eng.stats["sampled_latents"] - before.get("sampled_latents", 0))})
+    return {"first_query_s": first, "queries": rows, "peak_rss_mb": _peak_rss_mb(),
+            "anon_rss_mb": _resident_mb("RssAnon"), "file_rss_mb": _resident_mb("RssFile")}
+
+
+def run_tiled_query_speed(size: str, *, gaussians: int, timesteps: int, codebook_sizes: Sequence[int],
+                          margins: Sequence[float], workdir: Path, progress: bool = True) -> list[dict]:
+    """Rows of the tiled benchmark: one per (K, margin), each with its per-query times and answers."""
+    import multiprocessing
+
+    from ..eval.ground_truth import scene_queries
+    from ..eval.synthetic import ensure_demo_bundle
+    from ..scene.bundle import load_bundle
+    from .prepare import ensure_language_field
+
+    scene, field, encoder = ensure_language_field(load_bundle(ensure_demo_bundle(size)), progress=progress)
+    queries = list(scene_queries(scene))
+    T, N = int(timesteps), int(gaussians)
+    t0 = time.perf_counter()
+    lat = write_tiled_latents(workdir / "tiled.npy", field.latents, T, N)
+    write_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    exact = exact_tiled_answers(scene, field, encoder, queries, T, N)
+    exact_s = time.perf_counter() - t0
+    spawn = multiprocessing.get_context("spawn")
+    rows = []
+    for K in codebook_sizes:
+        t0 = time.perf_counter()
+        build_codebook(lat, K, out_dir=workdir / f"tiled_cb{K}", progress=progress)
+        build = time.perf_counter() - t0
+        for margin in [m for m in margins if m > 0]:
+            with spawn.Pool(1) as pool:
+                got = pool.apply(tiled_query_timings, (workdir, size, K, margin, torch.get_num_threads(), queries))
+            per_query = got.pop("queries")
+            for r in per_query:
+                want = exact[r["query"]]
+                r["exact_segment"] = list(want.segment) if want.segment else None
+                r["equal_to_exact"] = r["segment"] == r["exact_segment"] and r["positive"] == want.positive.tolist()
+                del r["positive"]
+            found = [r for r in per_query if r["exact_segment"] is not None]
+            seconds = [r["seconds"] for r in per_query]
+            row = {"path": f"codebook K={K} + exact re-scoring ±{margin:g} on the {size} field tiled to "
+                           f"{N:,} x {T}", "scene": size, "num_gaussians": N, "num_timesteps": T,
+                   "codebook_size": K, "refine_margin": margin, "build_s": build, "write_latents_s": write_s,
+                   "exact_reference_s": exact_s, "mean_query_s": float(np.mean(seconds)),
+                   "max_query_s": float(np.max(seconds)),
+                   "mean_found_query_s": float(np.mean([r["seconds"] for r in found])) if found else float("nan"),
+                   "equal_to_exact": sum(r["equal_to_exact"] for r in per_query), "num_queries": len(per_query),
+                   "queries": per_query, **got, "rss_scope": "query process"}
+            rows.append(row)
+            print(f"  {row['path']}: mean {row['mean_query_s']:.3f} s per query (max {row['max_query_s']:.3f}, "
+                  f"found {row['mean_found_query_s']:.3f}); {row['equal_to_exact']}/{row['num_queries']} equal "
+                  f"to exact", file=sys.stderr)
+    return rows
+
+
+def markdown_rows(rows: Sequence[dict]) -> list[str]:
+    if not rows:
+        return []
+    lines = ["", "Real field at that size: the scene's distilled latents tiled (copies x repeated timesteps), "
+             "every scene query timed in a fresh process, answers checked against the exact path on the same "
+             "tiled field:", "",
+             "| path | mean s per query | queries that find something (s) | slowest (s) | answers equal to exact | "
+             "exact latents per query (sampled + re-scored) | own memory (MB) |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        q = r["queries"]
+        sampled = int(np.mean([x["sampled"] for x in q]))
+        rescored = int(np.mean([x["rescored"] for x in q]))
+        lines.append(f"| {r['path']} | {r['mean_query_s']:.3f} | {r['mean_found_query_s']:.3f} | "
+                     f"{r['max_query_s']:.3f} | {r['equal_to_exact']}/{r['num_queries']} | {sampled} + {rescored} | "
+                     f"{r['anon_rss_mb']:.0f} |")
+    return lines

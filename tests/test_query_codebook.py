@@ -247,12 +247,18 @@ def test_members_index_lists_each_codes_gaussians(tmp_path):
     lat = rng.normal(size=(5, 90, 4)).astype(np.float32)
     book = cb.build_codebook(lat, 16, out_dir=tmp_path)
     codes = np.asarray(book.codes, dtype=np.int64)
+    flat_codes = codes.reshape(-1)
     for k in (0, 5, 15):
-        np.testing.assert_array_equal(book.members_of(np.array([k])), np.flatnonzero(codes.reshape(-1) == k))
-    np.testing.assert_array_equal(book.members_of(np.array([2, 9])),
-                                  np.flatnonzero(np.isin(codes.reshape(-1), [2, 9])))
+        flat, code_of = book.members_with_codes(np.array([k]))
+        np.testing.assert_array_equal(np.sort(flat), np.flatnonzero(flat_codes == k))
+        assert (code_of == k).all()
+    flat, code_of = book.members_with_codes(np.array([9, 2]))  # grouped by code, in the order asked
+    np.testing.assert_array_equal(np.sort(flat), np.flatnonzero(np.isin(flat_codes, [2, 9])))
+    np.testing.assert_array_equal(code_of, flat_codes[flat])
+    assert list(dict.fromkeys(code_of.tolist())) == [9, 2]
     assert (tmp_path / "members_16.npy").is_file()
     (tmp_path / "members_16.npy").unlink()  # a codebook stored before the index existed
     legacy = cb.load_codebook(tmp_path, 16, lat)
     assert legacy.members is None
-    np.testing.assert_array_equal(legacy.members_of(np.array([5])), np.flatnonzero(codes.reshape(-1) == 5))
+    np.testing.assert_array_equal(np.sort(legacy.members_with_codes(np.array([5]))[0]),
+                                  np.flatnonzero(codes.reshape(-1) == 5))

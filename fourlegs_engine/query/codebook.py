@@ -72,10 +72,6 @@ class Codebook:
             self._offsets = np.concatenate([[0], np.cumsum(per_code)])
         return self._offsets
 
-    def members_of(self, codes: np.ndarray) -> np.ndarray:
-        """(M,) int64 sorted flat indices t*N+g of every Gaussian holding one of ``codes`` at any timestep."""
-        return np.sort(self.members_with_codes(codes)[0])
-
     def members_with_codes(self, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every (t, g) holding one of ``codes``: flat indices t*N+g (M,) int64 and their codes (M,) int64,
         grouped by code in the order of ``codes``."""

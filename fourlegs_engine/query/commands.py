@@ -37,9 +37,9 @@ def register(subparsers: Any) -> None:
                         "corrected by a sample of exact scores, and the Gaussians of codes within MARGIN of "
                         "R_avg decoded at the timesteps whose s_t > 1/T decision they can change; 0.0075 at "
                         "K=65536 matched the exact path on the bench scene (default 0: lookup only)")
-    p.add_argument("--codebook-samples", type=int, default=4096, metavar="N",
+    p.add_argument("--codebook-samples", type=int, default=None, metavar="N",
                    help="--codebook-refine: exact scores sampled for R_avg (grown 4x at a time, up to 16x, while "
-                        "R_avg's 3-sigma interval leaves a decision open; default 4096)")
+                        "R_avg's 3-sigma interval leaves a decision open; default: the engine's, 4096)")
     p.add_argument("--spatial", choices=("exact", "fast"), default="exact",
                    help="maps: 128-channel render + per-pixel decode, or 1-channel relevancy render")
     p.add_argument("--scale", type=float, default=1.0, help="resolution scale of the maps (default 1)")
@@ -136,7 +136,8 @@ def _open(args: argparse.Namespace):
                          file=path, field="language")
     scene, field, encoder = ensure_language_field(scene, progress=True)
     engine = QueryEngine(scene, field, encoder, path=args.path, codebook_size=args.codebook_size,
-                         codebook_refine=args.codebook_refine, codebook_samples=args.codebook_samples,
+                         codebook_refine=args.codebook_refine,
+                         **({} if args.codebook_samples is None else {"codebook_samples": args.codebook_samples}),
                          negatives=args.negatives, temporal_stride=args.stride, spatial=args.spatial,
                          resolution_scale=args.scale, dilation=args.dilation)
     return scene, engine

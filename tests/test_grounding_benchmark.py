@@ -222,3 +222,23 @@ def test_stride_list_parsing_and_the_speed_accuracy_plot(tmp_path):
     assert (tmp_path / "p.png").stat().st_size > 1000
     table = grounding.markdown_tables(results)
     assert "| 2D features (pixel stride 2) | 50.0 ± 10.0 |" in table
+
+
+def test_tiled_ground_truth_stretches_each_segment_over_the_repeated_timesteps(bundle):
+    from fourlegs_engine.eval.ground_truth import temporal_ground_truth
+    from fourlegs_engine.query.speed_tiled import tiled_ground_truth
+
+    scene = load_bundle(bundle)
+    T0 = scene.num_timesteps
+    T = 2 * T0 + 3
+    queries = list(scene_queries(scene))
+    frames = temporal_ground_truth(scene)
+    tiled = tiled_ground_truth(scene, queries, T)
+    for q in queries:
+        assert tiled[q].shape == (T,) and tiled[q].dtype == bool
+        source, stretched = segments_of(np.asarray(frames[q])), segments_of(tiled[q])
+        assert len(stretched) == len(source)  # no segment lost or split
+        for (a, b), (a0, b0) in zip(stretched, source):
+            # the nearest source timestep of each end is the source segment's end
+            assert round(a * (T0 - 1) / (T - 1)) == a0 and round(b * (T0 - 1) / (T - 1)) == b0
+            assert (b - a + 1) >= 2 * (b0 - a0 + 1) - 2

@@ -236,3 +236,40 @@ def test_codebook_refine_on_a_memmapped_field_reads_the_same_rows(setup, tmp_pat
     np.testing.assert_array_equal(res.positive, exact.positive)
     assert res.r_avg == pytest.approx(exact.r_avg, abs=1e-6)
     assert res.segment == exact.segment
+
+
+def _mapped_rss_kb(path) -> int:
+    """Resident kB of this process's mappings of ``path`` (/proc/self/smaps)."""
+    total, current = 0, None
+    with open("/proc/self/smaps") as f:
+        for line in f:
+            head = line.split()
+            if "-" in head[0] and len(head) >= 5 and ":" in head[3]:  # a mapping's header line
+                current = head[5] if len(head) > 5 else None
+            elif head[0] == "Rss:" and current == str(path):
+                total += int(head[1])
+    return total
+
+
+@pytest.mark.skipif(not __import__("os").path.exists("/proc/self/smaps"), reason="needs Linux /proc")
+def test_scattered_exact_reads_do_not_stay_resident(tmp_path):
+    # the kernel maps cached pages around every faulting row; a re-scoring query reading thousands of
+    # scattered rows must not keep them mapped (its resident size would grow by ~64 kB per row)
+    from _query_helpers import LinearField
+    from fourlegs_engine.query.speed import _flat_scene, warm_page_cache
+
+    T, N, d = 4, 40_000, 64
+    rng = np.random.default_rng(0)
+    path = tmp_path / "latents.npy"
+    np.save(path, rng.normal(size=(T, N, d)).astype(np.float16))  # 20 MB
+    warm_page_cache(path)
+    mm = np.load(path, mmap_mode="r")
+    field = LinearField(mm, rng.normal(size=(d, 16)).astype(np.float32))
+    _, _, enc, _ = two_cluster_scene(D=16)
+    eng = QueryEngine(_flat_scene(T, N), field, enc, path="codebook", codebook_size=4, codebook_refine=0.01)
+    flat = np.sort(rng.choice(T * N, size=4000, replace=False))
+    got = eng._score_pairs(Q, flat)
+    assert _mapped_rss_kb(path) < 1024  # without releasing the pages: the whole 20 MB file
+    t_of, g_of = np.divmod(flat, N)
+    want = eng._score_latents(np.asarray(mm[t_of, g_of], dtype=np.float32), eng.embed_query(Q)).double().numpy()
+    np.testing.assert_array_equal(got, want)

@@ -131,6 +131,7 @@ class QueryEngine:
         self._refs: Optional[tuple[torch.Tensor, Optional[torch.Tensor]]] = None
         self._decoded_codes: Optional[torch.Tensor] = None
         self._sparse: Any = None  # latents mapped for scattered reads (see _sparse_latents)
+        self._sparse_map: Optional[mmap.mmap] = None
         self._head: Any = None  # RelevancyHead, False when the decoder has none, None before the first use
         self._code_scores: dict[str, torch.Tensor] = {}
         self._background_score: dict[str, float] = {}
@@ -254,7 +255,22 @@ class QueryEngine:
                     mapped = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
                 mapped.madvise(mmap.MADV_RANDOM)
                 self._sparse = np.ndarray(lat.shape, dtype=lat.dtype, buffer=mapped, offset=lat.offset)
+                self._sparse_map = mapped
         return self._sparse
+
+    def _release_rows(self, t: int) -> None:
+        """Unmap the pages of timestep ``t`` read through the scattered-read mapping. The kernel maps up to
+        16 cached pages around each faulting row, so without this the resident size of a query that reads
+        40k scattered rows would grow by ~2.5 GB of file pages; the page cache keeps them."""
+        mapped = self._sparse_map
+        if mapped is None or not hasattr(mmap, "MADV_DONTNEED"):
+            return
+        row_bytes = int(np.prod(self._sparse.shape[1:])) * self._sparse.itemsize
+        start = int(self.latents.offset) + t * row_bytes
+        first = start - start % mmap.PAGESIZE
+        end = min(len(mapped), start + row_bytes)
+        if end > first:
+            mapped.madvise(mmap.MADV_DONTNEED, first, end - first)
 
     def _band_members(self, codes: np.ndarray, rows: np.ndarray,
                       timesteps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -317,6 +333,7 @@ class QueryEngine:
         bounds = np.searchsorted(t_of, np.unique(t_of))
         for a, b in zip(bounds, list(bounds[1:]) + [len(t_of)]):  # one read per timestep, scored together
             lat[a:b] = source[int(t_of[a])][g_of[a:b]]
+            self._release_rows(int(t_of[a]))
         if lat.shape[0] == 0:
             return np.zeros(0, dtype=np.float64)
         return self._score_latents(lat, self.embed_query(query)).double().numpy()

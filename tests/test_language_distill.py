@@ -123,6 +123,51 @@ def test_optimize_decreases_the_loss_and_is_deterministic():
         assert c.shape == (5, 16) and torch.isfinite(c).all()
 
 
+def test_neighbour_mean_equals_the_blur_gather():
+    from fourlegs_engine.language.attention import knn_indices, neighbour_blur, neighbour_mean
+    g = torch.Generator().manual_seed(0)
+    pts, lat = torch.randn(200, 3, generator=g), torch.randn(200, 16, generator=g)
+    nb = knn_indices(pts, 7)
+    torch.testing.assert_close(neighbour_mean(lat, nb), neighbour_blur(lat, nb))
+    assert neighbour_mean(lat[:0], nb[:0]).shape == (0, 16)
+
+
+def test_lift_knn_blur_option(prepared, tmp_path):
+    """lift_smoothing="blur": the plain lift averaged over each Gaussian's kNN and re-normalized; the same
+    through the splat path (lift) and the weights path (lift+refine, 0 steps); hashed only when on."""
+    from fourlegs_engine.language.attention import knn_indices
+    scene = load_bundle(prepared)
+    plain = distill_scene(scene, mode="lift", out_dir=tmp_path / "plain", timesteps=[1], merge=False)
+    blur = distill_scene(scene, mode="lift", lift_smoothing="blur", neighbours=6, out_dir=tmp_path / "blur",
+                         timesteps=[1], merge=False)
+    refine0 = distill_scene(scene, mode="lift+refine", iterations=0, lift_smoothing="blur", neighbours=6,
+                            out_dir=tmp_path / "refine0", timesteps=[1], merge=False)
+    def load(r):
+        return torch.from_numpy(np.load(Path(r.out_dir) / "steps" / "t000001.npy").astype(np.float32))
+
+    z0, z1, z2 = load(plain), load(blur), load(refine0)
+    nb = knn_indices(scene.gaussians.at(1).means, 6)
+    expected = torch.nn.functional.normalize(z0[nb].mean(1), dim=1)
+    torch.testing.assert_close(z1, expected, atol=3e-3, rtol=0)       # float16 storage of both
+    torch.testing.assert_close(z2, z1, atol=3e-3, rtol=0)
+    assert not torch.equal(z1, z0)
+    filled = (z0.norm(dim=1) == 0) & (z0[nb].norm(dim=2) > 0).any(1)  # unseen, with a seen neighbour
+    assert bool((z1[filled].norm(dim=1) > 0.99).all())
+    # existing fields keep their hash: the option is absent from the config while off
+    assert "lift_smoothing" not in DistillConfig(mode="lift").to_dict()
+    assert "neighbours" not in DistillConfig(mode="lift").to_dict()
+    on = DistillConfig(mode="lift", lift_smoothing="blur", neighbours=6).to_dict()
+    assert on["lift_smoothing"] == "blur" and on["neighbours"] == 6
+    assert blur.config_hash != plain.config_hash
+    with pytest.raises(InputError, match="lift-smoothing"):
+        DistillConfig(mode="optimize", lift_smoothing="blur").check()
+    with pytest.raises(InputError, match="lift-smoothing"):
+        DistillConfig(mode="lift", lift_smoothing="attention").check()
+    path = _copy(prepared, tmp_path / "cli")
+    assert main(["distill", str(path), "--lift-smoothing", "blur", "--neighbours", "6", "--no-progress"]) == 0
+    assert load_bundle(path).language["config"]["lift_smoothing"] == "blur"
+
+
 # ------------------------------------------------------------------------------- the pipeline
 def test_pipeline_outputs_and_language_field(prepared, tmp_path):
     path = _copy(prepared, tmp_path / "b")

@@ -13,7 +13,8 @@ the exact ground truth. Groups:
 * ``spatial`` — fast 1-channel relevancy render instead of the 128-channel render.
 * ``precision`` — decoder run in float16 / bfloat16 instead of float32 (latents are stored float16), on
   the fast-maps + codebook configuration (float16 products are several times slower on a CPU).
-* ``distill`` / ``knn`` — distillation mode and iterations, and the kNN k of the attention smoothing.
+* ``distill`` / ``knn`` — distillation mode and iterations (and the lift's learning-free kNN blur), and the
+  kNN k of the attention smoothing.
   Distilling is the slow stage, so these rows distil only every k-th timestep (``--distill-timesteps``;
   automatic: at most 3 timesteps; 25 and 100 iterations instead of the paper's 2000) and the other timesteps hold the nearest distilled timestep's latents;
   their reference row is ``lift`` with the same subsampling, all of them are scored with the exact
@@ -129,13 +130,15 @@ def evaluate(ctx: Any, gt: Any, method: FourLegsMethod) -> dict[str, Any]:
 def _distill_variants(scene: Any, base_field: Any, every: int, out_root: Path, progress: bool,
                       iterations: Sequence[int] = DISTILL_ITERATIONS) -> list[Variant]:
     """Distillation mode / iterations and kNN k rows, each distilled on every ``every``-th timestep:
-    lift, lift+refine (first iteration count), optimize at every count, and lift+refine with k = 5, 10."""
+    lift, lift with the kNN blur, lift+refine (first iteration count), optimize at every count, and
+    lift+refine with k = 5, 10."""
     from ..language.distill import distill_scene
 
     T = scene.num_timesteps
     steps = list(range(0, T, every))
     first = int(iterations[0])
     specs = [("distill", "lift", dict(mode="lift")),
+             ("distill", "lift + kNN blur", dict(mode="lift", lift_smoothing="blur")),
              ("distill", f"lift+refine {first} it", dict(mode="lift+refine", iterations=first))]
     specs += [("distill", f"optimize {int(n)} it", dict(mode="optimize", iterations=int(n))) for n in iterations]
     specs += [("knn", f"lift+refine {first} it, k={k}", dict(mode="lift+refine", iterations=first, neighbours=k))

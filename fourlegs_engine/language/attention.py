@@ -175,6 +175,23 @@ def neighbour_blur(latents: torch.Tensor, neighbours: torch.Tensor) -> torch.Ten
     return latents[neighbours].mean(dim=1)
 
 
+def neighbour_mean(latents: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
+    """:func:`neighbour_blur` without the (N,k,d) gather: one sparse (N×N, k entries a row) product.
+
+    Same result up to float32 summation order; no autograd (the learning-free lift smoothing).
+    """
+    n, k = neighbours.shape[0], neighbours.shape[1] if neighbours.ndim == 2 else 0
+    if n == 0 or k == 0:
+        return latents.clone()
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # torch's beta warning for sparse CSR
+        mean = torch.sparse_csr_tensor(torch.arange(0, n * k + 1, k, dtype=torch.long),
+                                       neighbours.reshape(-1).long(),
+                                       torch.full((n * k,), 1.0 / k, dtype=latents.dtype), (n, latents.shape[0]))
+        return mean @ latents
+
+
 def smoothness_loss(latents: torch.Tensor, neighbours: torch.Tensor, chunk: int = 32768) -> torch.Tensor:
     """Local_Reg: mean over Gaussians of Σ_j∈kNN(i) ||L_i - L_j||₂ (the point itself contributes 0).
 

@@ -136,6 +136,9 @@ def _distill_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--blur", action="store_true", help="ablation: kNN mean instead of attention (Local_Blur)")
     g.add_argument("--smoothness", type=float, default=0.0, help="ablation: kNN smoothness loss weight λ")
     g.add_argument("--neighbours", type=int, default=20, help="kNN size including the Gaussian (default 20)")
+    g.add_argument("--lift-smoothing", default="none", choices=("none", "blur"),
+                   help="lift / lift+refine: average each lifted latent over its --neighbours nearest "
+                        "Gaussians (learning-free kNN blur; default none)")
     g.add_argument("--views-per-iteration", type=int, default=1, help="views rendered per step (default 1)")
     g.add_argument("--teacher-stride", type=int, default=4,
                    help="encode the teacher every n-th pixel and upsample (default 4; 1 = every pixel)")
@@ -201,7 +204,8 @@ def _distill_config(args: argparse.Namespace):
     return DistillConfig(mode=args.mode, iterations=args.iterations, smoothing=smoothing,
                          smoothness=args.smoothness, neighbours=args.neighbours,
                          views_per_iteration=args.views_per_iteration, teacher_stride=args.teacher_stride,
-                         view_scale=args.view_scale, seed=args.distill_seed).check()
+                         view_scale=args.view_scale, seed=args.distill_seed,
+                         lift_smoothing=args.lift_smoothing).check()
 
 
 def _print_check(report: dict[str, Any]) -> int:

@@ -10,6 +10,13 @@ Modes (geometry frozen in all of them):
     Gaussians no training pixel sees keep a zero latent. Computed by one splat pass per view
     (:func:`~fourlegs_engine.render.splat`, the transpose of rendering: Σ_p w·[e, 1] per Gaussian
     without materializing the weights; equal to the weights-based sum up to float32 summation order).
+    ``lift_smoothing="blur"`` then replaces each lifted latent by the mean over its ``neighbours``
+    nearest Gaussians (itself included; the paper's Local_Blur with fixed weights, no learning) and
+    re-normalizes: the learning-free counterpart of optimize's neighbourhood smoothing. It also gives
+    unseen Gaussians their neighbours' latent. Measured (all timesteps, exact temporal path, fast maps):
+    vAP +0.8 to +6.1 over the plain lift on each of 5 tiny seeds (17.0 -> 17.8 on seed 0, where
+    optimize-2000 gets 20.4), but 46.9 vs 47.7 on ``bench``; so it is off by default. Cost: one kNN and
+    one sparse product per timestep (+0.5 s at 100k Gaussians, one thread).
 ``optimize`` (the paper)
     Latents start at 0 and are smoothed by single-head self-attention over each Gaussian's 20 nearest
     neighbours (kNN once per timestep); the smoothed latents are rendered and compared with L1 to the
@@ -63,6 +70,7 @@ from .store import StepStore, config_hash, format_ranges, select_timesteps
 
 MODES = ("optimize", "lift", "lift+refine")
 SMOOTHING = ("attention", "none", "blur")
+LIFT_SMOOTHING = ("none", "blur")
 LANGUAGE_DIR = "language"
 STEPS_DIR = "language/steps"
 LATENTS_FILE = "language/latents.npy"
@@ -91,6 +99,8 @@ class DistillConfig:
             of their resolution (speed knob; 1 = full resolution).
         seed: base seed; timestep t uses a seed derived from (seed, t).
         split: the camera split distilled from.
+        lift_smoothing: "none" | "blur": the lift (also lift+refine's starting point) averaged over each
+            Gaussian's ``neighbours`` nearest Gaussians and re-normalized (learning-free).
     """
 
     mode: str = "lift"
@@ -105,6 +115,7 @@ class DistillConfig:
     view_scale: float = 1.0
     seed: int = 0
     split: str = "train"
+    lift_smoothing: str = "none"
 
     def check(self) -> "DistillConfig":
         if self.mode not in MODES:
@@ -112,6 +123,11 @@ class DistillConfig:
         if self.smoothing not in SMOOTHING:
             raise InputError(f"unknown smoothing {self.smoothing!r} (choose from {', '.join(SMOOTHING)})",
                              field="smoothing")
+        if self.lift_smoothing not in LIFT_SMOOTHING:
+            raise InputError(f"unknown lift smoothing {self.lift_smoothing!r} (choose from "
+                             f"{', '.join(LIFT_SMOOTHING)})", field="--lift-smoothing")
+        if self.mode == "optimize" and self.lift_smoothing != "none":
+            raise InputError("lift smoothing applies to lift and lift+refine only", field="--lift-smoothing")
         if self.iterations is not None and self.iterations < 0:
             raise InputError(f"must be >= 0, got {self.iterations}", field="--iterations")
         if self.mode == "optimize" and self.num_iterations < 1:
@@ -131,10 +147,14 @@ class DistillConfig:
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["iterations"] = self.num_iterations
+        if self.lift_smoothing == "none":  # absent when off: the hashes of existing fields stay valid
+            d.pop("lift_smoothing")
         if self.mode == "lift":
-            for key in ("smoothing", "smoothness", "neighbours", "lr_latents", "lr_attention",
+            for key in ("smoothing", "smoothness", "lr_latents", "lr_attention",
                         "views_per_iteration", "seed", "iterations"):
                 d.pop(key)
+            if self.lift_smoothing == "none":
+                d.pop("neighbours")
         elif self.smoothing != "attention":
             d.pop("lr_attention")
         return d
@@ -294,6 +314,17 @@ def lift_latents(ops: Sequence[ViewOperator], teachers: Sequence[torch.Tensor]) 
     return l2_normalize(out)
 
 
+def smooth_lift(latents: torch.Tensor, means: torch.Tensor, neighbours: int,
+                knn: torch.Tensor | None = None) -> torch.Tensor:
+    """``lift_smoothing="blur"``: each latent (N,d) replaced by the mean over its ``neighbours`` nearest
+    Gaussians (itself included; ``knn`` (N,k) if already computed), L2-normalized."""
+    from .attention import neighbour_mean
+    if latents.shape[0] == 0:
+        return latents
+    nb = knn_indices(means, neighbours) if knn is None else knn
+    return l2_normalize(neighbour_mean(latents.float(), nb))
+
+
 def optimize_latents(ops: Sequence[ViewOperator], teachers: Sequence[torch.Tensor], neighbours: torch.Tensor | None,
                      config: DistillConfig, seed: int, init: torch.Tensor | None = None,
                      progress: Any = None) -> tuple[torch.Tensor, float | None]:
@@ -367,16 +398,19 @@ def distill_timestep(scene: Scene, t: int, encoder: FeatureEncoder, features: St
     lift_s = opt_s = 0.0
     init = None
     loss = None
+    neighbours = None
     if config.mode in ("lift", "lift+refine"):
         s = time.perf_counter()
         init = lift_latents(ops, teachers)
+        if config.lift_smoothing == "blur":
+            neighbours = knn_indices(frame.means, config.neighbours)
+            init = smooth_lift(init, frame.means, config.neighbours, neighbours)
         lift_s = time.perf_counter() - s
     result = init
     iterations = 0
     if config.mode in ("optimize", "lift+refine") and config.num_iterations > 0:
         s = time.perf_counter()
-        neighbours = None
-        if config.smoothing != "none" or config.smoothness > 0:
+        if neighbours is None and (config.smoothing != "none" or config.smoothness > 0):
             neighbours = knn_indices(frame.means, config.neighbours)
         result, loss = optimize_latents(ops, teachers, neighbours, config, timestep_seed(config.seed, t),
                                         init=init, progress=progress)
@@ -438,6 +472,8 @@ def _lift_timestep(frame: Any, cameras: Sequence[Any], encoder: FeatureEncoder, 
     out = torch.zeros_like(num)
     out[seen] = num[seen] / den[seen, None]
     out = l2_normalize(out)
+    if config.lift_smoothing == "blur":
+        out = smooth_lift(out, frame.means, config.neighbours)
     lift_s = time.perf_counter() - s
     w_s, te_s = sum(x[0] for x in seconds), sum(x[1] for x in seconds)
     timing = TimestepTiming(t, time.perf_counter() - start, w_s, te_s, lift_s, 0.0, 0, None)

@@ -267,9 +267,12 @@ def test_scattered_exact_reads_do_not_stay_resident(tmp_path):
     field = LinearField(mm, rng.normal(size=(d, 16)).astype(np.float32))
     _, _, enc, _ = two_cluster_scene(D=16)
     eng = QueryEngine(_flat_scene(T, N), field, enc, path="codebook", codebook_size=4, codebook_refine=0.01)
+    eng.SPARSE_RELEASE_ROWS = 3000
+    got = eng._score_pairs(Q, np.sort(rng.choice(T * N, size=2000, replace=False)))
+    assert _mapped_rss_kb(path) > 8 * 1024  # below the batch: ~64 kB mapped per row read, kept
     flat = np.sort(rng.choice(T * N, size=4000, replace=False))
     got = eng._score_pairs(Q, flat)
-    assert _mapped_rss_kb(path) < 1024  # without releasing the pages: the whole 20 MB file
+    assert _mapped_rss_kb(path) < 1024  # past it: released (else the whole 20 MB file)
     t_of, g_of = np.divmod(flat, N)
     want = eng._score_latents(np.asarray(mm[t_of, g_of], dtype=np.float32), eng.embed_query(Q)).double().numpy()
     np.testing.assert_array_equal(got, want)

@@ -77,6 +77,10 @@ class QueryEngine:
         render_options / render_backend: passed to the rasterizer.
     """
 
+    #: scattered latent rows read between releases of their mapped pages (each keeps up to 64 kB
+    #: resident: 8192 rows bound the re-scoring's file pages to about 512 MB)
+    SPARSE_RELEASE_ROWS = 8192
+
     def __init__(self, scene: Scene, field: Any, text_encoder: Any, *, path: str = "exact",
                  codebook_size: int = DEFAULT_CODEBOOK_SIZE, codebook: Optional[Codebook] = None,
                  codebook_refine: float = 0.0, codebook_samples: int = R_AVG_SAMPLES,
@@ -132,6 +136,7 @@ class QueryEngine:
         self._decoded_codes: Optional[torch.Tensor] = None
         self._sparse: Any = None  # latents mapped for scattered reads (see _sparse_latents)
         self._sparse_map: Optional[mmap.mmap] = None
+        self._sparse_rows = 0  # scattered rows read since the mapping's pages were last released
         self._head: Any = None  # RelevancyHead, False when the decoder has none, None before the first use
         self._code_scores: dict[str, torch.Tensor] = {}
         self._background_score: dict[str, float] = {}
@@ -258,19 +263,19 @@ class QueryEngine:
                 self._sparse_map = mapped
         return self._sparse
 
-    def _release_rows(self, t: int) -> None:
-        """Unmap the pages of timestep ``t`` read through the scattered-read mapping. The kernel maps up to
-        16 cached pages around each faulting row, so without this the resident size of a query that reads
-        40k scattered rows would grow by ~2.5 GB of file pages; the page cache keeps them."""
+    def _release_rows(self, rows_read: int) -> None:
+        """Count scattered rows read; past ``SPARSE_RELEASE_ROWS`` unmap every page of the scattered-read
+        mapping. The kernel maps up to 16 cached pages around each faulting row, so a query reading
+        40k scattered rows would keep ~2.5 GB of file pages resident; released in batches, repeated reads
+        of the same pages within a batch (a timestep's chunks) stay free of faults. The page cache keeps
+        the pages either way."""
         mapped = self._sparse_map
         if mapped is None or not hasattr(mmap, "MADV_DONTNEED"):
             return
-        row_bytes = int(np.prod(self._sparse.shape[1:])) * self._sparse.itemsize
-        start = int(self.latents.offset) + t * row_bytes
-        first = start - start % mmap.PAGESIZE
-        end = min(len(mapped), start + row_bytes)
-        if end > first:
-            mapped.madvise(mmap.MADV_DONTNEED, first, end - first)
+        self._sparse_rows += rows_read
+        if self._sparse_rows > self.SPARSE_RELEASE_ROWS:
+            mapped.madvise(mmap.MADV_DONTNEED)
+            self._sparse_rows = 0
 
     def _band_members(self, codes: np.ndarray, rows: np.ndarray,
                       timesteps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -333,7 +338,7 @@ class QueryEngine:
         bounds = np.searchsorted(t_of, np.unique(t_of))
         for a, b in zip(bounds, list(bounds[1:]) + [len(t_of)]):  # one read per timestep, scored together
             lat[a:b] = source[int(t_of[a])][g_of[a:b]]
-            self._release_rows(int(t_of[a]))
+        self._release_rows(int(lat.shape[0]))
         if lat.shape[0] == 0:
             return np.zeros(0, dtype=np.float64)
         return self._score_latents(lat, self.embed_query(query)).double().numpy()

@@ -8,6 +8,7 @@ W_o Σ_j a_ij v_j. ``neighbour_blur`` (Local_Blur) and ``smoothness_loss`` (Loca
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import torch
@@ -183,7 +184,6 @@ def neighbour_mean(latents: torch.Tensor, neighbours: torch.Tensor) -> torch.Ten
     n, k = neighbours.shape[0], neighbours.shape[1] if neighbours.ndim == 2 else 0
     if n == 0 or k == 0:
         return latents.clone()
-    import warnings
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # torch's beta warning for sparse CSR
         mean = torch.sparse_csr_tensor(torch.arange(0, n * k + 1, k, dtype=torch.long),

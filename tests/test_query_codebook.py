@@ -105,6 +105,7 @@ def _coded_problem(seed: int, S: int = 6, N: int = 300, K: int = 12, noise: floa
 def _callbacks(codes, exact, calls, seed=0):
     """members / score / sample callbacks over an in-memory problem, recording what they were asked."""
     rng = np.random.default_rng(seed)
+    noise = np.random.default_rng(seed + 1)  # adversarial values, apart from the sample's draws
 
     def members(which, rows):
         calls.append(("members", np.asarray(which), np.asarray(rows)))
@@ -113,16 +114,23 @@ def _callbacks(codes, exact, calls, seed=0):
         handles = np.flatnonzero(mask.reshape(-1))  # row-major: same order as ``at``
         return at, codes.reshape(-1)[handles], handles
 
-    def score(handles):
+    def score(handles, window):
+        # outside the window any value on the same side will do: answer adversarially (far off, random)
         calls.append(("score", np.asarray(handles)))
-        return exact.reshape(-1)[np.asarray(handles)]
+        x = exact.reshape(-1)[np.asarray(handles)]
+        if window is None:
+            return x
+        low, high = window
+        off = noise.uniform(0.0, 0.3, size=x.shape)
+        return np.where(x <= low, low - off, np.where(x > high, high + off + 1e-9, x))
 
     def sample(groups, sizes):
         calls.append(("sample", groups, sizes))
         out = []
         for which, size in zip(groups, sizes):
             pick = rng.permutation(np.flatnonzero(np.isin(codes, which)))[:size]
-            out.append((codes.reshape(-1)[pick], exact.reshape(-1)[pick]))
+            x = exact.reshape(-1)[pick]  # an irrelevant score may be any value <= 0.5: answer adversarially
+            out.append((codes.reshape(-1)[pick], np.where(x > 0.5, x, 0.5 - noise.uniform(0.0, 0.5, size=x.shape))))
         return out
     return members, score, sample
 

@@ -187,7 +187,7 @@ def test_codebook_refine_samples_at_the_scored_timesteps_only(setup, tmp_path):
     ts = np.arange(0, T, 2)
     seen = []
     score_pairs = eng._score_pairs
-    eng._score_pairs = lambda q, flat: seen.append(flat) or score_pairs(q, flat)
+    eng._score_pairs = lambda q, flat, window=None: seen.append(flat) or score_pairs(q, flat, window)
     (codes_a, scores_a), (codes_b, scores_b) = eng._sample_members(Q, [np.array([0]), np.array([1])], [7, 5], ts,
                                                                    np.random.default_rng(0))
     assert len(seen) == 1  # both groups decoded in one batch
@@ -228,9 +228,7 @@ def test_codebook_refine_on_a_memmapped_field_reads_the_same_rows(setup, tmp_pat
     mapped = LinearField(mm, field.weight.numpy())
     eng = QueryEngine(scene, mapped, enc, path="codebook", codebook_size=3, codebook_dir=tmp_path,
                       codebook_refine=1.0, codebook_samples=10 ** 9)
-    sparse = eng._sparse_latents()
-    assert sparse is not mm and isinstance(sparse, np.ndarray)
-    np.testing.assert_array_equal(sparse, mm)  # same bytes through the second mapping (header skipped)
+    assert eng._rows().path == str(tmp_path / "latents.npy")  # read from the file, not the mapping
     exact = QueryEngine(scene, mapped, enc).temporal(Q)
     res = eng.temporal(Q)
     np.testing.assert_array_equal(res.positive, exact.positive)
@@ -254,7 +252,7 @@ def _mapped_rss_kb(path) -> int:
 @pytest.mark.skipif(not __import__("os").path.exists("/proc/self/smaps"), reason="needs Linux /proc")
 def test_scattered_exact_reads_do_not_stay_resident(tmp_path):
     # the kernel maps cached pages around every faulting row; a re-scoring query reading thousands of
-    # scattered rows must not keep them mapped (its resident size would grow by ~64 kB per row)
+    # scattered rows through the mapping would keep ~64 kB resident per row (here the whole 20 MB file)
     from _query_helpers import LinearField
     from fourlegs_engine.query.speed import _flat_scene, warm_page_cache
 
@@ -267,12 +265,9 @@ def test_scattered_exact_reads_do_not_stay_resident(tmp_path):
     field = LinearField(mm, rng.normal(size=(d, 16)).astype(np.float32))
     _, _, enc, _ = two_cluster_scene(D=16)
     eng = QueryEngine(_flat_scene(T, N), field, enc, path="codebook", codebook_size=4, codebook_refine=0.01)
-    eng.SPARSE_RELEASE_ROWS = 3000
-    got = eng._score_pairs(Q, np.sort(rng.choice(T * N, size=2000, replace=False)))
-    assert _mapped_rss_kb(path) > 8 * 1024  # below the batch: ~64 kB mapped per row read, kept
     flat = np.sort(rng.choice(T * N, size=4000, replace=False))
     got = eng._score_pairs(Q, flat)
-    assert _mapped_rss_kb(path) < 1024  # past it: released (else the whole 20 MB file)
+    assert _mapped_rss_kb(path) < 1024
     t_of, g_of = np.divmod(flat, N)
     want = eng._score_latents(np.asarray(mm[t_of, g_of], dtype=np.float32), eng.embed_query(Q)).double().numpy()
     np.testing.assert_array_equal(got, want)

@@ -124,3 +124,103 @@ def test_engine_with_and_without_head_agree(spatial):
     cam = scene.cameras.cameras(1, "all")[0]
     np.testing.assert_allclose(with_head.relevancy_map(q, cam, 1)["relevancy"],
                                plain.relevancy_map(q, cam, 1)["relevancy"], atol=1e-5)
+
+
+# ----------------------------------------------------------------------------- windowed relevancy (norm bounds)
+WIDE = (16, 40, 80, 120)  # last hidden width 80 > BOUND_RANK: |Rh|² is bounded, not computed
+
+
+def decaying_decoder(dims, seed, decay=0.85) -> FeatureDecoder:
+    """``trained_like_decoder`` whose last layer has singular values 2·decay^i, as trained decoders'
+    concentrate (the bench decoder keeps ~97% of |Rh|² in its top 16 directions)."""
+    dec = trained_like_decoder(dims, seed=seed)
+    last = dec.net[-1]
+    u, _, vt = torch.linalg.svd(last.weight.data, full_matrices=False)
+    s = 2.0 * decay ** torch.arange(vt.shape[0], dtype=torch.float32)
+    last.weight.data = (u * s) @ vt
+    return dec
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(min_value=0.3, max_value=0.9), st.floats(min_value=0.0, max_value=0.05),
+       st.integers(min_value=0, max_value=3))
+def test_windowed_relevancy_is_exact_inside_and_decides_as_exact_outside(low, width, seed):
+    dec = (decaying_decoder if seed % 2 else trained_like_decoder)(WIDE, seed=seed)
+    head = RelevancyHead.from_decoder(dec)
+    assert head.bound_vectors.shape == (80, 32)
+    rng = np.random.default_rng(seed)
+    z = rng.normal(size=(400, 16)) * rng.uniform(0.01, 3.0, size=(400, 1))
+    q, refs = unit(rng, 1, 120), unit(rng, 4, 120)
+    high = low + width
+    values, exact = head.relevancy_windowed(torch.from_numpy(z).float(), torch.from_numpy(q[0]).float(),
+                                            torch.from_numpy(refs).float(), scale=10.0, window=(low, high))
+    want = reference(dec, z.astype(np.float32).astype(np.float64), q, refs)[:, 0]
+    values, exact = values.double().numpy(), exact.numpy()
+    np.testing.assert_allclose(values[exact], want[exact], atol=2e-6)
+    below, above = ~exact & (values <= low), ~exact & (values > high)
+    assert np.array_equal(below | above, ~exact)  # a bound is always clear of the window
+    assert np.all(want[below] <= low) and np.all(want[above] > high)
+    assert np.all(values[below] >= want[below] - 2e-6) and np.all(values[above] <= want[above] + 2e-6)  # bounds
+
+
+def test_windowed_relevancy_skips_most_rows_of_a_narrow_window():
+    dec = decaying_decoder(WIDE, seed=1)
+    head = RelevancyHead.from_decoder(dec)
+    rng = np.random.default_rng(2)
+    z = torch.from_numpy(rng.normal(size=(2000, 16))).float()
+    q, refs = torch.from_numpy(unit(rng, 1, 120)[0]).float(), torch.from_numpy(unit(rng, 4, 120)).float()
+    full = head.relevancy_many(z, q[None], refs, scale=10.0)[:, 0]
+    mid = float(full.median())
+    _, exact = head.relevancy_windowed(z, q, refs, scale=10.0, window=(mid, mid + 1e-3))
+    assert 0 < int(exact.sum()) < 0.5 * len(exact)  # rows near the window still get their exact value
+
+
+@pytest.mark.parametrize("poison", [float("nan"), float("inf"), 1e38])
+def test_windowed_relevancy_of_extreme_latents_is_finite(poison):
+    dec = trained_like_decoder(WIDE, seed=2)
+    head = RelevancyHead.from_decoder(dec)
+    z = torch.randn(50, 16, generator=torch.Generator().manual_seed(0))
+    z[::4, 3] = poison
+    refs = l2_normalize(torch.randn(4, 120, generator=torch.Generator().manual_seed(1)))
+    q = l2_normalize(torch.randn(120, generator=torch.Generator().manual_seed(2)), dim=0)
+    values, exact = head.relevancy_windowed(z, q, refs, scale=10.0, window=(0.45, 0.55))
+    full = head.relevancy_many(z, q[None], refs, scale=10.0)[:, 0]
+    assert torch.isfinite(values).all()
+    np.testing.assert_allclose(values[exact].numpy(), full[exact].numpy(), atol=1e-6)
+    assert torch.equal(values[~exact] > 0.55, full[~exact] > 0.55) and torch.equal(values[~exact] <= 0.45,
+                                                                                    full[~exact] <= 0.45)
+    if poison == 1e38:  # activations overflow: no bound, the exact path scores them as zero features (0.5)
+        assert exact[::4].all() and torch.all(values[::4] == 0.5)
+
+
+def test_codebook_refine_with_norm_bounds_answers_as_the_exact_path(tmp_path):
+    from _query_helpers import TableTextEncoder
+
+    scene, field, _, _ = two_cluster_scene(T=6, active=(2, 3), D=128)
+    T, N, d = field.latents.shape
+    dec = decaying_decoder((d, 24, 48, 128), seed=7)  # H=48: |Rh|² bounded from 32 directions
+    rng = np.random.default_rng(0)
+    lat = (np.asarray(field.latents) + rng.normal(scale=0.2, size=(T, N, d))).astype(np.float32)
+    with torch.no_grad():  # texts embedded where the decoder puts the two clusters' latents
+        at = {name: dec(torch.from_numpy(lat[t, rows].mean(0, keepdims=True))).numpy()[0]
+              for name, t, rows in (("a ball flying", 2, slice(0, N // 2)), ("object", 0, slice(N // 2, N)))}
+    table = dict(at, **{c: rng.normal(size=128) for c in CANON[1:]})
+    enc = TableTextEncoder(table, 128)
+    exact = QueryEngine(scene, DecoderField(lat, dec), enc)
+    refined = QueryEngine(scene, DecoderField(lat, dec), enc, path="codebook", codebook_size=6,
+                          codebook_dir=tmp_path, codebook_refine=1.0, codebook_samples=10 ** 9)
+    want = exact.temporal("a ball flying")
+    assert want.found and want.segment == (1, 4)  # timesteps 2, 3 dilated by 1
+    got = refined.temporal("a ball flying")
+    np.testing.assert_array_equal(got.positive, want.positive)
+    assert got.segment == want.segment and got.r_avg == pytest.approx(want.r_avg, abs=1e-6)
+    # the same engine scoring every re-scored row exactly returns the very same counts
+    unbounded = QueryEngine(scene, DecoderField(lat, dec), enc, path="codebook", codebook_size=6,
+                            codebook_dir=tmp_path, codebook_refine=1.0, codebook_samples=10 ** 9)
+    score_any = unbounded._score_any
+    unbounded._score_any = lambda q, flat, window=None: score_any(q, flat, None)
+    plain = unbounded.temporal("a ball flying")
+    np.testing.assert_array_equal(got.scores, plain.scores)
+    assert got.r_avg == plain.r_avg and unbounded.stats["bounded_latents"] == 0
+    assert refined.stats["rescored_latents"] == unbounded.stats["rescored_latents"] > 0
+    assert refined.stats["bounded_latents"] > 0  # some re-scored rows were decided by their bounds alone

@@ -45,3 +45,17 @@ def test_exact_tiled_answers_equal_the_exact_path_on_the_tiled_field(tmp_path, q
     np.testing.assert_array_equal(got.positive, brute.positive)
     assert got.segment == brute.segment and got.r_avg == pytest.approx(brute.r_avg, abs=1e-6)
     np.testing.assert_allclose(got.scores, brute.scores, atol=1e-12)
+
+
+def test_markdown_rows_report_the_exact_work_and_what_bounds_decided():
+    from fourlegs_engine.query.speed_tiled import markdown_rows
+
+    queries = [{"query": "a", "seconds": 0.1, "sampled": 4096, "rescored": 1000, "bounded": 900},
+               {"query": "b", "seconds": 0.3, "sampled": 0, "rescored": 0}]  # a row from before the bounds
+    row = {"path": "codebook K=65536", "mean_query_s": 0.2, "mean_found_query_s": 0.1, "max_query_s": 0.3,
+           "equal_to_exact": 2, "num_queries": 2, "tIoU": 0.497, "exact_tIoU": 0.5, "anon_rss_mb": 503.4,
+           "queries": queries}
+    lines = markdown_rows([row])
+    assert "median of 3 runs" in lines[1] and "decided by norm bounds" in lines[3]
+    assert lines[-1] == "| codebook K=65536 | 0.200 | 0.100 | 0.300 | 2/2 | 49.7 (50.0) | 2048 + 500; 450 | 503 |"
+    assert markdown_rows([]) == []

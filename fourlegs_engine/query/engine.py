@@ -18,7 +18,6 @@ for; ``localize(query, need)`` computes only the parts named in ``need``.
 """
 from __future__ import annotations
 
-import mmap
 import time
 import zlib
 from collections import Counter
@@ -36,9 +35,10 @@ from .codebook import Codebook, ensure_codebook
 from .head import RelevancyHead
 from .relevancy import (RELEVANCY_SCALE, as_tensor, l2_normalize, reference_set, relevancy, relevancy_many,
                         relevancy_of_unit_features)
+from .rows import RowReader
 from .results import CentreResult, Localization, TemporalResult, ViewResult
-from .temporal import (R_AVG_SAMPLES, counts_from_code_histogram, counts_from_codes_refined, counts_from_relevancy,
-                       localize_counts, sampled_timesteps, tied_segment_rows, timestep_weights)
+from .temporal import (R_AVG_SAMPLES, RELEVANT, counts_from_code_histogram, counts_from_codes_refined,
+                       counts_from_relevancy, localize_counts, sampled_timesteps, tied_segment_rows, timestep_weights)
 
 __all__ = ["QueryEngine", "TemporalResult", "Localization", "ViewResult", "CentreResult"]
 
@@ -76,10 +76,6 @@ class QueryEngine:
         camera_split: which cameras ``best_view`` considers by default ("train", "test" or "all").
         render_options / render_backend: passed to the rasterizer.
     """
-
-    #: scattered latent rows read between releases of their mapped pages (each keeps up to 64 kB
-    #: resident: 8192 rows bound the re-scoring's file pages to about 512 MB)
-    SPARSE_RELEASE_ROWS = 8192
 
     def __init__(self, scene: Scene, field: Any, text_encoder: Any, *, path: str = "exact",
                  codebook_size: int = DEFAULT_CODEBOOK_SIZE, codebook: Optional[Codebook] = None,
@@ -134,9 +130,7 @@ class QueryEngine:
         self._text_cache: dict[str, torch.Tensor] = {}
         self._refs: Optional[tuple[torch.Tensor, Optional[torch.Tensor]]] = None
         self._decoded_codes: Optional[torch.Tensor] = None
-        self._sparse: Any = None  # latents mapped for scattered reads (see _sparse_latents)
-        self._sparse_map: Optional[mmap.mmap] = None
-        self._sparse_rows = 0  # scattered rows read since the mapping's pages were last released
+        self._row_reader: Optional[RowReader] = None
         self._head: Any = None  # RelevancyHead, False when the decoder has none, None before the first use
         self._code_scores: dict[str, torch.Tensor] = {}
         self._background_score: dict[str, float] = {}
@@ -219,12 +213,28 @@ class QueryEngine:
             return head.relevancy_many(torch.as_tensor(latents), qs, reference_set(canon, neg),
                                        scale=self.relevancy_scale).cpu()
 
-    def _score_latents(self, latents: np.ndarray, q: torch.Tensor) -> torch.Tensor:
-        """(M,d) latents -> (M,) relevancy, decoded in chunks of ``self.chunk``."""
+    def _score_latents(self, latents: np.ndarray, q: torch.Tensor,
+                       window: Optional[tuple[float, float]] = None) -> torch.Tensor:
+        """(M,d) latents -> (M,) relevancy, decoded in chunks of ``self.chunk``.
+
+        With a ``window`` (low, high) a row whose relevancy is certainly outside it may get a bound instead
+        that compares with every threshold in the window as its relevancy does (see
+        :meth:`RelevancyHead.relevancy_windowed`; counted in ``stats["bounded_latents"]``)."""
         M = latents.shape[0]
         out = torch.empty(M, dtype=torch.float32)
+        head = self.head if window is not None else None
+        if head is not None:
+            canon, neg = self.reference_embeddings()
+            refs = reference_set(canon, neg)
         for s in range(0, M, self.chunk):
-            out[s:s + self.chunk] = self._score_latents_many(latents[s:s + self.chunk], q[None])[:, 0]
+            if head is None:
+                out[s:s + self.chunk] = self._score_latents_many(latents[s:s + self.chunk], q[None])[:, 0]
+                continue
+            with torch.inference_mode():
+                values, exact = head.relevancy_windowed(torch.as_tensor(latents[s:s + self.chunk]), q, refs,
+                                                        scale=self.relevancy_scale, window=window)
+            out[s:s + self.chunk] = values.cpu()
+            self.stats["bounded_latents"] += int((~exact).sum())
         self.stats["decoded_latents"] += M
         return out
 
@@ -248,34 +258,11 @@ class QueryEngine:
                 self._decoded_codes, self.embed_query(query), refs, scale=self.relevancy_scale)
         return self._code_scores[query]
 
-    def _sparse_latents(self) -> Any:
-        """The latents for scattered row reads: a memmap is mapped a second time with random-access
-        advice, so reading one 256-byte row pages in one page instead of a readahead window (the
-        re-scoring's resident memory stays proportional to the rows it reads)."""
-        if self._sparse is None:
-            lat = self.latents
-            self._sparse = lat
-            if isinstance(lat, np.memmap) and lat.flags.c_contiguous and hasattr(mmap, "MADV_RANDOM"):
-                with open(lat.filename, "rb") as f:
-                    mapped = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-                mapped.madvise(mmap.MADV_RANDOM)
-                self._sparse = np.ndarray(lat.shape, dtype=lat.dtype, buffer=mapped, offset=lat.offset)
-                self._sparse_map = mapped
-        return self._sparse
-
-    def _release_rows(self, rows_read: int) -> None:
-        """Count scattered rows read; past ``SPARSE_RELEASE_ROWS`` unmap every page of the scattered-read
-        mapping. The kernel maps up to 16 cached pages around each faulting row, so a query reading
-        40k scattered rows would keep ~2.5 GB of file pages resident; released in batches, repeated reads
-        of the same pages within a batch (a timestep's chunks) stay free of faults. The page cache keeps
-        the pages either way."""
-        mapped = self._sparse_map
-        if mapped is None or not hasattr(mmap, "MADV_DONTNEED"):
-            return
-        self._sparse_rows += rows_read
-        if self._sparse_rows > self.SPARSE_RELEASE_ROWS:
-            mapped.madvise(mmap.MADV_DONTNEED)
-            self._sparse_rows = 0
+    def _rows(self) -> RowReader:
+        """Reader of scattered latent rows (``os.pread`` on a memory-mapped field: see :mod:`.rows`)."""
+        if self._row_reader is None:
+            self._row_reader = RowReader(self.latents)
+        return self._row_reader
 
     def _band_members(self, codes: np.ndarray, rows: np.ndarray,
                       timesteps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -292,19 +279,21 @@ class QueryEngine:
         flat, code_of = flat[keep], code_of[keep]
         return rows[np.searchsorted(wanted, flat // N)], code_of, flat
 
-    def _score_any(self, query: str, flat: np.ndarray) -> np.ndarray:
-        """(M,) float64 exact relevancy of the Gaussians at flat indices t*N+g, in any order."""
+    def _score_any(self, query: str, flat: np.ndarray, window: Optional[tuple[float, float]] = None) -> np.ndarray:
+        """(M,) float64 exact relevancy of the Gaussians at flat indices t*N+g, in any order (with a
+        ``window``: bounds where certainly outside it, see :meth:`_score_latents`)."""
         flat = np.asarray(flat, dtype=np.int64)
         order = np.argsort(flat, kind="stable")  # reads in file order
         scores = np.empty(flat.shape[0], dtype=np.float64)
-        scores[order] = self._score_pairs(query, flat[order])
+        scores[order] = self._score_pairs(query, flat[order], window)
         return scores
 
     def _sample_members(self, query: str, groups: Sequence[np.ndarray], sizes: Sequence[int], timesteps: np.ndarray,
-                        rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
+                        rng: np.random.Generator, window: Optional[tuple[float, float]] = None
+                        ) -> list[tuple[np.ndarray, np.ndarray]]:
         """For each group of codes, exact relevancy of a uniform sample without replacement of that many
         Gaussians holding one of its codes at one of the sorted scored ``timesteps`` (all of them when
-        there are no more); every group is decoded in one batch.
+        there are no more); every group is decoded in one batch (``window``: see :meth:`_score_latents`).
 
         Returns:
             per group: their codes (M_j,) int64, scores (M_j,) float64.
@@ -325,23 +314,17 @@ class QueryEngine:
                 flat, code_of = flat[keep][:size], code_of[keep][:size]
             flats.append(flat)
             code_ofs.append(code_of)
-        scores = self._score_any(query, np.concatenate(flats) if flats else np.zeros(0, dtype=np.int64))
+        scores = self._score_any(query, np.concatenate(flats) if flats else np.zeros(0, dtype=np.int64), window)
         bounds = np.cumsum([0] + [f.shape[0] for f in flats])
         return [(c, scores[a:b]) for c, a, b in zip(code_ofs, bounds[:-1], bounds[1:])]
 
-    def _score_pairs(self, query: str, flat: np.ndarray) -> np.ndarray:
-        """(M,) float64 exact relevancy of the Gaussians at sorted flat indices t*N+g."""
-        N = self.scene.num_gaussians
-        t_of, g_of = np.divmod(np.asarray(flat, dtype=np.int64), N)
-        source = self._sparse_latents()
-        lat = np.empty((t_of.shape[0], int(self.latents.shape[-1])), dtype=self.latent_dtype or np.float32)
-        bounds = np.searchsorted(t_of, np.unique(t_of))
-        for a, b in zip(bounds, list(bounds[1:]) + [len(t_of)]):  # one read per timestep, scored together
-            lat[a:b] = source[int(t_of[a])][g_of[a:b]]
-        self._release_rows(int(lat.shape[0]))
+    def _score_pairs(self, query: str, flat: np.ndarray, window: Optional[tuple[float, float]] = None) -> np.ndarray:
+        """(M,) float64 exact relevancy of the Gaussians at sorted flat indices t*N+g (``window``: see
+        :meth:`_score_latents`)."""
+        lat = self._rows().read(flat, dtype=self.latent_dtype or np.float32)
         if lat.shape[0] == 0:
             return np.zeros(0, dtype=np.float64)
-        return self._score_latents(lat, self.embed_query(query)).double().numpy()
+        return self._score_latents(lat, self.embed_query(query), window).double().numpy()
 
     # ------------------------------------------------------------------ per Gaussian
     def gaussian_relevancy(self, query: str, t: int) -> torch.Tensor:
@@ -412,8 +395,9 @@ class QueryEngine:
                 c, a, n, rescored, sampled = counts_from_codes_refined(
                     self._codes_scores(q).double().numpy(), hist,
                     members=lambda codes, rows: self._band_members(codes, rows, ts),
-                    score=lambda flat, q=q: self._score_any(q, flat),
-                    sample=lambda groups, sizes, q=q, rng=rng: self._sample_members(q, groups, sizes, ts, rng),
+                    score=lambda flat, window, q=q: self._score_any(q, flat, window),
+                    sample=lambda groups, sizes, q=q, rng=rng: self._sample_members(q, groups, sizes, ts, rng,
+                                                                                     (RELEVANT, np.inf)),
                     margin=self.codebook_refine, weights=weights, samples=self.codebook_samples,
                     tied_rows=lambda positive: tied_segment_rows(positive, ts, T, self.dilation))
                 self.stats["rescored_latents"] += rescored

@@ -124,10 +124,13 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
         histogram: (S,K) Gaussians holding each code at each scored timestep.
         members: (codes (C,), rows (U,)) -> (rows (M,) into the S scored timesteps, codes (M,), handles (M,)):
             the Gaussians holding one of ``codes`` at the scored timesteps ``rows``.
-        score: handles (M,) -> (M,) their exact relevancy.
+        score: (handles (M,), window) -> (M,) their exact relevancy; with a window (low, high) a member
+            whose relevancy is certainly <= low (> high) may get any value <= low (> high) instead: every
+            threshold the band's decisions use lies in the window it is given (R_avg's first interval).
         sample: (list of codes (C_j,), list of sizes) -> list of (codes (M_j,), scores (M_j,)): for each
             group of codes, exact relevancy of a uniform sample without replacement of that many of its
-            members at the scored timesteps (all of them when fewer); one call for every stratum.
+            members at the scored timesteps (all of them when fewer); one call for every stratum. Only
+            relevant scores (> 0.5) are used as values: an irrelevant one may be any value <= 0.5.
         margin: half-width of the band of codes around R_avg whose members are re-scored (0 = lookup).
         weights: (S,) timesteps each scored timestep stands for after stride expansion (default 1 each).
         samples: exact scores spent on R_avg.
@@ -165,7 +168,9 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
     # outside the band a code is on the same side of every R in the (first) interval
     sure = (hist @ (~band & (r > r_avg)).astype(hist.dtype)).astype(np.int64)
     unsure = band_hist.sum(axis=1)
-    rows_open: dict[int, list] = {}  # row -> [pending codes, pending handles, exact scores so far, chunk]
+    # row -> [pending codes, pending handles, scores so far (exact inside the window), chunk, scored handles]
+    rows_open: dict[int, list] = {}
+    window = (first_low, first_high)  # r_low, r_avg and r_high stay inside it
     order_rng = np.random.default_rng(0)
     rescored = 0
 
@@ -178,7 +183,7 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
             mine = np.flatnonzero(at == i)
             mine = mine[order_rng.permutation(mine.size)]  # re-scored in random order, a chunk at a time
             rows_open[int(i)] = [codes_of[mine], handles[mine], np.zeros(0, dtype=np.float64),
-                                 max(RESCORE_MIN_CHUNK, -(-mine.size // RESCORE_CHUNKS))]
+                                 max(RESCORE_MIN_CHUNK, -(-mine.size // RESCORE_CHUNKS)), np.zeros(0, dtype=np.int64)]
 
     def score_next(rows: np.ndarray, everything: bool = False) -> None:
         """Exact scores for the next chunk (or all) of the pending band members of ``rows``."""
@@ -186,18 +191,19 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
         open_rows(rows)
         takes = []
         for i in rows:
-            codes_i, handles_i, _, chunk = rows_open[int(i)]
+            codes_i, handles_i, _, chunk, _ = rows_open[int(i)]
             take = handles_i.size if everything else min(chunk, handles_i.size)
             if take:
                 takes.append((int(i), take))
         if not takes:
             return
-        exact = np.asarray(score(np.concatenate([rows_open[i][1][:k] for i, k in takes])), dtype=np.float64)
+        exact = np.asarray(score(np.concatenate([rows_open[i][1][:k] for i, k in takes]), window), dtype=np.float64)
         rescored += int(exact.size)
         start = 0
         for i, k in takes:
             entry = rows_open[i]
             entry[2] = np.concatenate([entry[2], exact[start:start + k]])
+            entry[4] = np.concatenate([entry[4], entry[1][:k]])
             entry[0], entry[1] = entry[0][k:], entry[1][k:]
             start += k
 
@@ -206,14 +212,14 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
         pending."""
         above = band_hist @ (r_band > threshold)
         pending = unsure.copy()
-        for i, (codes_i, _, exact_i, _) in rows_open.items():
+        for i, (codes_i, _, exact_i, _, _) in rows_open.items():
             above[i] = int((exact_i > threshold).sum()) + int((r[codes_i] > threshold).sum())
             pending[i] = codes_i.size
         return above, pending
 
     def bounds() -> tuple[np.ndarray, np.ndarray]:
         low, high = sure.copy(), sure + unsure
-        for i, (codes_i, _, exact_i, _) in rows_open.items():
+        for i, (codes_i, _, exact_i, _, _) in rows_open.items():
             low[i] += int((exact_i > r_high).sum())
             high[i] = sure[i] + int((exact_i > r_low).sum()) + codes_i.size
         return low, high
@@ -251,6 +257,10 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
             score_next(rows[unsure[rows] > 0], everything=True)
             counts = sure + state(r_avg)[0]
     if counts.sum() == 0:  # every relevant score equal (see counts_from_relevancy): count the relevant
+        for entry in rows_open.values():  # 0.5 may lie outside the window: exact scores for the scored
+            if entry[4].size:
+                entry[2] = np.asarray(score(entry[4], None), dtype=np.float64)
+                rescored += int(entry[4].size)
         counts = (hist @ (~band & (r > RELEVANT)).astype(hist.dtype)).astype(np.int64) + state(RELEVANT)[0]
     return counts, r_avg, n_rel, rescored, sampled
 

@@ -60,6 +60,25 @@ def test_codebook_path_equals_exact_and_never_decodes_latents(setup, tmp_path):
     assert np.array_equal(np.asarray(again.codebook.codes), np.asarray(eng.codebook.codes))
 
 
+def test_forget_query_redoes_the_query_s_own_work_only(setup):
+    scene, field, enc, _ = setup
+    eng = QueryEngine(scene, field, enc)
+    first = eng.temporal(Q)
+    eng.gaussian_relevancy(Q, 1)
+    eng.gaussian_relevancy("object", 1)
+    decoded, encoded = eng.stats["decoded_latents"], enc.calls
+    eng.gaussian_relevancy(Q, 2)  # cached by the temporal pass: nothing decoded
+    assert eng.stats["decoded_latents"] == decoded
+    eng.forget_query(Q)
+    eng.gaussian_relevancy(Q, 2)
+    assert eng.stats["decoded_latents"] == decoded + scene.num_gaussians  # decoded again
+    eng.gaussian_relevancy("object", 1)  # another query's cache is kept
+    assert eng.stats["decoded_latents"] == decoded + scene.num_gaussians
+    again = eng.temporal(Q)
+    np.testing.assert_array_equal(again.scores, first.scores)
+    assert enc.calls == encoded  # the text embedding is kept
+
+
 def test_temporal_stride_and_many_queries(setup):
     scene, field, enc, _ = setup
     eng = QueryEngine(scene, field, enc, dilation=0)
@@ -100,6 +119,22 @@ def test_spatial_maps_centre_view_and_stats(setup):
     # at a timestep where nothing is relevant the fast and exact maps both stay low
     low = QueryEngine(scene, field, enc, spatial="exact").relevancy_map(Q, wide, 0)["relevancy"]
     assert low.max() <= 0.5  # background decodes to the zero vector: exactly 0.5, not relevant
+
+
+def test_exact_map_decodes_the_empty_pixels_once_and_equals_decoding_every_pixel(setup):
+    import torch
+
+    scene, field, enc, _ = setup
+    eng = QueryEngine(scene, field, enc, spatial="exact")
+    wide = scene.cameras.find("wide")
+    got = eng.relevancy_map(Q, wide, 1, outputs=("relevancy", "alpha"))
+    H, W = got["alpha"].shape
+    empty = int((got["alpha"] == 0).sum())
+    assert 0 < empty < H * W and eng.stats["decoded_pixels"] == H * W - empty + 1
+    lat = torch.from_numpy(np.asarray(field.latents[1], dtype=np.float32))
+    pix = eng._rasterize(1, wide, lat, ("features", "alpha"))["features"].reshape(H * W, -1)
+    want = eng._score_latents_many(pix, eng.embed_query(Q)[None])[:, 0].reshape(H, W).clamp(0, 1).numpy()
+    np.testing.assert_array_equal(got["relevancy"], want)
 
 
 def test_fast_and_exact_maps_agree_on_the_relevant_region(setup):

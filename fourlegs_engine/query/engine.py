@@ -180,6 +180,15 @@ class QueryEngine:
         canon, neg = self.reference_embeddings()
         return relevancy_many(features, qs, reference_set(canon, neg), scale=self.relevancy_scale)
 
+    def forget_query(self, query: str) -> None:
+        """Drop every score cached for ``query`` (code relevancies, per-Gaussian and temporal scores,
+        background relevancy), keeping its text embedding: the next call redoes the query's own work."""
+        self._code_scores.pop(query, None)
+        self._background_score.pop(query, None)
+        self._temporal_scores.pop(query, None)
+        for key in [k for k in self._gaussian_cache if k[0] == query]:
+            del self._gaussian_cache[key]
+
     # ------------------------------------------------------------------ decoding
     def _read_latents(self, t: int) -> np.ndarray:
         x = self.latents[t]
@@ -501,10 +510,14 @@ class QueryEngine:
             out = self._rasterize(t, cam, lat, render_outputs)
             self.stats["render_features"] += 1
             pix = out["features"].reshape(H * W, -1)
-            rel = torch.empty(Q, H * W, dtype=torch.float32)
-            for s in range(0, H * W, self.chunk):
-                rel[:, s:s + self.chunk] = self._score_latents_many(pix[s:s + self.chunk], qs).T
-            self.stats["decoded_pixels"] += H * W
+            # pixels no Gaussian covers render the zero latent: decoded once (its row's result does not
+            # depend on the batch), every other pixel in chunks
+            covered = torch.nonzero(pix.any(dim=1)).flatten()
+            rel = self._score_latents_many(torch.zeros(1, pix.shape[1]), qs).T.expand(Q, H * W).contiguous()
+            for s in range(0, covered.numel(), self.chunk):
+                rows = covered[s:s + self.chunk]
+                rel[:, rows] = self._score_latents_many(pix[rows], qs).T
+            self.stats["decoded_pixels"] += covered.numel() + 1
             rel = rel.reshape(Q, H, W)
             alpha = out["alpha"].reshape(H, W)
         result = {"relevancy": rel.clamp(0.0, 1.0), "alpha": alpha}

@@ -61,7 +61,9 @@ class QueryEngine:
         codebook_refine: margin of the codebook path's exact re-scoring (0: lookup only): R_avg is corrected
             by exact scores of ``codebook_samples`` sampled Gaussians, and at every timestep whose decision
             (s_t > 1/T) depends on them the Gaussians of the codes within this distance of R_avg are
-            decoded exactly (see :func:`~.temporal.counts_from_codes_refined`).
+            decoded exactly (see :func:`~.temporal.counts_from_codes_refined`); a row whose relevancy is
+            certainly on one side of every threshold used gets a bound instead of the full decode (see
+            :meth:`RelevancyHead.relevancy_windowed`).
         codebook_samples: exact scores spent on R_avg per query with ``codebook_refine`` > 0.
         codebook: a prebuilt :class:`Codebook` (else loaded from / stored in ``codebook_dir``, by default
             the bundle's ``language/`` directory, or built in memory).

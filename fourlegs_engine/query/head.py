@@ -30,6 +30,7 @@ directions, and ~90% of the codebook path's re-scored and sampled rows are decid
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Optional
 
 import numpy as np
@@ -52,6 +53,33 @@ BOUND_PAD = 1e-4
 #: ~2.1 µs per row for both hidden layers against ~3-4 µs in one 16k-32k row product, measured)
 WINDOW_BLOCK_ROWS = 4096
 F32_SAFE = 1e36  # |y|² below this: the float32 exact path computes |u|² without overflow
+
+
+@dataclass(frozen=True)
+class NormBounds:
+    """What :meth:`RelevancyHead.relevancy_windowed` bounds |Rh|² with (see the module docstring).
+
+    vectors (H,r) float32 top eigen-directions of RᵀR (None when H = 1), lambdas (r,) float64 their
+    eigenvalues, lambda_next / lambda_min the (r+1)-th and the smallest eigenvalue, r_beta (H,) float64
+    Rᵀβ (the cross term 2 (Rᵀβ)·h of |u|²), beta_sq |β|².
+    """
+
+    vectors: Optional[torch.Tensor]
+    lambdas: Optional[torch.Tensor]
+    lambda_next: float
+    lambda_min: float
+    r_beta: torch.Tensor
+    beta_sq: float
+
+    @classmethod
+    def of(cls, r: torch.Tensor, beta: torch.Tensor) -> "NormBounds":
+        lam, vec = torch.linalg.eigh(r.T @ r)          # ascending
+        rank = min(BOUND_RANK, lam.shape[0] - 1)
+        if rank <= 0:
+            return cls(None, None, 0.0, float(lam[0].clamp_min(0)), r.T @ beta, float((beta * beta).sum()))
+        return cls(vec[:, -rank:].flip(1).float().contiguous(), lam[-rank:].flip(0),
+                   float(lam[-rank - 1].clamp_min(0)), float(lam[0].clamp_min(0)), r.T @ beta,
+                   float((beta * beta).sum()))
 
 
 def _fold(linear: nn.Linear, bn: Optional[nn.BatchNorm1d]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -83,16 +111,9 @@ class RelevancyHead:
         self.b_perp64 = b_perp                          # (D,) float64
         self.perp_sq = float((b_perp * b_perp).sum())
         self.device = self.r_t.device
-        # |Rh|² bounds (see relevancy_windowed): top eigen-directions of RᵀR, the next and the last eigenvalue
-        lam, vec = torch.linalg.eigh(r.T.double() @ r.double())          # ascending
-        rank = min(BOUND_RANK, lam.shape[0] - 1)
-        self.bound_vectors = vec[:, -rank:].flip(1).float().contiguous() if rank > 0 else None  # (H,r)
-        self.bound_lambdas = lam[-rank:].flip(0) if rank > 0 else None                          # (r,) float64
-        self.lambda_next = float(lam[-rank - 1].clamp_min(0)) if rank > 0 else 0.0
-        self.lambda_min = float(lam[0].clamp_min(0))
-        self.r_beta64 = r.T.double() @ beta.double()                       # (H,): u·u cross term 2 (Rᵀβ)·h
-        self.beta_sq = float((beta.double() ** 2).sum())
-        self.r64 = r.double()
+        self.r64 = r.double()                           # (H,H) float64
+        self.beta64 = beta.double()                     # (H,) float64
+        self._bounds: Optional[NormBounds] = None       # built on the first windowed call
 
     @classmethod
     def from_decoder(cls, decoder: Any) -> Optional["RelevancyHead"]:
@@ -171,6 +192,14 @@ class RelevancyHead:
         """
         return self._margins_of_hidden(self._hidden(latents), directions, scale)
 
+    @property
+    def norm_bounds(self) -> NormBounds:
+        """The |Rh|² bounds of :meth:`relevancy_windowed`, computed on first use (an eigendecomposition
+        of the H x H RᵀR: engines that never bound pay nothing for it)."""
+        if self._bounds is None:
+            self._bounds = NormBounds.of(self.r64, self.beta64)
+        return self._bounds
+
     def relevancy_windowed(self, latents: torch.Tensor, query: torch.Tensor, refs: torch.Tensor, *, scale: float,
                            window: tuple[float, float]) -> tuple[torch.Tensor, torch.Tensor]:
         """Relevancy of each latent to one query where it may lie inside ``window``; elsewhere a bound.
@@ -185,42 +214,44 @@ class RelevancyHead:
             > high (a lower bound, also > high): compared with any threshold in [low, high] the value
             decides as the relevancy would.
         """
-        if self.bound_vectors is None or latents.shape[0] == 0:
+        bounds = self.norm_bounds
+        if bounds.vectors is None or latents.shape[0] == 0:
             return (self.relevancy_many(latents, query[None], refs, scale=scale)[:, 0],
                     torch.ones(latents.shape[0], dtype=torch.bool))
         diffs = query.to(self.device, torch.float64)[None, :] - refs.to(self.device, torch.float64)  # (K,D)
         proj = self.q64.T @ diffs.T                                        # (H,K)
         # one product per row for the exact numerators u·(Qᵀv) = h·(RᵀQᵀv) + β·Qᵀv, the top-r coordinates
         # and h·Rᵀβ
-        cols = torch.cat([(self.r64.T @ proj).float(), self.bound_vectors, self.r_beta64.float()[:, None]], 1)
-        numer_offset = self.beta.double() @ proj + diffs @ self.b_perp64  # (K,)
-        parts = [self._windowed_block(latents[s:s + WINDOW_BLOCK_ROWS], diffs, cols, numer_offset, scale, window)
+        cols = torch.cat([(self.r64.T @ proj).float(), bounds.vectors, bounds.r_beta.float()[:, None]], 1)
+        numer_offset = self.beta64 @ proj + diffs @ self.b_perp64  # (K,)
+        parts = [self._windowed_block(latents[s:s + WINDOW_BLOCK_ROWS], diffs, cols, numer_offset, bounds, scale,
+                                      window)
                  for s in range(0, latents.shape[0], WINDOW_BLOCK_ROWS)]
         return torch.cat([v for v, _ in parts]), torch.cat([e for _, e in parts])
 
     def _windowed_block(self, latents: torch.Tensor, diffs: torch.Tensor, cols: torch.Tensor,
-                        numer_offset: torch.Tensor, scale: float,
+                        numer_offset: torch.Tensor, bounds: NormBounds, scale: float,
                         window: tuple[float, float]) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`relevancy_windowed` of at most ``WINDOW_BLOCK_ROWS`` rows; ``cols`` (H, K+r+1)."""
         low, high = float(window[0]), float(window[1])
-        K, r = diffs.shape[0], self.bound_vectors.shape[1]
+        K, r = diffs.shape[0], bounds.vectors.shape[1]
         h = self._hidden(latents)                                          # (M,H)
         prod = (h @ cols).double()                                         # (M, K+r+1)
         numer = prod[:, :K] + numer_offset
         coords = prod[:, K:K + r]
         h_sq = torch.linalg.vector_norm(h, dim=1).double().square()
         rest = (h_sq - (coords * coords).sum(1)).clamp_min(0.0)
-        top = (coords * coords) @ self.bound_lambdas
-        fixed = 2.0 * prod[:, -1] + self.beta_sq + self.perp_sq           # |y|² = |Rh|² + fixed
-        norm_low = torch.sqrt((top + self.lambda_min * rest + fixed).clamp_min(0.0)).clamp_min(NORM_EPS)
-        norm_high = torch.sqrt((top + self.lambda_next * rest + fixed).clamp_min(0.0)).clamp_min(NORM_EPS)
+        top = (coords * coords) @ bounds.lambdas
+        fixed = 2.0 * prod[:, -1] + bounds.beta_sq + self.perp_sq           # |y|² = |Rh|² + fixed
+        norm_sq_high = top + bounds.lambda_next * rest + fixed
+        norm_low = torch.sqrt((top + bounds.lambda_min * rest + fixed).clamp_min(0.0)).clamp_min(NORM_EPS)
+        norm_high = torch.sqrt(norm_sq_high.clamp_min(0.0)).clamp_min(NORM_EPS)
         m_a, m_b = scale * numer / norm_low[:, None], scale * numer / norm_high[:, None]
         rel_low = torch.exp(F.logsigmoid(torch.minimum(m_a, m_b)).min(dim=1).values)
         rel_high = torch.exp(F.logsigmoid(torch.maximum(m_a, m_b)).min(dim=1).values)
         below = rel_high <= low - BOUND_PAD
         above = rel_low > high + BOUND_PAD
         # rows whose exact (float32) evaluation would overflow score as zero features there: not bounded
-        norm_sq_high = top + self.lambda_next * rest + fixed
         finite = torch.isfinite(rel_low) & torch.isfinite(rel_high) & (norm_sq_high < F32_SAFE)
         below, above = below & finite, above & finite
         exact = ~(below | above)

@@ -51,7 +51,7 @@ class RowReader:
     def read(self, flat: np.ndarray, dtype=np.float32) -> np.ndarray:
         """(M,) sorted flat indices t*N+g -> (M,d) rows as ``dtype``."""
         flat = np.asarray(flat, dtype=np.int64)
-        T, N, d = self.shape
+        N, d = self.shape[1], self.shape[2]
         out = np.empty((flat.shape[0], d), dtype=dtype)
         if flat.size == 0:
             return out

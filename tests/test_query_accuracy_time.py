@@ -101,3 +101,26 @@ def test_query_speed_bench_runs_small(tmp_path):
     # the query rows ran in a fresh process: their peak RSS is theirs, not the benchmark's
     assert cb["rss_scope"] == "query process" and exact["rss_scope"] == "whole benchmark process"
     assert "| codebook K=16 |" in markdown(rep)
+
+
+def test_skipped_groups_are_not_distilled(tmp_path, monkeypatch):
+    """--skip knn: the kNN rows are not distilled at all (not distilled and then dropped)."""
+    import fourlegs_engine.language.distill as distill_mod
+    from fourlegs_engine.eval.accuracy_time import _distill_variants
+
+    calls = []
+
+    def fake_distill(scene, *, timesteps, out_dir, merge, progress, **opts):
+        calls.append(opts)
+        for t in timesteps:
+            save_npy_atomic(out_dir / "steps" / f"t{t:06d}.npy", np.zeros((3, 2), np.float16))
+        return SimpleNamespace(timings=[object()] * len(timesteps), seconds_per_timestep=0.5)
+
+    monkeypatch.setattr(distill_mod, "distill_scene", fake_distill)
+    scene = SimpleNamespace(num_timesteps=4)
+    names = [v.name for v in _distill_variants(scene, None, 2, tmp_path, False, [7], skip=["knn"])]
+    assert names == ["lift", "lift + kNN blur", "lift+refine 7 it", "optimize 7 it"]
+    assert all("neighbours" not in c for c in calls) and len(calls) == 4
+    calls.clear()
+    rows = _distill_variants(scene, None, 2, tmp_path / "b", False, [7], skip=["distill"])
+    assert [v.group for v in rows] == ["knn", "knn"] and [c["neighbours"] for c in calls] == [5, 10]

@@ -128,10 +128,10 @@ def evaluate(ctx: Any, gt: Any, method: FourLegsMethod) -> dict[str, Any]:
 
 
 def _distill_variants(scene: Any, base_field: Any, every: int, out_root: Path, progress: bool,
-                      iterations: Sequence[int] = DISTILL_ITERATIONS) -> list[Variant]:
+                      iterations: Sequence[int] = DISTILL_ITERATIONS, skip: Sequence[str] = ()) -> list[Variant]:
     """Distillation mode / iterations and kNN k rows, each distilled on every ``every``-th timestep:
     lift, lift with the kNN blur, lift+refine (first iteration count), optimize at every count, and
-    lift+refine with k = 5, 10."""
+    lift+refine with k = 5, 10. Rows of a group in ``skip`` are not distilled at all."""
     from ..language.distill import distill_scene
 
     T = scene.num_timesteps
@@ -143,6 +143,7 @@ def _distill_variants(scene: Any, base_field: Any, every: int, out_root: Path, p
     specs += [("distill", f"optimize {int(n)} it", dict(mode="optimize", iterations=int(n))) for n in iterations]
     specs += [("knn", f"lift+refine {first} it, k={k}", dict(mode="lift+refine", iterations=first, neighbours=k))
               for k in (5, 10)]
+    specs = [spec for spec in specs if spec[0] not in skip]
     out = []
     for group, name, opts in specs:
         vdir = out_root / "distill" / name.replace(" ", "_").replace(",", "").replace("=", "")
@@ -220,8 +221,7 @@ def run_accuracy_time(scene: Any, *, out_dir: Path, skip: Sequence[str] = (), di
     rows_spec = variants(skip)
     if not ({"distill", "knn"} <= set(skip)):
         every = distill_every or max(1, -(-scene.num_timesteps // DISTILL_MAX_TIMESTEPS))
-        specs = _distill_variants(scene, base_field, every, out_dir, progress, distill_iterations)
-        rows_spec += [v for v in specs if v.group not in skip]
+        rows_spec += _distill_variants(scene, base_field, every, out_dir, progress, distill_iterations, skip)
     rows = []
     shared: dict = {}
     for v in rows_spec:

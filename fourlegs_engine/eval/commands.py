@@ -1,4 +1,5 @@
-"""CLI: ``fourlegs generate`` (synthetic scene bundles) and ``fourlegs bench grounding``."""
+"""CLI: ``fourlegs generate`` (synthetic scene bundles), ``fourlegs bench grounding`` and
+``fourlegs bench compare``."""
 from __future__ import annotations
 
 import argparse
@@ -45,6 +46,24 @@ def register_bench(bench_subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     p.set_defaults(func=_bench_grounding)
 
+    c = bench_subparsers.add_parser(
+        "compare", help="rows of several accuracy-time runs (e.g. scene seeds) side by side, with means",
+        description="Tabulate one metric of every row of several `fourlegs bench accuracy-time` runs, its "
+                    "mean over the runs and its mean seconds; with --reference, each row's ratio to that "
+                    "row and the runs where it falls below --target times it. Writes a table, JSON and a "
+                    "plot with --out.")
+    c.add_argument("reports", nargs="+", metavar="RUN",
+                   help="accuracy_time.json files or the directories holding them")
+    c.add_argument("--metric", default="vAP", help="metric to compare (default vAP)")
+    c.add_argument("--reference", default=None, metavar="ROW", help="row name to compare against, e.g. "
+                   "'optimize 2000 it'")
+    c.add_argument("--groups", default=None, help="comma-separated row groups to keep (default: all)")
+    c.add_argument("--target", type=float, default=0.95,
+                   help="with --reference: count the runs below this share of it (default 0.95)")
+    c.add_argument("--out", default=None, metavar="PREFIX", help="write PREFIX.json, .md and .png")
+    c.add_argument("--overwrite", action="store_true", help="replace existing --out files")
+    c.set_defaults(func=_bench_compare)
+
 
 def _generate(args: argparse.Namespace) -> int:
     import time
@@ -72,3 +91,8 @@ def _generate(args: argparse.Namespace) -> int:
 def _bench_grounding(args: argparse.Namespace) -> int:
     from .grounding import run_grounding_benchmark_cli
     return run_grounding_benchmark_cli(args)
+
+
+def _bench_compare(args: argparse.Namespace) -> int:
+    from .compare import run_compare_cli
+    return run_compare_cli(args)

@@ -90,19 +90,3 @@ def run_build_extension(args: argparse.Namespace) -> int:
     for z in zips:
         print(z)
     return 0
-
-
-def register_bench(bench_subparsers) -> None:
-    b = bench_subparsers.add_parser(
-        "blender", help="Blender layer: import seconds (300k Gaussians), per-frame render seconds through Blender "
-                        "vs the engine directly, and the max pixel difference between the two")
-    from . import bench
-
-    bench.build_parser(b)
-    b.set_defaults(func=run_bench)
-
-
-def run_bench(args: argparse.Namespace) -> int:
-    from . import bench
-
-    return subprocess.call([sys.executable, "-m", "fourlegs_addon.bench", *bench.forward_argv(args)])

@@ -1,29 +1,45 @@
 """The ``fourlegs`` command.
 
-Each package contributes its sub-commands from a ``commands`` module with ``register(subparsers)``
-(and optionally ``register_bench(bench_subparsers)``); heavy imports happen inside the command
-functions so ``fourlegs --help`` stays fast. Errors from bad input print one line (no traceback).
+Each engine package contributes its sub-commands from a ``commands`` module with
+``register(subparsers)`` (and optionally ``register_bench(bench_subparsers)``). Other installed
+packages (the Blender add-on, the benchmarks) add theirs through the entry-point group
+``fourlegs.commands`` (pyproject.toml), so the engine never imports them by name. Heavy imports happen
+inside the command functions so ``fourlegs --help`` stays fast. Errors from bad input print one line
+(no traceback).
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import sys
-from typing import Sequence
+from importlib.metadata import entry_points
+from types import ModuleType
+from typing import Iterator, Sequence
 
 from . import __version__
 from .errors import FourlegsError
 
 COMMAND_MODULES = (
     "fourlegs_engine.scene.commands",
-    "fourlegs_engine.render.commands",
-    "fourlegs_engine.eval.commands",
     "fourlegs_engine.language.commands",
     "fourlegs_engine.language.viclip.commands",
     "fourlegs_engine.query.commands",
     "fourlegs_engine.highlights.commands",
-    "fourlegs_addon.commands",
 )
+ENTRY_POINT_GROUP = "fourlegs.commands"
+
+
+def command_modules() -> Iterator[ModuleType]:
+    """The engine's own command modules, then those other installed packages declare (by entry-point name)."""
+    for name in COMMAND_MODULES:
+        yield importlib.import_module(name)
+    for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
+        try:
+            yield ep.load()
+        except ModuleNotFoundError as exc:
+            if exc.name is not None and ep.value.startswith(exc.name):
+                continue  # declared by a distribution whose package is no longer importable
+            raise
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,13 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     bench = sub.add_parser("bench", help="benchmarks: speed and accuracy, as tables, JSON and plots")
     bench_sub = bench.add_subparsers(dest="bench_command", metavar="BENCH")
-    for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name is not None and name.startswith(exc.name):
-                continue  # that part of the product is not installed
-            raise
+    for module in command_modules():
         if hasattr(module, "register"):
             module.register(sub)
         if hasattr(module, "register_bench"):

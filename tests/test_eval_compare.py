@@ -7,7 +7,7 @@ import pytest
 
 from fourlegs_engine.cli import main
 from fourlegs_engine.errors import InputError
-from fourlegs_engine.eval.compare import compare_markdown, compare_reports, load_report
+from benchmarks.compare import compare_markdown, compare_reports, load_report
 
 
 def _row(group, name, vap, tiou=0.2, seconds=1.0, per_t=None):

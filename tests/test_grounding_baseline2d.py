@@ -8,8 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fourlegs_engine.errors import InputError
-from fourlegs_engine.eval.baseline2d import Features2D, pixel_relevancy, pixel_taps
-from fourlegs_engine.eval.synthetic import LABELS
+from benchmarks.baseline2d import Features2D, pixel_relevancy, pixel_taps
+from fourlegs_engine.scene.synthetic import LABELS
 from fourlegs_engine.language.pyramid import crop_layout, pixel_features, pyramid_ratios
 from fourlegs_engine.language.simulated import SimulatedTextEncoder, SimulatedVideoEncoder
 from fourlegs_engine.query.relevancy import relevancy

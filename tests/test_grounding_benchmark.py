@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import torch
 
-from fourlegs_engine.eval import grounding
-from fourlegs_engine.eval.baseline2d import ViewPrediction, inclusive_to_exclusive
-from fourlegs_engine.eval.ground_truth import (VISIBILITY_THRESHOLD, CoverageVideo, ensure_ground_truth,
+from benchmarks import grounding
+from benchmarks.baseline2d import ViewPrediction, inclusive_to_exclusive
+from benchmarks.ground_truth import (VISIBILITY_THRESHOLD, CoverageVideo, ensure_ground_truth,
                                                label_ids, scene_queries, segments_of, visible_masks)
-from fourlegs_engine.eval.metrics import METRIC_NAMES, mask_to_box
-from fourlegs_engine.eval.synthetic import LABELS, SCRIPT, _frames_of, write_synthetic_bundle
+from benchmarks.metrics import METRIC_NAMES, mask_to_box
+from fourlegs_engine.scene.synthetic import LABELS, SCRIPT, _frames_of, write_synthetic_bundle
 from fourlegs_engine.render import rasterize
 from fourlegs_engine.scene import load_bundle
 
@@ -225,8 +225,8 @@ def test_stride_list_parsing_and_the_speed_accuracy_plot(tmp_path):
 
 
 def test_tiled_ground_truth_stretches_each_segment_over_the_repeated_timesteps(bundle):
-    from fourlegs_engine.eval.ground_truth import temporal_ground_truth
-    from fourlegs_engine.query.speed_tiled import tiled_ground_truth
+    from benchmarks.ground_truth import temporal_ground_truth
+    from benchmarks.query_speed_tiled import tiled_ground_truth
 
     scene = load_bundle(bundle)
     T0 = scene.num_timesteps

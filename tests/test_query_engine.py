@@ -289,7 +289,7 @@ def test_scattered_exact_reads_do_not_stay_resident(tmp_path):
     # the kernel maps cached pages around every faulting row; a re-scoring query reading thousands of
     # scattered rows through the mapping would keep ~64 kB resident per row (here the whole 20 MB file)
     from _query_helpers import LinearField
-    from fourlegs_engine.query.speed import _flat_scene, warm_page_cache
+    from benchmarks.query_fixtures import flat_scene, warm_page_cache
 
     T, N, d = 4, 40_000, 64
     rng = np.random.default_rng(0)
@@ -299,7 +299,7 @@ def test_scattered_exact_reads_do_not_stay_resident(tmp_path):
     mm = np.load(path, mmap_mode="r")
     field = LinearField(mm, rng.normal(size=(d, 16)).astype(np.float32))
     _, _, enc, _ = two_cluster_scene(D=16)
-    eng = QueryEngine(_flat_scene(T, N), field, enc, path="codebook", codebook_size=4, codebook_refine=0.01)
+    eng = QueryEngine(flat_scene(T, N), field, enc, path="codebook", codebook_size=4, codebook_refine=0.01)
     flat = np.sort(rng.choice(T * N, size=4000, replace=False))
     got = eng._score_pairs(Q, flat)
     assert _mapped_rss_kb(path) < 1024

@@ -7,8 +7,8 @@ from _query_helpers import LinearField, two_cluster_scene
 
 from fourlegs_engine.errors import InputError
 from fourlegs_engine.query.engine import QueryEngine
-from fourlegs_engine.query.speed import _flat_scene
-from fourlegs_engine.query.speed_tiled import exact_tiled_answers, source_timesteps, write_tiled_latents
+from benchmarks.query_fixtures import flat_scene
+from benchmarks.query_speed_tiled import exact_tiled_answers, source_timesteps, write_tiled_latents
 
 
 def test_source_timesteps_repeat_every_source_timestep_in_order():
@@ -38,7 +38,7 @@ def test_exact_tiled_answers_equal_the_exact_path_on_the_tiled_field(tmp_path, q
     field.latents = (np.asarray(field.latents) + rng.normal(scale=0.3, size=field.latents.shape)).astype(np.float32)
     T, N = 12, 2 * scene.num_gaussians
     tiled = write_tiled_latents(tmp_path / "t.npy", field.latents, T, N)
-    brute = QueryEngine(_flat_scene(T, N), LinearField(np.asarray(tiled, dtype=np.float32), field.weight.numpy()),
+    brute = QueryEngine(flat_scene(T, N), LinearField(np.asarray(tiled, dtype=np.float32), field.weight.numpy()),
                         enc).temporal(query)
     got = exact_tiled_answers(scene, LinearField(np.asarray(field.latents, dtype=np.float16).astype(np.float32),
                                                  field.weight.numpy()), enc, [query], T, N)[query]
@@ -48,7 +48,7 @@ def test_exact_tiled_answers_equal_the_exact_path_on_the_tiled_field(tmp_path, q
 
 
 def test_markdown_rows_report_the_exact_work_and_what_bounds_decided():
-    from fourlegs_engine.query.speed_tiled import markdown_rows
+    from benchmarks.query_speed_tiled import markdown_rows
 
     queries = [{"query": "a", "seconds": 0.1, "sampled": 4096, "rescored": 1000, "bounded": 900},
                {"query": "b", "seconds": 0.3, "sampled": 0, "rescored": 0}]  # a row from before the bounds

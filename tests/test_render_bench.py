@@ -6,7 +6,7 @@ import json
 import pytest
 
 from fourlegs_engine.cli import main
-from fourlegs_engine.render.bench_scene import make_bench_scene
+from benchmarks.render_scene import make_bench_scene
 
 TINY = ["bench", "render", "--sizes", "400", "--outputs", "rgb,features", "--repeats", "1", "--channels", "8",
         "--threads", "1",

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fourlegs_engine.errors import InputError
-from fourlegs_engine.eval.synthetic import LABELS, QUERIES, generate_scene
+from fourlegs_engine.scene.synthetic import LABELS, QUERIES, generate_scene
 from fourlegs_engine.language.encoders import CANONICAL_PHRASES, get_encoder
 from fourlegs_engine.language.simulated import (EMBED_DIM, SimulatedTextEncoder, SimulatedVideoEncoder,
                                                 label_coverage_tube, lemmatize, render_label_coverage)

@@ -187,7 +187,7 @@ def test_cuda_matches_cpu(files):
 
 
 def test_bench_reports_time_and_accuracy_per_knob(tmp_path):
-    from fourlegs_engine.language.viclip.bench import bench_viclip, write_report
+    from benchmarks.viclip import bench_viclip, write_report
     report = bench_viclip(size=tiny_config(), dtypes=("float32", "bfloat16"), batch_sizes=(1, 2), clips=2,
                           phrases=3, repeats=1, device="cpu")
     rows = {(r["dtype"], r["batch_size"]): r for r in report["rows"]}

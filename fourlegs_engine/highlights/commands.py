@@ -74,7 +74,7 @@ def open_scene_and_localizer(scene_path: str | Path | None, *, demo: bool, encod
     from ..scene.loaders import load_scene
 
     if demo:
-        from ..eval.synthetic import ensure_demo_bundle
+        from ..scene.synthetic import ensure_demo_bundle
         scene_path = ensure_demo_bundle("demo")
     if scene_path is None:
         raise InputError("no scene given (SCENE QUERY, or --demo QUERY)", field="scene")

@@ -16,16 +16,16 @@ Names: ``"viclip"`` (needs ``checkpoint=`` and ``vocab=``; the size is read off 
 from __future__ import annotations
 
 import argparse
-import importlib
 from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence, runtime_checkable
 
 from ..errors import InputError
+from .phrases import CANONICAL_PHRASES
 
 if TYPE_CHECKING:  # torch is imported only when an encoder is built (keeps `fourlegs --help` fast)
     import torch
 
-CANONICAL_PHRASES = ("object", "things", "stuff", "texture")
-
+__all__ = ["CANONICAL_PHRASES", "VideoTextEncoder", "add_encoder_arguments", "encoder_names", "get_encoder",
+           "register_encoder", "resolve_device", "resolve_dtype"]
 
 
 @runtime_checkable
@@ -67,7 +67,8 @@ def _viclip(size: str | None) -> Callable[..., VideoTextEncoder]:
 
 def _simulated(**kwargs: Any) -> VideoTextEncoder:
     """``language/simulated.py``'s ``create_encoder`` (labels= or scene=, see there)."""
-    return importlib.import_module(".simulated", __package__).create_encoder(**kwargs)
+    from .simulated import create_encoder
+    return create_encoder(**kwargs)
 
 
 _REGISTRY: dict[str, Callable[..., VideoTextEncoder]] = {

@@ -1,7 +1,7 @@
 """Simulated video-text encoders for synthetic scenes with ground-truth labels.
 
 These stand in for ViCLIP where weights are unavailable: they are *simulations*, built from the
-ground-truth labels of :mod:`fourlegs_engine.eval.synthetic` scenes, and named as such.
+ground-truth labels of :mod:`fourlegs_engine.scene.synthetic` scenes, and named as such.
 
 Text (:class:`SimulatedTextEncoder`)
     A phrase is reduced to lemmas (lower case, stop words dropped, synonyms and inflections mapped to
@@ -53,7 +53,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from .encoders import CANONICAL_PHRASES
+from .phrases import CANONICAL_PHRASES
 
 EMBED_DIM = 768
 GENERIC_SHARE = 0.3

@@ -1,16 +1,10 @@
-"""CLI: ``fourlegs query``, ``fourlegs bench accuracy-time`` and ``fourlegs bench query-speed``."""
+"""CLI: ``fourlegs query``."""
 from __future__ import annotations
 
 import argparse
 import time
 from pathlib import Path
 from typing import Any
-
-# exact work per found query of `fourlegs bench accuracy-time --scene bench`'s K=65536 ±0.0075 row (100k
-# Gaussians x 60 timesteps), forced by `bench query-speed` on its random latents
-BENCH_RESCORE_SHARE = 0.00023
-BENCH_SAMPLES = 4096
-
 
 def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
@@ -52,61 +46,6 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=run_query)
 
 
-def register_bench(bench_subparsers: Any) -> None:
-    p = bench_subparsers.add_parser(
-        "accuracy-time", help="every query-speed knob: seconds and the six grounding metrics, same run",
-        description="Sweep the speed/accuracy knobs of querying (codebook K, temporal stride, resolution "
-                    "scale, fast vs exact maps, distillation mode/iterations, kNN k, fp32 vs fp16) on a "
-                    "synthetic scene; each row reports its time and vAP, vIoU, tIoU, tRec, tPrec, tAP. "
-                    "Writes a Markdown table, JSON and a Pareto plot (accuracy vs seconds).")
-    p.add_argument("--scene", default="bench", choices=("tiny", "demo", "bench", "full"),
-                   help="synthetic scene size (default bench; tiny for a quick run)")
-    p.add_argument("--bundle", default=None, help="use this synthetic bundle instead of the cached one")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--json", metavar="PATH", help="results JSON (default OUT/accuracy_time.json)")
-    p.add_argument("--out", metavar="DIR", help="output directory (default <bundle>/bench/accuracy_time)")
-    p.add_argument("--skip", default="", help="comma-separated knob groups to skip (e.g. distill,knn)")
-    p.add_argument("--distill-iterations", default="25,100",
-                   help="optimize iteration counts of the distillation rows, comma-separated (default 25,100; "
-                        "the paper uses 2000, affordable on the tiny scene)")
-    p.add_argument("--distill-timesteps", type=int, default=0,
-                   help="distillation variants: distil every k-th timestep only (0: automatic)")
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
-    p.add_argument("--overwrite", action="store_true")
-    p.set_defaults(func=run_bench_accuracy_time)
-
-    s = bench_subparsers.add_parser(
-        "query-speed", help="temporal query time at 300k Gaussians x 150 timesteps (synthetic latents)",
-        description="Time the temporal query (codebook and exact paths) and the spatial maps on random "
-                    "latents of the paper's size written as a memmap in a temporary directory (no "
-                    "distillation needed); reports seconds per query and peak RSS.")
-    s.add_argument("--gaussians", type=int, default=300_000)
-    s.add_argument("--timesteps", type=int, default=150)
-    s.add_argument("--codebook", default="4096,65536", help="comma-separated K values (default 4096,65536)")
-    s.add_argument("--refine", default="0,0.0075",
-                   help="comma-separated exact re-scoring margins timed for each K (default 0,0.0075)")
-    s.add_argument("--rescore-share", type=float, default=BENCH_RESCORE_SHARE,
-                   help="re-scoring rows: also time the exact re-scoring of this share of all (t,g) pairs "
-                        f"(random latents need none; default {BENCH_RESCORE_SHARE:g}, what K=65536 ±0.0075 re-scored "
-                        "per found query on bench)")
-    s.add_argument("--sample-count", type=int, default=BENCH_SAMPLES,
-                   help="re-scoring rows: also time this many exact scores sampled for R_avg (default "
-                        f"{BENCH_SAMPLES}, what K=65536 ±0.0075 sampled per found query on bench)")
-    s.add_argument("--tiled-scene", default="none", choices=("none", "tiny", "demo", "bench"),
-                   help="also time the re-scoring rows on this synthetic scene's distilled field tiled to the "
-                        "benchmark's size, with every scene query and its answers checked against the exact "
-                        "path (default none; bench needs its language field, built on first use)")
-    s.add_argument("--repeats", type=int, default=5, help="timed queries per configuration (default 5)")
-    s.add_argument("--exact-timesteps", type=int, default=3,
-                   help="exact path: time this many timesteps and extrapolate to all (0: all)")
-    s.add_argument("--spatial-scene", default="bench", choices=("none", "tiny", "demo", "bench", "full"),
-                   help="synthetic scene whose geometry times the 640x360 maps (default bench; none: skip)")
-    s.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
-    s.add_argument("--json", metavar="PATH", help="write the results as JSON")
-    s.add_argument("--overwrite", action="store_true")
-    s.set_defaults(func=run_bench_query_speed)
-
-
 # ------------------------------------------------------------------------------------ query
 def _open(args: argparse.Namespace):
     from ..errors import InputError
@@ -115,7 +54,7 @@ def _open(args: argparse.Namespace):
     from .prepare import ensure_language_field
 
     if args.demo:
-        from ..eval.synthetic import ensure_demo_bundle
+        from ..scene.synthetic import ensure_demo_bundle
         if args.text is None and args.scene is not None:
             args.text, args.scene = args.scene, None
         if args.scene is not None:
@@ -221,14 +160,3 @@ def _write_maps(args, scene, engine, loc, write_exr) -> list[str]:
             print(f"wrote {path} (relevancy, depth, alpha; {maps['relevancy'].shape[1]}x"
                   f"{maps['relevancy'].shape[0]})")
     return written
-
-
-# ------------------------------------------------------------------------------------ benches
-def run_bench_accuracy_time(args: argparse.Namespace) -> int:
-    from ..eval.accuracy_time import run_accuracy_time_cli
-    return run_accuracy_time_cli(args)
-
-
-def run_bench_query_speed(args: argparse.Namespace) -> int:
-    from .speed import run_query_speed_cli
-    return run_query_speed_cli(args)

@@ -4,7 +4,7 @@
 - :mod:`.tokenizer`: CLIP's BPE tokenizer over ``bpe_simple_vocab_16e6.txt.gz``.
 - :mod:`.checkpoint`: strict, pickle-free loading (``.pth`` and ``-hf`` safetensors) and saving.
 - :mod:`.encoder`: ``ViCLIPEncoder``, the ``VideoTextEncoder`` the rest of the engine uses.
-- :mod:`.bench` / :mod:`.commands`: ``fourlegs bench viclip`` and ``fourlegs viclip-info``.
+- :mod:`.commands`: ``fourlegs viclip-info`` (``fourlegs bench viclip`` lives in ``benchmarks.viclip``).
 
 Names are imported on first use, so the CLI can register its commands without importing torch.
 """

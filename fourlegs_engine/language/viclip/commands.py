@@ -1,4 +1,4 @@
-"""CLI: ``fourlegs viclip-info CHECKPOINT`` and ``fourlegs bench viclip`` (heavy imports stay inside).
+"""CLI: ``fourlegs viclip-info CHECKPOINT`` (heavy imports stay inside).
 
 ``viclip-info`` loads a checkpoint strictly and reports its size and parameter count; with
 ``--vocab`` it also encodes the canonical phrases (a quick check that weights and vocabulary fit
@@ -21,32 +21,6 @@ def register(subparsers: Any) -> None:
     p.add_argument("--convert", default=None, metavar="OUT", help="write the weights to OUT (.safetensors or .pth)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --convert output")
     p.set_defaults(func=run_info)
-
-
-def register_bench(bench_subparsers: Any) -> None:
-    p = bench_subparsers.add_parser(
-        "viclip", help="ViCLIP encoder: seconds per clip/phrase and accuracy per precision and batch size",
-        description="Seconds per 8-frame clip and per phrase, and the worst cosine to a float64 reference, "
-                    "for every precision and batch size, in one run.")
-    p.add_argument("--size", default="b", choices=("b", "l"), help="ViCLIP size (default b = B/16)")
-    p.add_argument("--checkpoint", default=None, help="real weights (default: random weights from --seed)")
-    p.add_argument("--dtypes", default="float32,bfloat16", help="precisions to measure (default float32,bfloat16)")
-    p.add_argument("--batch-sizes", default="1,4", help="clips per forward pass (default 1,4)")
-    p.add_argument("--reference", default="float64", choices=("float64", "float32", "bfloat16", "float16"),
-                   help="precision of the reference embeddings (default float64)")
-    p.add_argument("--clips", type=int, default=4, help="clips encoded per measurement (default 4)")
-    p.add_argument("--phrases", type=int, default=16, help="phrases encoded per measurement (default 16)")
-    p.add_argument("--repeats", type=int, default=2, help="timed repeats, the median is reported (default 2)")
-    p.add_argument("--device", default="auto", help="cpu, cuda or auto (default)")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's choice)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="bench/viclip", help="output prefix (default bench/viclip)")
-    p.set_defaults(func=_run_bench)
-
-
-def _run_bench(args: argparse.Namespace) -> int:
-    from .bench import run_bench_viclip
-    return run_bench_viclip(args)
 
 
 def run_info(args: argparse.Namespace) -> int:

@@ -18,8 +18,8 @@ from typing import Any
 
 import torch
 
-from ...errors import InputError
-from .model import ViCLIPConfig, ViCLIPModel, l2_normalize
+from fourlegs_engine.errors import InputError
+from fourlegs_engine.language.viclip.model import ViCLIPConfig, ViCLIPModel, l2_normalize
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32, "bfloat16": torch.bfloat16,
           "float16": torch.float16}
@@ -67,8 +67,8 @@ def bench_viclip(*, size: str | ViCLIPConfig = "b", checkpoint: str | None = Non
                  batch_sizes=(1, 4), reference: str = "float64", clips: int = 4, phrases: int = 16,
                  repeats: int = 2, device: str = "cpu", seed: int = 0) -> dict[str, Any]:
     """One row per (dtype, batch size): seconds per clip and per phrase, worst cosine to the reference."""
-    from ..encoders import resolve_device
-    from .checkpoint import load_viclip
+    from fourlegs_engine.language.encoders import resolve_device
+    from fourlegs_engine.language.viclip.checkpoint import load_viclip
     target = resolve_device(device)
     for name in (*dtypes, reference):
         if name not in DTYPES:
@@ -116,7 +116,7 @@ def bench_viclip(*, size: str | ViCLIPConfig = "b", checkpoint: str | None = Non
 
 def write_report(report: dict[str, Any], prefix: Path) -> list[Path]:
     """``prefix.json``, ``prefix.md`` and ``prefix.png``, each written atomically."""
-    from ...fileio import atomic_path, write_bytes_atomic, write_json_atomic
+    from fourlegs_engine.fileio import atomic_path, write_bytes_atomic, write_json_atomic
     prefix.parent.mkdir(parents=True, exist_ok=True)
     json_path, md_path, png_path = (prefix.with_suffix(s) for s in (".json", ".md", ".png"))
     write_json_atomic(json_path, report)

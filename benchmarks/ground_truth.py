@@ -9,7 +9,7 @@ For a query whose answer is the label set S (``queries.json``):
   front-to-back order: occluders reduce the transmittance of what lies behind them. A pixel belongs
   to the mask when the Gaussians of S contribute more than ``VISIBILITY_THRESHOLD`` = 0.5 of its
   colour (they are what the pixel shows). The box is the tight box of the mask (x1, y1 exclusive,
-  :func:`fourlegs_engine.eval.metrics.mask_to_box`); NaN when the mask is empty (fully occluded or out
+  :func:`benchmarks.metrics.mask_to_box`); NaN when the mask is empty (fully occluded or out
   of view).
 
 Results are cached in the bundle under ``ground_truth/`` (``meta.json``, ``temporal.json``,
@@ -27,10 +27,10 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 import torch
 
-from ..errors import InputError
-from ..fileio import load_npy, read_json, save_npy_atomic, write_json_atomic
-from ..scene.camera import Camera
-from ..scene.scene import Scene
+from fourlegs_engine.errors import InputError
+from fourlegs_engine.fileio import load_npy, read_json, save_npy_atomic, write_json_atomic
+from fourlegs_engine.scene.camera import Camera
+from fourlegs_engine.scene.scene import Scene
 from .metrics import mask_to_box
 
 GT_VERSION = 1
@@ -49,7 +49,7 @@ def scene_labels(scene: Scene) -> list[str]:
 
 def scene_queries(scene: Scene) -> dict[str, list[str]]:
     """{query text: [label names]} from ``queries.json`` (bundle) or the scene metadata."""
-    from .synthetic import QUERIES_FILE, read_queries
+    from fourlegs_engine.scene.synthetic import QUERIES_FILE, read_queries
 
     if scene.root is not None and (Path(scene.root) / QUERIES_FILE).is_file():
         queries = read_queries(scene.root)
@@ -110,7 +110,7 @@ class CoverageVideo:
         return self.scene.num_timesteps
 
     def __getitem__(self, t: int) -> torch.Tensor:
-        from ..language.simulated import render_label_coverage
+        from fourlegs_engine.language.simulated import render_label_coverage
 
         t = int(t)
         if t not in self._frames:

@@ -41,10 +41,10 @@ import numpy as np
 
 from ..errors import InputError, OutputExistsError
 from ..fileio import read_json, write_json_atomic
-from ..scene.bundle import is_bundle, write_bundle
-from ..scene.camera import Camera, CameraRig
-from ..scene.gaussians import GaussianSequence
-from ..scene.scene import Scene
+from .bundle import is_bundle, write_bundle
+from .camera import Camera, CameraRig
+from .gaussians import GaussianSequence
+from .scene import Scene
 
 GENERATOR_VERSION = 4
 QUERIES_FILE = "queries.json"
@@ -662,7 +662,7 @@ def generate_scene(size: str = "tiny", seed: int = 0,
                               "frames": _frames_of(a.start, a.end, T)})
     metadata = {
         "source": "synthetic",
-        "generator": {"name": "fourlegs_engine.eval.synthetic", "version": GENERATOR_VERSION,
+        "generator": {"name": "fourlegs_engine.scene.synthetic", "version": GENERATOR_VERSION,
                       "size": size, "seed": int(seed)},
         "labels": list(LABELS),
         "queries": {text: list(labs) for text, labs in QUERIES},

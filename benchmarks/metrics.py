@@ -26,7 +26,7 @@ from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
-from ..errors import InputError
+from fourlegs_engine.errors import InputError
 
 METRIC_NAMES = ("vAP", "vIoU", "tIoU", "tRec", "tPrec", "tAP")
 

@@ -1,7 +1,7 @@
 """The spatio-temporal grounding benchmark runner (paper §4.1 metrics on synthetic scenes).
 
 Every *method* answers every benchmark query in every evaluation view (the scene's test cameras) with
-a :class:`~fourlegs_engine.eval.baseline2d.ViewPrediction`; the runner scores it against the exact
+a :class:`~benchmarks.baseline2d.ViewPrediction`; the runner scores it against the exact
 ground truth (:mod:`.ground_truth`) with :mod:`.metrics` and reports, per method, the six metrics per
 query and overall as mean ± standard deviation over the views (overall: per view, the mean over the
 queries; then mean ± std over views).
@@ -21,15 +21,15 @@ from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
-from ..errors import InputError
-from ..scene.camera import Camera
-from ..scene.scene import Scene
+from fourlegs_engine.errors import InputError
+from fourlegs_engine.scene.camera import Camera
+from fourlegs_engine.scene.scene import Scene
 from .baseline2d import Features2D, ViewPrediction
 from .ground_truth import CoverageVideo, default_eval_cameras, ensure_ground_truth, scene_labels, \
     scene_queries
 from .metrics import METRIC_NAMES, aggregate_views, format_percent, grounding_metrics
 
-METHOD_MODULES = ("fourlegs_engine.eval.method4d",)
+METHOD_MODULES = ("benchmarks.method4d",)
 
 
 @dataclass
@@ -156,7 +156,7 @@ def _summary(per_view: dict[str, dict[str, dict[str, float]]], queries: Sequence
 
 def build_context(scene: Scene, *, seed: int = 0, progress: bool = False,
                   views: Sequence[str] | None = None, options: dict[str, Any] | None = None) -> BenchmarkContext:
-    from ..language.simulated import SimulatedTextEncoder, create_encoder
+    from fourlegs_engine.language.simulated import SimulatedTextEncoder, create_encoder
 
     labels = scene_labels(scene)
     queries = list(scene_queries(scene))
@@ -247,10 +247,10 @@ def markdown_tables(results: dict[str, Any]) -> str:
 
 def run_grounding_benchmark_cli(args: Any) -> int:
     """``fourlegs bench grounding``."""
-    from ..fileio import write_json_atomic
-    from ..errors import OutputExistsError
-    from ..scene.bundle import load_bundle
-    from .synthetic import ensure_demo_bundle
+    from fourlegs_engine.fileio import write_json_atomic
+    from fourlegs_engine.errors import OutputExistsError
+    from fourlegs_engine.scene.bundle import load_bundle
+    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
 
     for out in (args.json, getattr(args, "plot", None)):
         if out and Path(out).exists() and not args.overwrite:
@@ -310,7 +310,7 @@ def plot_speed_accuracy(results: dict[str, Any], path: str | Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..fileio import atomic_path
+    from fourlegs_engine.fileio import atomic_path
 
     names = list(results["methods"])
     secs = [results["methods"][n]["seconds"] for n in names]

@@ -24,14 +24,14 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from ..errors import InputError
-from ..language.encoders import CANONICAL_PHRASES
-from ..language.pyramid import (PyramidLayout, crop_layout, lerp_coefficients, pyramid_ratios, resize_crops,
+from fourlegs_engine.errors import InputError
+from fourlegs_engine.language.encoders import CANONICAL_PHRASES
+from fourlegs_engine.language.pyramid import (PyramidLayout, crop_layout, lerp_coefficients, pyramid_ratios, resize_crops,
                                 sample_positions, scale_crops, tube_indices, upsample_to_pixels)
-from ..query.relevancy import RELEVANCY_SCALE, l2_normalize, reference_set
-from ..query.spatial import best_component_bbox
-from ..query.temporal import localize_relevancy
-from ..scene.camera import Camera
+from fourlegs_engine.query.relevancy import RELEVANCY_SCALE, l2_normalize, reference_set
+from fourlegs_engine.query.spatial import best_component_bbox
+from fourlegs_engine.query.temporal import localize_relevancy
+from fourlegs_engine.scene.camera import Camera
 
 RGB_CROP_SIZE = 224
 
@@ -156,7 +156,7 @@ class Features2D:
         with torch.no_grad():
             for grid in layout.scales:
                 if use_means:
-                    from ..language.extract import crop_means
+                    from fourlegs_engine.language.extract import crop_means
                     means = crop_means(tube, grid)                               # (n, 8, C)
                     for s in range(0, means.shape[0], self.batch_size):
                         feats.append(enc.encode_coverage(means[s:s + self.batch_size]).float())

@@ -6,7 +6,7 @@ Measures
   engine's rasterizer called directly for the same camera and timestep (seconds each), and the
   accuracy of the Blender path: max |Combined pass - direct RGB| (must be ~0: Blender adds nothing).
 
-    python -m fourlegs_addon.bench --gaussians 300000 --resolution 640x360 --frames 3 --json b.json --plot b.png
+    python -m benchmarks.blender --gaussians 300000 --resolution 640x360 --frames 3 --json b.json --plot b.png
 """
 from __future__ import annotations
 
@@ -24,10 +24,9 @@ import numpy as np
 def bench_import(n: int, seed: int = 0) -> dict[str, float]:
     import bpy
 
-    from . import importer
-    from ._engine import engine_module
+    from fourlegs_addon import importer
+    from fourlegs_engine import scene as scene_pkg
 
-    scene_pkg = engine_module("scene")
     rng = np.random.default_rng(seed)
     T = 2
     rot = np.zeros((T, n, 4), np.float32)
@@ -52,11 +51,12 @@ def bench_render(scene_path: Optional[str], width: int, height: int, frames: int
     import OpenEXR
     import torch
 
-    from . import convert, importer, render_engine
-    from ._engine import engine_module
+    from fourlegs_addon import convert, importer, render_engine
+    from fourlegs_engine.render import rasterize
+    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
 
     if scene_path is None:
-        scene_path = str(engine_module("eval.synthetic").ensure_demo_bundle("demo"))
+        scene_path = str(ensure_demo_bundle("demo"))
     scene = importer.load_engine_scene(scene_path)
     bpy.ops.wm.read_factory_settings(use_empty=True)
     bl_scene = bpy.context.scene
@@ -64,7 +64,6 @@ def bench_render(scene_path: Optional[str], width: int, height: int, frames: int
     bl_scene.render.engine = render_engine.ENGINE_ID
     bl_scene.render.resolution_x, bl_scene.render.resolution_y = width, height
     bl_scene.view_layers[0].use_pass_z = True
-    rasterize = engine_module("render").rasterize
     rows = []
     timesteps = np.linspace(0, scene.num_timesteps - 1, frames).round().astype(int)
     with tempfile.TemporaryDirectory() as tmp:
@@ -140,7 +139,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     import bpy
 
-    from . import registration
+    from fourlegs_addon import registration
 
     registration.register()
     width, height = (int(v) for v in args.resolution.lower().split("x"))
@@ -153,9 +152,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     for r in result["render"]:
         print(f"{r['timestep']:>8} {r['blender_s']:>10.3f} {r['direct_s']:>9.3f} {r['overhead_s']:>10.3f} "
               f"{r['max_abs_diff']:>10.2e}")
-    from ._engine import engine_module
+    from fourlegs_engine import fileio
 
-    fileio = engine_module("fileio")
     if args.json:
         fileio.write_json_atomic(args.json, result)
     if args.plot:

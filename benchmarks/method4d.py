@@ -12,10 +12,10 @@ from typing import Any
 
 import numpy as np
 
-from ..query.engine import QueryEngine
-from ..query.prepare import ensure_language_field
-from ..query.spatial import best_component_bbox
-from ..scene.camera import Camera
+from fourlegs_engine.query.engine import QueryEngine
+from fourlegs_engine.query.prepare import ensure_language_field
+from fourlegs_engine.query.spatial import best_component_bbox
+from fourlegs_engine.scene.camera import Camera
 from .baseline2d import ViewPrediction, inclusive_to_exclusive
 
 METHOD_NAME = "4D (4-LEGS)"

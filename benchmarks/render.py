@@ -1,6 +1,6 @@
 """``fourlegs bench render``: speed, memory and accuracy of the rasterizer, as JSON, Markdown and a plot.
 
-Three parts, all on the documented benchmark scene (:mod:`.bench_scene`):
+Three parts, all on the documented benchmark scene (:mod:`.render_scene`):
 
 1. **speed** — per N and output, the median ms/frame and peak memory of the forward pass and of
    forward+backward (rgb: gradients for colours and geometry; features: for the features, geometry
@@ -15,8 +15,11 @@ Every record carries at least ``n, output, mode, device, backend, ms_median, pea
 """
 from __future__ import annotations
 
+import argparse
 import ctypes
 import os
+import shlex
+import sys
 import statistics
 import threading
 import time
@@ -25,7 +28,7 @@ from typing import Callable
 
 import torch
 
-from .bench_scene import BenchScene, make_bench_scene
+from .render_scene import BenchScene, make_bench_scene
 
 OUTPUT_CHOICES = ("rgb", "features", "depth")
 
@@ -141,7 +144,7 @@ def time_case(fn: Callable[[], object], device: str, repeats: int) -> tuple[floa
 
 def _render_fn(scene: BenchScene, output: str, mode: str, backend: str, options=None,
                features: torch.Tensor | None = None) -> Callable[[], object]:
-    from . import rasterize
+    from fourlegs_engine.render import rasterize
 
     feats = scene.features if features is None else features
 
@@ -201,7 +204,7 @@ def small_scene(cfg: BenchConfig) -> BenchScene:
 
 def oracle_outputs(scene: BenchScene) -> dict[str, torch.Tensor]:
     """float64 brute force (every pixel × every Gaussian) for rgb and features."""
-    from .reference import rasterize_reference
+    from fourlegs_engine.render.reference import rasterize_reference
     s64 = [t.double() for t in (scene.means, scene.rotations, scene.log_scales, scene.opacity_logits)]
     with torch.no_grad():
         return rasterize_reference(*s64, scene.camera, colors=scene.colors.double(),
@@ -210,7 +213,7 @@ def oracle_outputs(scene: BenchScene) -> dict[str, torch.Tensor]:
 
 def baseline_records(cfg: BenchConfig, scene: BenchScene, progress=None) -> list[dict]:
     """Oracle vs dense-tile vs fast, forward and forward+backward, at the small N."""
-    from .reference import rasterize_reference
+    from fourlegs_engine.render.reference import rasterize_reference
 
     def ref_fn(dtype, tile_size, output, mode):
         def run():
@@ -250,7 +253,7 @@ def baseline_records(cfg: BenchConfig, scene: BenchScene, progress=None) -> list
 
 def _colors_only_backward(scene: BenchScene):
     """Fast path with the same gradient request as the baselines (colours only)."""
-    from . import rasterize
+    from fourlegs_engine.render import rasterize
 
     def run():
         c = scene.colors.detach().requires_grad_()
@@ -262,7 +265,7 @@ def _colors_only_backward(scene: BenchScene):
 
 def knob_records(cfg: BenchConfig, scene: BenchScene, oracle: dict, progress=None) -> list[dict]:
     """Accuracy knobs: time next to max/mean error against the float64 oracle."""
-    from . import RasterOptions, rasterize
+    from fourlegs_engine.render import RasterOptions, rasterize
 
     cases = [("tile_size", str(ts), RasterOptions(tile_size=ts), "float32") for ts in (2, 4, 8, 16)]
     cases += [("extent", ext, RasterOptions(extent=ext), "float32") for ext in ("opacity", "3sigma")]
@@ -341,7 +344,7 @@ def plot_knobs(records: list[dict], path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..fileio import atomic_path
+    from fourlegs_engine.fileio import atomic_path
 
     knobs = [r for r in records if r["part"] == "knob"]
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
@@ -371,3 +374,87 @@ def environment() -> dict:
 
 def with_overrides(cfg: BenchConfig, **kw) -> BenchConfig:
     return replace(cfg, **{k: v for k, v in kw.items() if v is not None})
+
+
+def _ints(text: str, name: str) -> tuple[int, ...]:
+    from fourlegs_engine.errors import InputError
+    try:
+        values = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise InputError(f"expected comma-separated integers, got {text!r}", field=name) from None
+    if not values or any(v < 0 for v in values):
+        raise InputError(f"expected non-negative integers, got {text!r}", field=name)
+    return values
+
+
+def _resolution(text: str, name: str) -> tuple[int, int]:
+    from fourlegs_engine.errors import InputError
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"expected WxH, got {text!r}", field=name) from None
+    if w <= 0 or h <= 0:
+        raise InputError(f"expected a positive size, got {text!r}", field=name)
+    return w, h
+
+
+def run_render_cli(args: argparse.Namespace) -> int:
+    """``fourlegs bench render``."""
+    from pathlib import Path
+
+    import torch
+    from tqdm import tqdm
+
+    from fourlegs_engine.errors import InputError, OutputExistsError
+    from fourlegs_engine.fileio import atomic_path, write_json_atomic
+    from fourlegs_engine.render.backends import gsplat_available
+
+    outputs = tuple(o.strip() for o in args.outputs.split(",") if o.strip())
+    bad = [o for o in outputs if o not in OUTPUT_CHOICES]
+    if bad or not outputs:
+        raise InputError(f"unknown output(s) {bad}; choose from {OUTPUT_CHOICES}", field="--outputs")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise InputError("CUDA is not available on this machine", field="--device")
+    backend = args.backend or ("all" if args.device == "cuda" and gsplat_available() else "torch")
+    backends = ("torch", "gsplat") if backend == "all" else (backend,)
+    if "gsplat" in backends and (args.device != "cuda" or not gsplat_available()):
+        raise InputError("the gsplat backend needs --device cuda and gsplat installed", field="--backend")
+    for path in (args.json, args.markdown, args.plot):
+        if path and Path(path).exists() and not args.overwrite:
+            raise OutputExistsError(path)
+    if args.repeats < 1:
+        raise InputError("must be >= 1", field="--repeats")
+    w, h = _resolution(args.resolution, "--resolution")
+    sw, sh = _resolution(args.small_resolution, "--small-resolution")
+    cfg = BenchConfig(sizes=_ints(args.sizes, "--sizes"), outputs=outputs, device=args.device, backends=backends,
+                      repeats=args.repeats, channels=args.channels, width=w, height=h, small_n=args.small_n,
+                      small_width=sw, small_height=sh, baselines=not args.skip_baselines, knobs=not args.skip_knobs)
+    n_cases = len(cfg.sizes) * len(outputs) * len(backends) * 2 + (12 if cfg.baselines else 0) + (14 if cfg.knobs else 0)
+    bar = tqdm(total=n_cases, desc="bench render", unit="case", file=sys.stderr)
+
+    def progress(rec: dict) -> None:
+        bar.update(1)
+        bar.set_postfix_str(f"{rec.get('impl') or rec.get('knob') or ''} n={rec['n']} {rec['output']} "
+                            f"{rec['mode']} {rec['ms_median']:.0f} ms")
+
+    threads_before = torch.get_num_threads()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        records = run_bench(cfg, progress)
+    finally:
+        torch.set_num_threads(threads_before)
+        bar.close()
+    command = "fourlegs " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if sys.argv[1:] else "fourlegs bench render"
+    env = dict(environment(), threads=args.threads or threads_before)
+    report = markdown_report(records, command, env)
+    print(report)
+    if args.json:
+        write_json_atomic(args.json, [dict(r, command=command, threads=env["threads"], torch=env["torch"])
+                                      for r in records], overwrite=args.overwrite)
+    if args.markdown:
+        with atomic_path(args.markdown, overwrite=args.overwrite) as tmp:
+            Path(tmp).write_text(report + "\n", encoding="utf-8")
+    if args.plot and cfg.knobs:
+        plot_knobs(records, args.plot)
+    return 0

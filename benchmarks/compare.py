@@ -17,8 +17,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..errors import InputError
-from ..fileio import atomic_path
+from fourlegs_engine.errors import InputError
+from fourlegs_engine.fileio import atomic_path
 from .metrics import METRIC_NAMES
 
 DEFAULT_TARGET = 0.95
@@ -197,8 +197,8 @@ def _command_line(args: Any) -> str:
 
 
 def run_compare_cli(args: Any) -> int:
-    from ..errors import OutputExistsError
-    from ..fileio import write_json_atomic
+    from fourlegs_engine.errors import OutputExistsError
+    from fourlegs_engine.fileio import write_json_atomic
 
     reports = [load_report(p) for p in args.reports]
     groups = [g.strip() for g in args.groups.split(",") if g.strip()] if args.groups else None

@@ -40,8 +40,8 @@ from typing import Any, Callable, Optional, Sequence
 import numpy as np
 import torch
 
-from ..errors import InputError, OutputExistsError
-from ..fileio import atomic_path, load_npy, write_json_atomic
+from fourlegs_engine.errors import InputError, OutputExistsError
+from fourlegs_engine.fileio import atomic_path, load_npy, write_json_atomic
 from .grounding import _summary, build_context, score_view
 from .ground_truth import ensure_ground_truth
 from .method4d import FourLegsMethod
@@ -132,7 +132,7 @@ def _distill_variants(scene: Any, base_field: Any, every: int, out_root: Path, p
     """Distillation mode / iterations and kNN k rows, each distilled on every ``every``-th timestep:
     lift, lift with the kNN blur, lift+refine (first iteration count), optimize at every count, and
     lift+refine with k = 5, 10. Rows of a group in ``skip`` are not distilled at all."""
-    from ..language.distill import distill_scene
+    from fourlegs_engine.language.distill import distill_scene
 
     T = scene.num_timesteps
     steps = list(range(0, T, every))
@@ -208,8 +208,8 @@ def variants(skip: Sequence[str]) -> list[Variant]:
 def run_accuracy_time(scene: Any, *, out_dir: Path, skip: Sequence[str] = (), distill_every: int = 0,
                       distill_iterations: Sequence[int] = DISTILL_ITERATIONS,
                       seed: int = 0, progress: bool = True) -> dict[str, Any]:
-    from ..query.codebook import ensure_codebook
-    from ..query.prepare import ensure_language_field
+    from fourlegs_engine.query.codebook import ensure_codebook
+    from fourlegs_engine.query.prepare import ensure_language_field
 
     unknown = set(skip) - set(GROUPS)
     if unknown:
@@ -340,8 +340,8 @@ def pareto_plot(report: dict[str, Any], path: Path, *, overwrite: bool = True) -
 
 
 def run_accuracy_time_cli(args: Any) -> int:
-    from ..scene.bundle import load_bundle
-    from .synthetic import ensure_demo_bundle
+    from fourlegs_engine.scene.bundle import load_bundle
+    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
 
     if args.threads:
         torch.set_num_threads(args.threads)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..scene.camera import Camera
+from fourlegs_engine.scene.camera import Camera
 
 WIDTH, HEIGHT, FOCAL = 640, 360, 470.0
 

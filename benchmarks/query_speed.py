@@ -14,7 +14,6 @@ query's own footprint, not the parent's, which wrote the 11.5 GB memmap and buil
 """
 from __future__ import annotations
 
-import resource
 import shutil
 import sys
 import tempfile
@@ -25,13 +24,12 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from ..errors import InputError, OutputExistsError
-from ..fileio import write_json_atomic
-from ..scene.camera import CameraRig
-from ..scene.gaussians import GaussianSequence
-from ..scene.scene import Scene
-from .codebook import build_codebook
-from .engine import QueryEngine
+from fourlegs_engine.errors import InputError, OutputExistsError
+from fourlegs_engine.fileio import write_json_atomic
+from fourlegs_engine.query.codebook import build_codebook
+from fourlegs_engine.query.engine import QueryEngine
+
+from .query_fixtures import flat_scene, peak_rss_mb, resident_mb, warm_page_cache
 
 QUERY = "a ball flying in the air"
 
@@ -43,7 +41,7 @@ class RandomField:
     canonical_phrases = ("object", "things", "stuff", "texture")
 
     def __init__(self, latents: np.ndarray, seed: int = 0):
-        from ..language.autoencoder import FeatureDecoder
+        from fourlegs_engine.language.autoencoder import FeatureDecoder
 
         torch.manual_seed(seed)
         self.latents = latents
@@ -67,26 +65,6 @@ def random_latents(path: Path, T: int, N: int, d: int = 128, seed: int = 0) -> n
     return np.load(path, mmap_mode="r")
 
 
-def _resident_mb(kind: str) -> float:
-    """One memory figure of this process from /proc/self/status in MB ("VmHWM": peak resident memory of
-    this address space, "RssAnon": the process's own allocations, "RssFile": pages of mapped files,
-    shared with the page cache); NaN where /proc is unavailable."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith(kind + ":"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return float("nan")
-
-
-def _peak_rss_mb() -> float:
-    """Peak resident memory of this process image in MB: ``VmHWM`` on Linux (``ru_maxrss`` would carry
-    the forking parent's peak over into a spawned child), else ``getrusage``."""
-    peak = _resident_mb("VmHWM")
-    return peak if peak == peak else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
 def _time(fn, repeats: int) -> tuple[float, list[float], Any]:
     times, out = [], None
     for _ in range(max(1, repeats)):
@@ -94,26 +72,6 @@ def _time(fn, repeats: int) -> tuple[float, list[float], Any]:
         out = fn()
         times.append(time.perf_counter() - t0)
     return float(np.median(times)), times, out
-
-
-def _flat_scene(T: int, N: int) -> Scene:
-    """Geometry-free stand-in for the temporal timings (temporal queries never touch geometry); its
-    (T,N) arrays are broadcast views, so it adds nothing to the measured memory."""
-    z = np.broadcast_to(np.zeros((1, 1, 3), np.float32), (T, N, 3))
-    rot = np.broadcast_to(np.array([[[1, 0, 0, 0]]], np.float32), (T, N, 4))
-    g = GaussianSequence(means=z, rotations=rot, log_scales=np.zeros((N, 3), np.float32),
-                         opacity_logits=np.zeros(N, np.float32), colors=np.zeros((N, 3), np.float32))
-    return Scene(gaussians=g, cameras=CameraRig(), name=f"random-{N}x{T}")
-
-
-def warm_page_cache(path: Path, chunk: int = 64 << 20) -> float:
-    """Read ``path`` once, sequentially, so its pages are in the page cache; returns the seconds taken."""
-    start = time.perf_counter()
-    buf = bytearray(chunk)
-    with open(path, "rb", buffering=0) as f:
-        while f.readinto(buf):
-            pass
-    return time.perf_counter() - start
 
 
 def codebook_query_timings(workdir: Path, k: int, margin: float, repeats: int, threads: int,
@@ -128,8 +86,8 @@ def codebook_query_timings(workdir: Path, k: int, margin: float, repeats: int, t
     for R_avg, and the re-scoring of ``rescore_share`` of all (t, g) pairs (whole codes picked at random,
     at every timestep: more scattered reads than the few timesteps a real query re-scores).
     """
-    from ..language.simulated import SimulatedTextEncoder
-    from .codebook import load_codebook
+    from fourlegs_engine.language.simulated import SimulatedTextEncoder
+    from fourlegs_engine.query.codebook import load_codebook
 
     torch.set_num_threads(threads)
     lat = np.load(workdir / "latents.npy", mmap_mode="r")
@@ -138,7 +96,7 @@ def codebook_query_timings(workdir: Path, k: int, margin: float, repeats: int, t
     if book is None:
         raise InputError(f"no codebook K={k} for these latents", file=workdir)
     forced_work = margin > 0 and (rescore_share > 0 or sample_count > 0)
-    eng = QueryEngine(_flat_scene(T, N), RandomField(lat), SimulatedTextEncoder(), path="codebook", codebook=book,
+    eng = QueryEngine(flat_scene(T, N), RandomField(lat), SimulatedTextEncoder(), path="codebook", codebook=book,
                       codebook_refine=0.0 if forced_work else margin)
     eng.reference_embeddings()
     t0 = time.perf_counter()
@@ -150,11 +108,11 @@ def codebook_query_timings(workdir: Path, k: int, margin: float, repeats: int, t
         eng.embed_query(q)
     encode = (time.perf_counter() - t0) / len(texts)
     queries = iter(texts)
-    anon = [_resident_mb("RssAnon")]
+    anon = [resident_mb("RssAnon")]
 
     def query() -> None:
         eng.temporal(next(queries))
-        anon.append(_resident_mb("RssAnon"))
+        anon.append(resident_mb("RssAnon"))
 
     warm, times, _ = _time(query, repeats)
     forced: dict[str, Any] = {}
@@ -173,7 +131,7 @@ def codebook_query_timings(workdir: Path, k: int, margin: float, repeats: int, t
         def exact_work() -> tuple[int, int]:
             sampled = eng._sample_members(QUERY, [held], [sample_count], ts, rng)[0][1].size if sample_count else 0
             rescored = eng._score_any(QUERY, eng._band_members(picked, ts, ts)[2]).size if picked.size else 0
-            anon.append(_resident_mb("RssAnon"))
+            anon.append(resident_mb("RssAnon"))
             return sampled, rescored
 
         exact_s, exact_times, (sampled, rescored) = _time(exact_work, 5)
@@ -185,15 +143,15 @@ def codebook_query_timings(workdir: Path, k: int, margin: float, repeats: int, t
     return {"first_query_s": cold, "query_s": warm, "query_times_s": times, "text_encode_s": encode, **forced,
             "refine_margin": margin, "rescored_latents_per_query": int(eng.stats["rescored_latents"]) // runs,
             "sampled_latents_per_query": int(eng.stats["sampled_latents"]) // runs,
-            "decoded_latents": int(eng.stats["decoded_latents"]), "peak_rss_mb": _peak_rss_mb(),
-            "anon_rss_mb": max(anon), "file_rss_mb": _resident_mb("RssFile"), "rss_scope": "query process"}
+            "decoded_latents": int(eng.stats["decoded_latents"]), "peak_rss_mb": peak_rss_mb(),
+            "anon_rss_mb": max(anon), "file_rss_mb": resident_mb("RssFile"), "rss_scope": "query process"}
 
 
 def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int], repeats: int,
                     exact_timesteps: int, spatial_scene: str, workdir: Path, progress: bool = True,
                     refine_margins: Sequence[float] = (0.0,), rescore_share: float = 0.0,
                     sample_count: int = 0) -> dict:
-    from ..language.simulated import SimulatedTextEncoder
+    from fourlegs_engine.language.simulated import SimulatedTextEncoder
 
     T, N = int(timesteps), int(gaussians)
     if T < 1 or N < 1:
@@ -204,7 +162,7 @@ def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int]
     lat = random_latents(workdir / "latents.npy", T, N)
     report["write_latents_s"] = time.perf_counter() - t0
     field = RandomField(lat)
-    scene = _flat_scene(T, N)
+    scene = flat_scene(T, N)
     text = SimulatedTextEncoder()
     import multiprocessing
 
@@ -234,7 +192,7 @@ def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int]
         eng._gaussian_relevancy(QUERY, t)
     per_t = (time.perf_counter() - t0) / steps
     row = {"path": "exact", "query_s": per_t * T, "timed_timesteps": steps,
-           "extrapolated": steps < T, "seconds_per_timestep": per_t, "peak_rss_mb": _peak_rss_mb(),
+           "extrapolated": steps < T, "seconds_per_timestep": per_t, "peak_rss_mb": peak_rss_mb(),
            "rss_scope": "whole benchmark process"}
     if steps == T:
         t0 = time.perf_counter()
@@ -247,13 +205,13 @@ def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int]
         for r in report["spatial"]:
             print(f"  map {r['path']:5s} {r['width']}x{r['height']} N={r['num_gaussians']}: {r['seconds']:.3f} s",
                   file=sys.stderr)
-    report["peak_rss_mb"] = _peak_rss_mb()
+    report["peak_rss_mb"] = peak_rss_mb()
     return report
 
 
 def _spatial_timings(size: str, text, repeats: int, workdir: Path) -> list[dict]:
-    from ..eval.synthetic import ensure_demo_bundle
-    from ..scene.bundle import load_bundle
+    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.scene.bundle import load_bundle
 
     scene = load_bundle(ensure_demo_bundle(size))
     lat = random_latents(workdir / "scene_latents.npy", scene.num_timesteps, scene.num_gaussians, seed=1)
@@ -299,7 +257,7 @@ def markdown(report: dict) -> str:
                      f"{rescored} | {r.get('build_s', float('nan')):.1f} | {rss} | "
                      f"{_mb(r.get('anon_rss_mb'))} | {_mb(r.get('file_rss_mb'))} |")
     if report.get("tiled"):
-        from .speed_tiled import markdown_rows
+        from .query_speed_tiled import markdown_rows
         lines += markdown_rows(report["tiled"])
     if report.get("spatial"):
         lines += ["", "| relevancy map | resolution | Gaussians | seconds |", "|---|---|---|---|"]
@@ -333,7 +291,7 @@ def run_query_speed_cli(args) -> int:
                                  spatial_scene=args.spatial_scene, workdir=workdir, refine_margins=margins,
                                  rescore_share=args.rescore_share, sample_count=args.sample_count)
         if args.tiled_scene != "none":
-            from .speed_tiled import run_tiled_query_speed
+            from .query_speed_tiled import run_tiled_query_speed
             shutil.rmtree(workdir, ignore_errors=True)  # the random field first: both need the disk space
             workdir.mkdir()
             report["tiled"] = run_tiled_query_speed(args.tiled_scene, gaussians=args.gaussians,

@@ -18,11 +18,11 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from ..errors import InputError
-from ..eval.metrics import temporal_metrics
-from .codebook import build_codebook, load_codebook
-from .engine import QueryEngine
-from .temporal import RELEVANT, localize_counts
+from fourlegs_engine.errors import InputError
+from .metrics import temporal_metrics
+from fourlegs_engine.query.codebook import build_codebook, load_codebook
+from fourlegs_engine.query.engine import QueryEngine
+from fourlegs_engine.query.temporal import RELEVANT, localize_counts
 
 
 class TiledField:
@@ -84,7 +84,7 @@ def exact_tiled_answers(scene: Any, field: Any, encoder: Any, queries: Sequence[
 
 def tiled_ground_truth(scene: Any, queries: Sequence[str], T: int) -> dict[str, np.ndarray]:
     """{query: (T,) bool} the scene's temporal ground truth on the tiled timesteps (each repeats its source)."""
-    from ..eval.ground_truth import temporal_ground_truth
+    from .ground_truth import temporal_ground_truth
 
     frames = temporal_ground_truth(scene)
     src = source_timesteps(scene.num_timesteps, T)
@@ -96,10 +96,10 @@ def tiled_query_timings(workdir: Path, size: str, k: int, margin: float, threads
     """Every query on the tiled field in this (fresh) process: seconds (median of ``repeats`` runs, each
     from the text embedding on; this VM's timings of one run vary by up to 2x; the first run, which also
     maps the codebook index pages its codes touch, is kept apart), answers, exact work, memory."""
-    from ..eval.synthetic import ensure_demo_bundle
-    from ..scene.bundle import load_bundle
-    from .prepare import ensure_language_field
-    from .speed import _flat_scene, _peak_rss_mb, _resident_mb
+    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.scene.bundle import load_bundle
+    from fourlegs_engine.query.prepare import ensure_language_field
+    from .query_fixtures import flat_scene, peak_rss_mb, resident_mb
 
     torch.set_num_threads(threads)
     scene, source, encoder = ensure_language_field(load_bundle(ensure_demo_bundle(size)))
@@ -108,7 +108,7 @@ def tiled_query_timings(workdir: Path, size: str, k: int, margin: float, threads
     book = load_codebook(workdir / f"tiled_cb{k}", k, lat)
     if book is None:
         raise InputError(f"no codebook K={k} for the tiled latents", file=workdir)
-    eng = QueryEngine(_flat_scene(T, N), TiledField(lat, source), encoder, path="codebook", codebook=book,
+    eng = QueryEngine(flat_scene(T, N), TiledField(lat, source), encoder, path="codebook", codebook=book,
                       codebook_refine=margin)
     eng.reference_embeddings()
     t0 = time.perf_counter()
@@ -131,8 +131,8 @@ def tiled_query_timings(workdir: Path, size: str, k: int, margin: float, threads
                      "segment": list(res.segment) if res.segment else None, "positive": res.positive.tolist(),
                      "rescored": done["rescored_latents"], "sampled": done["sampled_latents"],
                      "bounded": done["bounded_latents"]})
-    return {"first_query_s": first, "queries": rows, "peak_rss_mb": _peak_rss_mb(),
-            "anon_rss_mb": _resident_mb("RssAnon"), "file_rss_mb": _resident_mb("RssFile")}
+    return {"first_query_s": first, "queries": rows, "peak_rss_mb": peak_rss_mb(),
+            "anon_rss_mb": resident_mb("RssAnon"), "file_rss_mb": resident_mb("RssFile")}
 
 
 def run_tiled_query_speed(size: str, *, gaussians: int, timesteps: int, codebook_sizes: Sequence[int],
@@ -140,11 +140,11 @@ def run_tiled_query_speed(size: str, *, gaussians: int, timesteps: int, codebook
     """Rows of the tiled benchmark: one per (K, margin), each with its per-query times and answers."""
     import multiprocessing
 
-    from ..eval.ground_truth import scene_queries
-    from ..eval.synthetic import ensure_demo_bundle
-    from ..scene.bundle import load_bundle
-    from .prepare import ensure_language_field
-    from .speed import warm_page_cache
+    from .ground_truth import scene_queries
+    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.scene.bundle import load_bundle
+    from fourlegs_engine.query.prepare import ensure_language_field
+    from .query_fixtures import warm_page_cache
 
     scene, field, encoder = ensure_language_field(load_bundle(ensure_demo_bundle(size)), progress=progress)
     queries = list(scene_queries(scene))

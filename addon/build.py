@@ -1,12 +1,15 @@
-"""Build the Blender extension zip (no bpy needed): the add-on + a bundled copy of the engine + wheels.
+"""Build the Blender extension zip (no bpy needed): the add-on + the engine and its dependencies as wheels.
 
-Layout of the zip (Blender >= 4.2 extension format)::
+Layout of the zip (Blender >= 4.2 extension format; Python dependencies ship as wheels listed in the
+manifest, the way Blender documents it)::
 
     blender_manifest.toml      (the repository's manifest + the ``wheels`` list)
-    __init__.py ... build.py   (this add-on package)
-    fourlegs_engine/           (the engine, imported relatively as ``<addon>.fourlegs_engine``,
-                                with the presets in ``highlights/presets/``)
-    wheels/*.whl               (Python dependencies Blender installs on enable)
+    __init__.py ...            (this add-on package, without what only runs outside Blender:
+                                ``build.py`` and the ``fourlegs`` command registration)
+    wheels/fourlegs_engine-<version>-py3-none-any.whl
+                               (the engine, built here from this project, with the presets in
+                                ``fourlegs_engine/highlights/presets/``; the benchmarks stay out)
+    wheels/*.whl               (the engine's dependencies Blender installs on enable)
 
 Dependency choice (Blender 4.2 - 5.0 run Python 3.11 and ship numpy 1.x, so cp311 wheels only):
 
@@ -27,12 +30,15 @@ bpy wheel or a Blender install, run under the current Python.
 """
 from __future__ import annotations
 
+import base64
+import hashlib
 import os
 import re
 import shutil
 import subprocess
 import sys
 import tempfile
+import zipfile
 from pathlib import Path
 from typing import Iterable, Optional, Sequence
 
@@ -50,7 +56,8 @@ PLATFORM_TAGS = {
 }
 #: bundled dependencies (requirement specifiers)
 DEPENDENCIES = ("scipy==1.13.1", "tqdm>=4.60", "safetensors>=0.4")
-IGNORE = shutil.ignore_patterns("__pycache__", "*.pyc", "*.pyo", ".*", "*.part*")
+#: add-on modules that run only outside Blender (the build itself, the ``fourlegs`` CLI registration)
+NOT_IN_BLENDER = ("build.py", "commands.py")
 
 
 class BuildError(RuntimeError):
@@ -115,31 +122,62 @@ def manifest_with_wheels(text: str, wheel_names: Sequence[str]) -> str:
     return text[:at] + block + text[at:]
 
 
-def stage(dest: str | Path, wheels: Iterable[str | Path] = (), manifest: Optional[Path] = None) -> Path:
-    """Assemble the extension's source directory at ``dest`` (must not exist)."""
-    import fourlegs_engine  # the installed engine (pure Python), bundled as a sub-package
+def engine_wheel(dest_dir: str | Path) -> Path:
+    """Write a wheel of this project's engine (``fourlegs_engine`` with its presets) into ``dest_dir``.
 
+    A pure-Python ``py3-none-any`` wheel of the installed engine sources: the package, the repository's
+    ``presets/*.toml`` as package data in ``fourlegs_engine/highlights/presets/``, and the dist-info
+    (METADATA, WHEEL, RECORD with sha256 digests) the wheel format requires.
+    """
+    import fourlegs_engine
+
+    version = fourlegs_engine.__version__
+    source = Path(fourlegs_engine.__file__).resolve().parent
+    files: dict[str, bytes] = {}
+    for path in sorted(source.rglob("*")):
+        rel = path.relative_to(source)
+        if path.is_dir() or any(part == "__pycache__" or part.startswith(".") for part in rel.parts) \
+                or path.suffix in (".pyc", ".pyo"):
+            continue
+        files[f"fourlegs_engine/{rel.as_posix()}"] = path.read_bytes()
+    for preset in sorted((REPO_ROOT / "presets").glob("*.toml")):
+        files[f"fourlegs_engine/highlights/presets/{preset.name}"] = preset.read_bytes()
+    info = f"fourlegs_engine-{version}.dist-info"
+    files[f"{info}/METADATA"] = (f"Metadata-Version: 2.1\nName: fourlegs-engine\nVersion: {version}\n"
+                                 "Summary: 4-LEGS highlights engine (bundled with the Blender extension)\n"
+                                 "License: GPL-3.0-or-later\n").encode()
+    files[f"{info}/WHEEL"] = b"Wheel-Version: 1.0\nGenerator: fourlegs_addon.build\nRoot-Is-Purelib: true\nTag: py3-none-any\n"
+    record = []
+    for name, data in files.items():
+        digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
+        record.append(f"{name},sha256={digest},{len(data)}")
+    record.append(f"{info}/RECORD,,")
+    files[f"{info}/RECORD"] = ("\n".join(record) + "\n").encode()
+    dest_dir = Path(dest_dir)
+    dest_dir.mkdir(parents=True, exist_ok=True)
+    wheel = dest_dir / f"fourlegs_engine-{version}-py3-none-any.whl"
+    with zipfile.ZipFile(wheel, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for name, data in files.items():
+            zf.writestr(zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0)), data, zipfile.ZIP_DEFLATED)
+    return wheel
+
+
+def stage(dest: str | Path, wheels: Iterable[str | Path] = (), manifest: Optional[Path] = None) -> Path:
+    """Assemble the extension's source directory at ``dest`` (must not exist): the add-on, the engine
+    wheel and ``wheels``, with the manifest listing every wheel."""
     dest = Path(dest)
     manifest = manifest or REPO_ROOT / MANIFEST_NAME
     if not manifest.is_file():
         raise BuildError(f"{manifest}: missing; build the extension from a source checkout of the project")
-    shutil.copytree(ADDON_DIR, dest, ignore=IGNORE)
-    shutil.copytree(Path(fourlegs_engine.__file__).resolve().parent, dest / "fourlegs_engine", ignore=IGNORE)
-    presets = REPO_ROOT / "presets"
-    if presets.is_dir():  # the planner's packaged-presets directory inside the bundled engine
-        target = dest / "fourlegs_engine" / "highlights" / "presets"
-        target.mkdir(parents=True, exist_ok=True)
-        for preset in sorted(presets.glob("*.toml")):
-            shutil.copy2(preset, target / preset.name)
-    names = []
-    wheel_paths = sorted({Path(w).resolve() for w in wheels}, key=lambda p: p.name)
-    if wheel_paths:
-        (dest / "wheels").mkdir()
-        for wheel in wheel_paths:
-            if wheel.suffix != ".whl" or not wheel.is_file():
-                raise BuildError(f"{wheel}: not a wheel file")
-            shutil.copy2(wheel, dest / "wheels" / wheel.name)
-            names.append(wheel.name)
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc", "*.pyo", ".*", "*.part*", *NOT_IN_BLENDER)
+    shutil.copytree(ADDON_DIR, dest, ignore=ignore)
+    (dest / "wheels").mkdir()
+    names = [engine_wheel(dest / "wheels").name]
+    for wheel in sorted({Path(w).resolve() for w in wheels}, key=lambda p: p.name):
+        if wheel.suffix != ".whl" or not wheel.is_file():
+            raise BuildError(f"{wheel}: not a wheel file")
+        shutil.copy2(wheel, dest / "wheels" / wheel.name)
+        names.append(wheel.name)
     (dest / MANIFEST_NAME).write_text(manifest_with_wheels(manifest.read_text(encoding="utf-8"), names),
                                       encoding="utf-8")
     return dest

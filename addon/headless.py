@@ -39,18 +39,16 @@ OUTPUT_NAMES = {"video": "highlight.mp4", "blend": "highlight.blend", "plan": "p
                 "report": "report.json", "plot": "scores.png"}
 
 
-#: the main job's query paths, chosen from docs/bench/accuracy_time_bench: the fast (1-channel) maps
-#: score the same as the exact ones there (vAP 47.7 vs 47.9, same tIoU) for a fraction of the time; the
-#: codebook temporal path by lookup loses tIoU (45.1 vs 49.9 at K=4096) and its accurate form (K=65536,
-#: sampled R_avg and exact re-scoring where a decision needs it) first needs a codebook built, which costs
-#: more than one exact pass for the single query of a highlight job, so the temporal path stays exact
+#: the main job's query paths: fast (1-channel) spatial maps score like the exact ones for a fraction of
+#: the time; the temporal path stays exact (a codebook pays off only over many queries of one scene);
+#: docs/benchmarks.md has the figures
 DEFAULT_QUERY_PATH = "exact"
 DEFAULT_SPATIAL = "fast"
 
 
 def build_parser(parser: Optional[argparse.ArgumentParser] = None) -> argparse.ArgumentParser:
     """The options of the main job (shared with ``fourlegs highlight``)."""
-    from ._engine import engine_module
+    from fourlegs_engine.cli_options import add_encoder_arguments
 
     p = parser or argparse.ArgumentParser(prog="fourlegs highlight", description=__doc__.splitlines()[0])
     p.add_argument("scene", nargs="?", default=None,
@@ -78,23 +76,16 @@ def build_parser(parser: Optional[argparse.ArgumentParser] = None) -> argparse.A
                    help="relevancy maps for the best view and the action centre: exact (128-channel render, "
                         "per-pixel decode, paper) or fast (1-channel per-Gaussian relevancy render); "
                         "default %(default)s")
-    engine_module("language.encoders").add_encoder_arguments(p, default="auto")
+    add_encoder_arguments(p, default="auto")
     return p
 
 
 def parse_resolution(text: Optional[str], demo: bool) -> Optional[tuple[int, int]]:
-    from ._engine import engine_module
+    from fourlegs_engine.cli_options import parse_resolution as parse
 
     if text is None:
         return (640, 360) if demo else None
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise engine_module("errors").InputError(f"expected WIDTHxHEIGHT, got {text!r}", field="--resolution") from None
-    if w <= 0 or h <= 0 or w % 2 or h % 2:
-        raise engine_module("errors").InputError(f"needs positive even sizes (H.264), got {w}x{h}",
-                                                 field="--resolution")
-    return w, h
+    return parse(text, even=True)
 
 
 class Timer:
@@ -118,68 +109,16 @@ class Timer:
 
 
 # ----------------------------------------------------------------------------- engine stages (no bpy)
-def resolve_scene(args: argparse.Namespace):
-    """Load the scene; convert a non-bundle into a cached bundle (language stages write into bundles)."""
-    from ._engine import engine_module
+def encoder_config(args: argparse.Namespace):
+    from fourlegs_engine.cli_options import encoder_config_from_args
 
-    errors = engine_module("errors")
-    scene_pkg = engine_module("scene")
-    if args.demo:
-        if args.scene is not None:
-            raise errors.InputError("give either --demo or a scene path, not both", field="scene")
-        path = engine_module("eval.synthetic").ensure_demo_bundle(args.demo_size)
-    elif args.scene is None:
-        raise errors.InputError("no scene given (a path, or --demo)", field="scene")
-    else:
-        path = Path(args.scene)
-    loaders = engine_module("scene.loaders")
-    scene = loaders.load_scene(path)
-    if scene.root is None or not scene_pkg.is_bundle(scene.root):
-        import hashlib
-
-        digest = hashlib.sha256(str(Path(path).resolve()).encode()).hexdigest()[:12]
-        target = engine_module("paths").cache_dir() / "bundles" / f"{scene.name}-{digest}"
-        if not scene_pkg.is_bundle(target):
-            scene_pkg.write_bundle(scene, target)
-        scene = loaders.load_scene(target)
-    return scene
+    return encoder_config_from_args(args)
 
 
-def text_encoder(args: argparse.Namespace, scene: Any):
-    from ._engine import engine_module
+def query_options(args: argparse.Namespace):
+    from fourlegs_engine import api
 
-    encoders = engine_module("language.encoders")
-    name = args.encoder
-    if name == "auto":
-        name = (scene.language or {}).get("encoder") or (
-            "simulated" if (scene.metadata or {}).get("labels") else "viclip")
-    ns = argparse.Namespace(**{**vars(args), "encoder": name})
-    extra = {"scene": scene} if name == "simulated" else {}
-    return encoders.load_encoder_from_args(ns, **extra)
-
-
-def ensure_language_field(args: argparse.Namespace, scene: Any, timer: Timer):
-    """Extract -> train-ae -> distil (lift) unless the bundle already has a field; returns the reloaded scene."""
-    from ._engine import engine_module
-
-    if scene.language:
-        return scene
-    encoder = text_encoder(args, scene)
-    with timer("extract features"):
-        engine_module("language.extract").extract_features(scene, encoder, progress=True)
-    with timer("train autoencoder"):
-        engine_module("language.autoencoder").train_autoencoder(scene, progress=True)
-    with timer("distil (lift)"):
-        engine_module("language.distill").distill_scene(scene, mode="lift", progress=True)
-    return engine_module("scene.loaders").load_scene(scene.root)
-
-
-def open_query_engine(args: argparse.Namespace, scene: Any):
-    from ._engine import engine_module
-
-    field = engine_module("language.field").LanguageField.open(scene.root)
-    return engine_module("query.engine").QueryEngine(scene, field, text_encoder(args, scene), path=args.query_path,
-                                                     spatial=getattr(args, "spatial", DEFAULT_SPATIAL))
+    return api.QueryOptions(path=args.query_path, spatial=getattr(args, "spatial", DEFAULT_SPATIAL))
 
 
 def write_scores_plot(path: Path, scores: Sequence[float], positive: Sequence[bool], segment, peak,
@@ -190,7 +129,7 @@ def write_scores_plot(path: Path, scores: Sequence[float], positive: Sequence[bo
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ._engine import engine_module
+    from fourlegs_engine import api
 
     s = list(scores)
     T = len(s)
@@ -208,7 +147,7 @@ def write_scores_plot(path: Path, scores: Sequence[float], positive: Sequence[bo
     ax.set_title(f"temporal relevancy: {query!r}")
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
-    with engine_module("fileio").atomic_path(path) as tmp:
+    with api.atomic_path(path) as tmp:
         fig.savefig(tmp)
     plt.close(fig)
 
@@ -233,13 +172,12 @@ def blender_log_silenced():
 def torch_threads(n: Optional[int]):
     """The engine's scoped torch thread count (None or < 1: leave torch's setting).
 
-    The per-frame rasterization is thousands of small tensor ops: on a busy machine a second
-    OpenMP thread spends its time waiting at barriers (measured on the 2-core demo render, load ~13:
-    1.26 CPU-s and 4.6 s wall per frame with 2 threads, 0.19 CPU-s and 0.42 s wall with 1).
+    The per-frame rasterization is thousands of small tensor ops: on a busy machine extra OpenMP threads
+    mostly wait at barriers, so the render uses one thread by default.
     """
-    from ._engine import engine_module
+    from fourlegs_engine import api
 
-    return engine_module("threads").torch_threads(n)
+    return api.torch_threads(n)
 
 
 #: glibc ``mallopt`` parameters and their defaults
@@ -253,8 +191,8 @@ def heap_kept(mmap_threshold: int = 32 * 1024 * 1024, trim_threshold: int = 1024
 
     Every frame allocates and frees the rasterizer's tile buffers (megabytes each); by default glibc
     serves them with mmap or trims the heap top after each free, so every frame faults its memory in
-    again (demo render: ~17k page faults and 34 ms of system time per frame, 20% of the frame). With
-    large buffers kept in the heap the faults disappear. The heap is trimmed when the block ends.
+    again. With large buffers kept in the heap the faults disappear. The heap is trimmed when the block
+    ends.
     """
     import ctypes
     import ctypes.util
@@ -286,8 +224,9 @@ def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str
     import bpy
     from tqdm import tqdm
 
+    from fourlegs_engine import api
+
     from . import importer, operators, registration, render_engine, video
-    from ._engine import engine_module
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     try:
@@ -331,7 +270,7 @@ def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str
         importer.set_relevancy(obj, rel_provider(int(peak)), show=False)
     bl_scene.frame_set(bl_scene.frame_start)
     with timer("save .blend"):
-        with engine_module("fileio").atomic_path(out["blend"]) as tmp:
+        with api.atomic_path(out["blend"]) as tmp:
             tmp.unlink()  # saving over an existing file would leave a .blend1 backup beside it
             bpy.ops.wm.save_as_mainfile(filepath=str(tmp), copy=True, compress=True)
     return {"frames_total": total, "frames_rendered": stats["frames"],
@@ -347,10 +286,7 @@ def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str
 
 # ----------------------------------------------------------------------------- main
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from ._engine import engine_module
-
-    errors = engine_module("errors")
-    fileio = engine_module("fileio")
+    from fourlegs_engine import api
     started = time.perf_counter()
     timer = Timer()
     out_dir = Path(args.output)
@@ -360,25 +296,29 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     # report.json marks a finished job; without it, files here are an interrupted run's, resumed
     existing = [str(out[k]) for k in ("video", "blend", "report") if out[k].exists()]
     if existing and not args.overwrite:
-        raise errors.OutputExistsError(", ".join(existing))
+        raise api.OutputExistsError(", ".join(existing))
     resolution = parse_resolution(args.resolution, args.demo)
 
+    if args.demo and args.scene is not None:
+        raise api.InputError("give either --demo or a scene path, not both", field="scene")
+    if not args.demo and args.scene is None:
+        raise api.InputError("no scene given (a path, or --demo)", field="scene")
     with timer("scene"):
-        scene = resolve_scene(args)
-    planner = engine_module("highlights.planner")
-    preset = engine_module("highlights.presets").load_preset(args.preset)
+        scene = api.open_scene(args.scene, demo=args.demo_size if args.demo else None)
+    preset = api.load_preset(args.preset)
     if args.no_effect:
         preset = preset.with_shots([s.effect for s in preset.shots if s.effect not in set(args.no_effect)])
-    needs = planner.plan_needs(preset)
+    needs = api.plan_needs(preset)
     engine = None
     if needs or preset_needs_relevancy(preset):
-        scene = ensure_language_field(args, scene, timer)
+        encoder = api.text_encoder(scene, encoder_config(args))
+        scene = api.ensure_language_field(scene, encoder, progress=True, stage=timer)
         with timer("open query engine"):
-            engine = open_query_engine(args, scene)
+            engine = api.open_query_engine(scene, encoder, options=query_options(args))
     with timer("localize + plan"):
-        plan_obj = planner.plan_highlight(scene, engine, args.query, preset, resolution=resolution, fps=args.fps)
+        plan_obj = api.plan_highlight(scene, engine, args.query, preset, resolution=resolution, fps=args.fps)
         plan = plan_obj.to_dict()
-    fileio.write_json_atomic(out["plan"], plan, overwrite=True)
+    api.write_json_atomic(out["plan"], plan, overwrite=True)
     loc = plan.get("localization") or {}
     if loc.get("scores"):
         write_scores_plot(out["plot"], loc["scores"], loc.get("positive") or
@@ -405,7 +345,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "outputs": {k: str(v) for k, v in out.items() if v.exists() or k == "report"},
         "versions": versions(),
     }
-    fileio.write_json_atomic(out["report"], report, overwrite=True)
+    api.write_json_atomic(out["report"], report, overwrite=True)
     return report
 
 
@@ -448,14 +388,13 @@ def versions() -> dict[str, str]:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    from ._engine import engine_module
+    from fourlegs_engine import api
 
-    errors = engine_module("errors")
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         report = run(args)
-    except errors.FourlegsError as exc:
+    except api.FourlegsError as exc:
         print(f"fourlegs: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

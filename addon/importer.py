@@ -23,7 +23,6 @@ import numpy as np
 from bpy.app.handlers import persistent
 
 from . import convert
-from ._engine import engine_module
 
 SOURCE_KEY = "fourlegs_source"
 RGB_ATTR = "splat_rgb"
@@ -47,14 +46,9 @@ _RELEVANCY_CACHE: dict[tuple[str, int], np.ndarray] = {}
 # ----------------------------------------------------------------------------- engine-side data
 def load_engine_scene(path: str | Path):
     """Open a scene with the engine's loaders (bundle, params.npz dir, PLY file or PLY directory)."""
-    scene_pkg = engine_module("scene")
-    loader = getattr(scene_pkg, "load_scene", None)
-    if loader is None:
-        try:
-            loader = engine_module("scene.loaders").load_scene
-        except ModuleNotFoundError:
-            loader = scene_pkg.load_bundle
-    return loader(Path(bpy.path.abspath(str(path))))
+    from fourlegs_engine import api
+
+    return api.load_scene(Path(bpy.path.abspath(str(path))))
 
 
 def source_key(obj: bpy.types.Object) -> Optional[str]:
@@ -72,10 +66,6 @@ def engine_scene_for(obj: bpy.types.Object):
         scene = load_engine_scene(key)
         _SCENES[key] = scene
     return scene
-
-
-def register_engine_scene(key: str, scene: Any) -> None:
-    _SCENES[key] = scene
 
 
 def splat_objects(scene: bpy.types.Scene) -> list[bpy.types.Object]:

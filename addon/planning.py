@@ -3,25 +3,24 @@ from __future__ import annotations
 
 from typing import Any, Iterable, Optional, Sequence
 
-from ._engine import engine_module
 
 #: effects the panel can switch off (``play`` is always kept: it is the context shot)
 OPTIONAL_EFFECTS = ("zoom_in", "bullet_time", "desaturate_background")
 
 
 def preset_names() -> list[str]:
+    from fourlegs_engine import api
+
     try:
-        return sorted(engine_module("highlights.presets").available_presets())
+        return sorted(api.available_presets())
     except Exception:  # the planner is not installed / presets unreadable: an empty menu, not a crash
         return []
 
 
 def load_preset(name: str):
-    return engine_module("highlights.presets").load_preset(name)
+    from fourlegs_engine import api
 
-
-def preset_effects(name: str) -> list[str]:
-    return [s.effect for s in load_preset(name).shots]
+    return api.load_preset(name)
 
 
 class CachedLocalizer:
@@ -46,13 +45,16 @@ def make_plan(scene: Any, localizer: Any, query: str, preset_name: str, *,
               disabled_effects: Sequence[str] = (), resolution: Optional[Sequence[int]] = None,
               fps: Optional[float] = None) -> dict[str, Any]:
     """Plan a highlight and return the contract's plan dict."""
-    highlights = engine_module("highlights.planner")
+    from fourlegs_engine import api
+
     preset = load_preset(preset_name)
     if disabled_effects:
         preset = preset.with_shots([s.effect for s in preset.shots if s.effect not in set(disabled_effects)])
-    plan = highlights.plan_highlight(scene, localizer, query, preset, resolution=resolution, fps=fps)
+    plan = api.plan_highlight(scene, localizer, query, preset, resolution=resolution, fps=fps)
     return plan.to_dict() if hasattr(plan, "to_dict") else dict(plan)
 
 
 def plan_needs(preset_name: str) -> set[str]:
-    return set(engine_module("highlights.planner").plan_needs(load_preset(preset_name)))
+    from fourlegs_engine import api
+
+    return set(api.plan_needs(load_preset(preset_name)))

@@ -28,7 +28,6 @@ import bpy
 import numpy as np
 
 from . import convert, importer
-from ._engine import engine_module
 from .keyframes import frames_in_ranges
 
 ENGINE_ID = "FOURLEGS_SPLATS"
@@ -103,8 +102,9 @@ def scene_camera(scene: bpy.types.Scene, depsgraph, width: int, height: int):
                                   pixel_aspect_x=render.pixel_aspect_x, pixel_aspect_y=render.pixel_aspect_y)
     c2w = convert.blender_to_opencv_c2w(np.array(cam_eval.matrix_world))
     w2c = convert.rigid_inverse(c2w)
-    Camera = engine_module("scene").Camera
-    return Camera(K=K, w2c=w2c, width=width, height=height, near=max(data.clip_start, 1e-4),
+    from fourlegs_engine import api
+
+    return api.Camera(K=K, w2c=w2c, width=width, height=height, near=max(data.clip_start, 1e-4),
                   far=max(data.clip_end, data.clip_start * 2), name=cam_obj.name)
 
 
@@ -193,7 +193,7 @@ def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *,
         if relevancy_pass:
             out["relevancy"] = np.zeros((height, width, 1), np.float32)
         return out
-    rasterize = engine_module("render").rasterize
+    from fourlegs_engine.api import rasterize
     with warnings.catch_warnings():  # read-only memmap rows are shared, not copied: the rasterizer never writes them
         warnings.filterwarnings("ignore", message="The given NumPy array is not writable")
         tens = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in data.items()}

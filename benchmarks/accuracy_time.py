@@ -209,13 +209,13 @@ def run_accuracy_time(scene: Any, *, out_dir: Path, skip: Sequence[str] = (), di
                       distill_iterations: Sequence[int] = DISTILL_ITERATIONS,
                       seed: int = 0, progress: bool = True) -> dict[str, Any]:
     from fourlegs_engine.query.codebook import ensure_codebook
-    from fourlegs_engine.query.prepare import ensure_language_field
+    from .query_fixtures import scene_with_field
 
     unknown = set(skip) - set(GROUPS)
     if unknown:
         raise InputError(f"unknown groups {sorted(unknown)} (choose from {', '.join(GROUPS)})", field="--skip")
     ctx = build_context(scene, seed=seed, progress=False)
-    scene, base_field, _ = ensure_language_field(scene, ctx.video_encoder, progress=progress)
+    scene, base_field, _ = scene_with_field(scene, ctx.video_encoder, progress=progress)
     ctx.scene = scene
     gt = ensure_ground_truth(scene, ctx.cameras, progress=progress, videos=ctx.videos)
     rows_spec = variants(skip)

@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from fourlegs_engine.query.engine import QueryEngine
-from fourlegs_engine.query.prepare import ensure_language_field
+from fourlegs_engine.query.engine import QueryEngine, QueryOptions
+from .query_fixtures import scene_with_field
 from fourlegs_engine.query.spatial import best_component_bbox
 from fourlegs_engine.scene.camera import Camera
 from .baseline2d import ViewPrediction, inclusive_to_exclusive
@@ -28,7 +28,8 @@ class FourLegsMethod:
         context: the benchmark context (scene, queries, encoders).
         field: a language field to use (default: the bundle's, distilled with the context's video
             encoder if missing).
-        engine_options: keyword arguments of :class:`QueryEngine` (path, spatial, temporal_stride, ...).
+        engine_options: fields of :class:`QueryOptions` (path, spatial, temporal_stride, ...), and
+            ``codebook`` / ``codebook_dir`` of :class:`QueryEngine`.
     """
 
     name = METHOD_NAME
@@ -39,8 +40,9 @@ class FourLegsMethod:
         identical temporal results or maps reuse them; each reuse is charged the seconds it took."""
         scene = context.scene
         if field is None:
-            scene, field, _ = ensure_language_field(scene, context.video_encoder, progress=context.progress)
-        self.engine = QueryEngine(scene, field, context.text_encoder, **engine_options)
+            scene, field, _ = scene_with_field(scene, context.video_encoder, progress=context.progress)
+        prebuilt = {k: engine_options.pop(k) for k in ("codebook", "codebook_dir") if k in engine_options}
+        self.engine = QueryEngine(scene, field, context.text_encoder, QueryOptions(**engine_options), **prebuilt)
         self.queries = list(context.queries)
         self._temporal = None
         self._maps: dict[int, np.ndarray] = {}

@@ -50,3 +50,13 @@ def warm_page_cache(path: Path, chunk: int = 64 << 20) -> float:
         while f.readinto(buf):
             pass
     return time.perf_counter() - start
+
+
+def scene_with_field(scene: Scene, encoder=None, *, progress: bool = False):
+    """``(scene, field, encoder)``: the scene with its language field (built once through the pipeline)."""
+    from fourlegs_engine import pipeline
+    from fourlegs_engine.language.field import LanguageField
+
+    encoder = encoder if encoder is not None else pipeline.text_encoder(scene)
+    scene = pipeline.ensure_language_field(scene, encoder, progress=progress)
+    return scene, LanguageField.open(scene.root), encoder

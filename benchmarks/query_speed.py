@@ -27,7 +27,7 @@ import torch
 from fourlegs_engine.errors import InputError, OutputExistsError
 from fourlegs_engine.fileio import write_json_atomic
 from fourlegs_engine.query.codebook import build_codebook
-from fourlegs_engine.query.engine import QueryEngine
+from fourlegs_engine.query.engine import QueryEngine, QueryOptions
 
 from .query_fixtures import flat_scene, peak_rss_mb, resident_mb, warm_page_cache
 
@@ -96,8 +96,7 @@ def codebook_query_timings(workdir: Path, k: int, margin: float, repeats: int, t
     if book is None:
         raise InputError(f"no codebook K={k} for these latents", file=workdir)
     forced_work = margin > 0 and (rescore_share > 0 or sample_count > 0)
-    eng = QueryEngine(flat_scene(T, N), RandomField(lat), SimulatedTextEncoder(), path="codebook", codebook=book,
-                      codebook_refine=0.0 if forced_work else margin)
+    eng = QueryEngine(flat_scene(T, N), RandomField(lat), SimulatedTextEncoder(), QueryOptions(path="codebook", codebook_refine=0.0 if forced_work else margin), codebook=book)
     eng.reference_embeddings()
     t0 = time.perf_counter()
     eng.temporal(QUERY)
@@ -184,7 +183,7 @@ def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int]
             report["rows"].append({"path": name, "levels": levels, "build_s": build, **row})
             _print_row(report["rows"][-1])
     steps = T if exact_timesteps <= 0 else min(T, int(exact_timesteps))
-    eng = QueryEngine(scene, field, text, path="exact")
+    eng = QueryEngine(scene, field, text, QueryOptions(path="exact"))
     eng.embed_query(QUERY)
     eng.reference_embeddings()
     t0 = time.perf_counter()
@@ -221,7 +220,7 @@ def _spatial_timings(size: str, text, repeats: int, workdir: Path) -> list[dict]
     t = scene.num_timesteps // 2
     rows = []
     for path, fast in (("fast", True), ("exact", False)):
-        eng = QueryEngine(scene, field, text, spatial="fast" if fast else "exact")
+        eng = QueryEngine(scene, field, text, QueryOptions(spatial="fast" if fast else "exact"))
         eng.relevancy_map(QUERY, cam, t)  # warm-up: text embeddings, background relevancy
         sec, times, maps = _time(lambda: eng.relevancy_map(QUERY, cam, t), max(1, min(repeats, 3)))
         rows.append({"path": path, "seconds": sec, "times_s": times, "width": cam.width, "height": cam.height,

@@ -21,7 +21,7 @@ import torch
 from fourlegs_engine.errors import InputError
 from .metrics import temporal_metrics
 from fourlegs_engine.query.codebook import build_codebook, load_codebook
-from fourlegs_engine.query.engine import QueryEngine
+from fourlegs_engine.query.engine import QueryEngine, QueryOptions
 from fourlegs_engine.query.temporal import RELEVANT, localize_counts
 
 
@@ -60,7 +60,7 @@ def write_tiled_latents(path: Path, source_latents: Any, T: int, N: int) -> np.n
 def exact_tiled_answers(scene: Any, field: Any, encoder: Any, queries: Sequence[str], T: int, N: int,
                         dilation: int = 1) -> dict[str, Any]:
     """The exact path's answer on the tiled field, per query, from the scene's exact scores."""
-    eng = QueryEngine(scene, field, encoder, path="exact", dilation=dilation)
+    eng = QueryEngine(scene, field, encoder, QueryOptions(path="exact", dilation=dilation))
     eng.temporal_many(list(queries))  # decodes each latent once and keeps every query's scores
     T0, N0 = scene.num_timesteps, scene.num_gaussians
     src = source_timesteps(T0, T)
@@ -98,18 +98,17 @@ def tiled_query_timings(workdir: Path, size: str, k: int, margin: float, threads
     maps the codebook index pages its codes touch, is kept apart), answers, exact work, memory."""
     from fourlegs_engine.scene.synthetic import ensure_demo_bundle
     from fourlegs_engine.scene.bundle import load_bundle
-    from fourlegs_engine.query.prepare import ensure_language_field
+    from .query_fixtures import scene_with_field
     from .query_fixtures import flat_scene, peak_rss_mb, resident_mb
 
     torch.set_num_threads(threads)
-    scene, source, encoder = ensure_language_field(load_bundle(ensure_demo_bundle(size)))
+    scene, source, encoder = scene_with_field(load_bundle(ensure_demo_bundle(size)))
     lat = np.load(workdir / "tiled.npy", mmap_mode="r")
     T, N = int(lat.shape[0]), int(lat.shape[1])
     book = load_codebook(workdir / f"tiled_cb{k}", k, lat)
     if book is None:
         raise InputError(f"no codebook K={k} for the tiled latents", file=workdir)
-    eng = QueryEngine(flat_scene(T, N), TiledField(lat, source), encoder, path="codebook", codebook=book,
-                      codebook_refine=margin)
+    eng = QueryEngine(flat_scene(T, N), TiledField(lat, source), encoder, QueryOptions(path="codebook", codebook_refine=margin), codebook=book)
     eng.reference_embeddings()
     t0 = time.perf_counter()
     eng.temporal("a query that is not in the list")  # one-off: decoding the codes, opening the index,
@@ -143,10 +142,10 @@ def run_tiled_query_speed(size: str, *, gaussians: int, timesteps: int, codebook
     from .ground_truth import scene_queries
     from fourlegs_engine.scene.synthetic import ensure_demo_bundle
     from fourlegs_engine.scene.bundle import load_bundle
-    from fourlegs_engine.query.prepare import ensure_language_field
+    from .query_fixtures import scene_with_field
     from .query_fixtures import warm_page_cache
 
-    scene, field, encoder = ensure_language_field(load_bundle(ensure_demo_bundle(size)), progress=progress)
+    scene, field, encoder = scene_with_field(load_bundle(ensure_demo_bundle(size)), progress=progress)
     queries = list(scene_queries(scene))
     T, N = int(timesteps), int(gaussians)
     t0 = time.perf_counter()

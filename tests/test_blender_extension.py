@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import io
 import json
 import subprocess
 import sys
@@ -68,14 +69,24 @@ def test_validator_rejects_a_broken_manifest(tmp_path):
 
 
 def test_zip_contains_addon_engine_presets_and_declared_wheels(extension_zip, probe_wheel):
+    import fourlegs_engine
+
+    engine_wheel = f"fourlegs_engine-{fourlegs_engine.__version__}-py3-none-any.whl"
     names = set(zipfile.ZipFile(extension_zip).namelist())
-    for required in ("blender_manifest.toml", "__init__.py", "render_engine.py", "fourlegs_engine/__init__.py",
-                     "fourlegs_engine/render/__init__.py", "fourlegs_engine/highlights/presets/broadcast.toml",
+    for required in ("blender_manifest.toml", "__init__.py", "render_engine.py", f"wheels/{engine_wheel}",
                      f"wheels/{probe_wheel.name}"):
         assert required in names, required
     assert not [n for n in names if "__pycache__" in n or n.endswith(".pyc")]
+    # only what runs in Blender: no engine sources beside the wheel, no build script, no benchmarks
+    assert not [n for n in names if n.startswith(("fourlegs_engine/", "benchmarks/")) or n in ("build.py", "commands.py")]
     manifest = zipfile.ZipFile(extension_zip).read("blender_manifest.toml").decode()
-    assert f'"./wheels/{probe_wheel.name}"' in manifest
+    assert f'"./wheels/{probe_wheel.name}"' in manifest and f'"./wheels/{engine_wheel}"' in manifest
+    with zipfile.ZipFile(io.BytesIO(zipfile.ZipFile(extension_zip).read(f"wheels/{engine_wheel}"))) as wheel:
+        inside = set(wheel.namelist())
+    for required in ("fourlegs_engine/__init__.py", "fourlegs_engine/render/__init__.py", "fourlegs_engine/api.py",
+                     "fourlegs_engine/highlights/presets/broadcast.toml"):
+        assert required in inside, required
+    assert not [n for n in inside if n.startswith(("benchmarks/", "fourlegs_addon/")) or "__pycache__" in n]
 
 
 def test_manifest_wheels_inserted_before_tables():
@@ -96,11 +107,13 @@ def test_install_offline_and_enable(extension_zip, tmp_path):
         pkg = "bl_ext.user_default.fourlegs_highlights"
         mod = sys.modules[pkg]
         out = {{"install": sorted(res), "enabled": pkg in bpy.context.preferences.addons,
-               "engine": mod._engine.engine.__name__, "scene_prop": hasattr(bpy.types.Scene, "fourlegs"),
+               "scene_prop": hasattr(bpy.types.Scene, "fourlegs"),
                "operators": [hasattr(bpy.ops.fourlegs, n) for n in ("import_scene", "run_query",
                              "generate_highlight", "render_video")]}}
         import fourlegs_wheel_probe
         out["wheel"] = fourlegs_wheel_probe.ANSWER
+        import fourlegs_engine
+        out["engine_file"] = fourlegs_engine.__file__
         bpy.context.scene.render.engine = "FOURLEGS_SPLATS"  # raises if the engine is not registered
         out["render_engine"] = bpy.context.scene.render.engine
         # the installed add-on works with its bundled engine: import a tiny scene
@@ -113,22 +126,25 @@ def test_install_offline_and_enable(extension_zip, tmp_path):
         obj = bpy.context.scene.fourlegs.splat_object
         out["import"] = sorted(r)
         out["points"] = len(obj.data.vertices)
-        out["scene_class_module"] = type(mod.importer.engine_scene_for(obj)).__module__
+        out["scene_class_file"] = sys.modules[type(mod.importer.engine_scene_for(obj)).__module__].__file__
         bpy.ops.preferences.addon_disable(module=pkg)
         out["disabled"] = not hasattr(bpy.types.Scene, "fourlegs")
         print("RESULT" + json.dumps(out))
     """)
     env = child_env(BLENDER_USER_RESOURCES=str(tmp_path / "blender-user"))
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=240)
+    # run outside the checkout, so the engine imported is the one the extension's wheel installed
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=240,
+                          cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     line = [l for l in proc.stdout.splitlines() if l.startswith("RESULT")][-1]
     out = json.loads(line[len("RESULT"):])
     assert out["install"] == ["FINISHED"] and out["enabled"] and out["scene_prop"]
-    assert out["engine"] == "bl_ext.user_default.fourlegs_highlights.fourlegs_engine"
+    user = str(tmp_path / "blender-user")
+    assert out["engine_file"].startswith(user), out["engine_file"]  # installed from the engine wheel
     assert all(out["operators"]) and out["render_engine"] == "FOURLEGS_SPLATS"
     assert out["wheel"] == 42
     assert out["import"] == ["FINISHED"] and out["points"] == 64
-    assert out["scene_class_module"].startswith("bl_ext.user_default.fourlegs_highlights.fourlegs_engine")
+    assert out["scene_class_file"].startswith(user)
     assert out["disabled"]
 
 

@@ -16,7 +16,7 @@ import torch
 from _highlights_helpers import tiny_scene
 from fourlegs_engine.highlights.planner import plan_highlight
 from fourlegs_engine.highlights.presets import load_preset
-from fourlegs_engine.query.engine import QueryEngine
+from fourlegs_engine.query.engine import QueryEngine, QueryOptions
 from fourlegs_engine.scene import Camera
 
 D = 16
@@ -71,7 +71,7 @@ def engine():
         lat[t, ball, WORDS["ball"]] = 1.0
     lat[SEGMENT[1], ball] = 0.0
     lat[SEGMENT[1], ball, WORDS["ball"]] = 1.0
-    return QueryEngine(scene, HandField(lat), WordEncoder(), path="exact", spatial="fast")
+    return QueryEngine(scene, HandField(lat), WordEncoder(), QueryOptions(path="exact", spatial="fast"))
 
 
 def test_real_engine_broadcast_plan(engine):

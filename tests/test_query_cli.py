@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from fourlegs_engine.cli import main
-from fourlegs_engine.query import prepare
+from fourlegs_engine import pipeline
 from fourlegs_engine.query.engine import QueryEngine
 from fourlegs_engine.query.exr import read_exr, write_exr
 from fourlegs_engine.query.multiscene import rank_scenes
@@ -54,7 +54,7 @@ def field_weight_rows(root):
 
 def test_query_command_writes_json_plot_and_exr(bundle, tmp_path, monkeypatch, capsys):
     root, enc = bundle
-    monkeypatch.setattr(prepare, "default_text_encoder", lambda scene, name=None, **kw: enc)
+    monkeypatch.setattr(pipeline, "text_encoder", lambda scene, config=None: enc)
     from fourlegs_engine.language.field import LanguageField
     field = LanguageField.open(root)
     # the stored decoder reproduces the test's linear map (BatchNorm at its initial statistics)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from fourlegs_engine.errors import InputError
-from fourlegs_engine.query.engine import QueryEngine
+from fourlegs_engine.query.engine import QueryEngine, QueryOptions
 from fourlegs_engine.query.relevancy import relevancy_reference
 from fourlegs_engine.query.temporal import localize_relevancy
 
@@ -30,7 +30,7 @@ def oracle_relevancy(field, enc, text):
 
 def test_exact_temporal_matches_float64_oracle(setup):
     scene, field, enc, _ = setup
-    eng = QueryEngine(scene, field, enc, dilation=0, chunk=17)
+    eng = QueryEngine(scene, field, enc, QueryOptions(dilation=0, chunk=17))
     res = eng.temporal(Q)
     ref = localize_relevancy(oracle_relevancy(field, enc, Q), dilation=0)
     np.testing.assert_allclose(res.scores, ref.scores, atol=1e-12)
@@ -40,7 +40,7 @@ def test_exact_temporal_matches_float64_oracle(setup):
                                atol=2e-3)
     # the per-Gaussian scores of the temporal pass are reused, not decoded again, and equal a fresh decode
     assert eng.stats["decoded_latents"] == scene.num_timesteps * scene.num_gaussians
-    fresh = QueryEngine(scene, field, enc, chunk=17)
+    fresh = QueryEngine(scene, field, enc, QueryOptions(chunk=17))
     for t in range(scene.num_timesteps):
         np.testing.assert_array_equal(eng.gaussian_relevancy(Q, t).numpy(), fresh.gaussian_relevancy(Q, t).numpy())
     assert fresh.stats["decoded_latents"] == scene.num_timesteps * scene.num_gaussians
@@ -49,13 +49,13 @@ def test_exact_temporal_matches_float64_oracle(setup):
 def test_codebook_path_equals_exact_and_never_decodes_latents(setup, tmp_path):
     scene, field, enc, _ = setup
     exact = QueryEngine(scene, field, enc).temporal(Q)
-    eng = QueryEngine(scene, field, enc, path="codebook", codebook_size=256, codebook_dir=tmp_path)
+    eng = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=256), codebook_dir=tmp_path)
     res = eng.temporal(Q)
     np.testing.assert_allclose(res.scores, exact.scores, atol=1e-12)
     assert res.segment == exact.segment == (0, 3)  # dilation 1 reaches both ends
     assert eng.stats["decoded_latents"] == 0 and eng.stats["decoded_codes"] == 256
     assert (tmp_path / "codebook_256.npz").is_file() and (tmp_path / "codes_256.npy").is_file()
-    again = QueryEngine(scene, field, enc, path="codebook", codebook_size=256, codebook_dir=tmp_path)
+    again = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=256), codebook_dir=tmp_path)
     again.temporal(Q)
     assert np.array_equal(np.asarray(again.codebook.codes), np.asarray(eng.codebook.codes))
 
@@ -81,7 +81,7 @@ def test_forget_query_redoes_the_query_s_own_work_only(setup):
 
 def test_temporal_stride_and_many_queries(setup):
     scene, field, enc, _ = setup
-    eng = QueryEngine(scene, field, enc, dilation=0)
+    eng = QueryEngine(scene, field, enc, QueryOptions(dilation=0))
     many = eng.temporal_many([Q, "a person jumping", "object"])
     assert eng.stats["decoded_latents"] == scene.num_timesteps * scene.num_gaussians
     np.testing.assert_allclose(many[0].scores, eng.temporal(Q).scores)
@@ -100,7 +100,7 @@ def test_not_found_is_finite(setup):
 def test_spatial_maps_centre_view_and_stats(setup):
     scene, field, enc, _ = setup
     for spatial in ("exact", "fast"):
-        eng = QueryEngine(scene, field, enc, spatial=spatial)
+        eng = QueryEngine(scene, field, enc, QueryOptions(spatial=spatial))
         wide = scene.cameras.find("wide")
         maps = eng.relevancy_map(Q, wide, 1)
         rel = maps["relevancy"]
@@ -117,7 +117,7 @@ def test_spatial_maps_centre_view_and_stats(setup):
         assert eng.stats["render_features" if spatial == "exact" else "render_relevancy"] == 4  # map, centre, 2 views
         assert eng.stats["render_relevancy" if spatial == "exact" else "render_features"] == 0
     # at a timestep where nothing is relevant the fast and exact maps both stay low
-    low = QueryEngine(scene, field, enc, spatial="exact").relevancy_map(Q, wide, 0)["relevancy"]
+    low = QueryEngine(scene, field, enc, QueryOptions(spatial="exact")).relevancy_map(Q, wide, 0)["relevancy"]
     assert low.max() <= 0.5  # background decodes to the zero vector: exactly 0.5, not relevant
 
 
@@ -125,7 +125,7 @@ def test_exact_map_decodes_the_empty_pixels_once_and_equals_decoding_every_pixel
     import torch
 
     scene, field, enc, _ = setup
-    eng = QueryEngine(scene, field, enc, spatial="exact")
+    eng = QueryEngine(scene, field, enc, QueryOptions(spatial="exact"))
     wide = scene.cameras.find("wide")
     got = eng.relevancy_map(Q, wide, 1, outputs=("relevancy", "alpha"))
     H, W = got["alpha"].shape
@@ -141,18 +141,18 @@ def test_fast_and_exact_maps_agree_on_the_relevant_region(setup):
     scene, field, enc, _ = setup
     cam = scene.cameras.find("close")
     ex = QueryEngine(scene, field, enc).relevancy_map(Q, cam, 2)
-    fa = QueryEngine(scene, field, enc, spatial="fast").relevancy_map(Q, cam, 2)
+    fa = QueryEngine(scene, field, enc, QueryOptions(spatial="fast")).relevancy_map(Q, cam, 2)
     np.testing.assert_allclose(ex["alpha"], fa["alpha"], atol=1e-6)
     solid = ex["alpha"] > 0.95
     assert solid.any()
     assert np.mean(np.abs(ex["relevancy"] - fa["relevancy"])[solid]) < 0.1
-    half = QueryEngine(scene, field, enc, resolution_scale=0.5).relevancy_map(Q, cam, 2)
+    half = QueryEngine(scene, field, enc, QueryOptions(resolution_scale=0.5)).relevancy_map(Q, cam, 2)
     assert half["relevancy"].shape == (16, 24)
 
 
 def test_localize_computes_only_what_is_needed(setup):
     scene, field, enc, _ = setup
-    eng = QueryEngine(scene, field, enc, spatial="fast")
+    eng = QueryEngine(scene, field, enc, QueryOptions(spatial="fast"))
     loc = eng.localize(Q, {"temporal"})
     assert loc.temporal.found and loc.best_view is None and loc.action_centre is None
     assert eng.stats["relevancy_map"] == 0 and eng.stats["best_view"] == 0
@@ -175,14 +175,14 @@ def test_empty_scene_and_single_timestep():
     res = QueryEngine(scene, field, enc).temporal(Q)
     assert res.found and res.segment == (0, 0) and res.scores.tolist() == [1.0]
     empty, efield, enc, _ = two_cluster_scene(T=3, n_per=0)
-    eng = QueryEngine(empty, efield, enc, spatial="fast")
+    eng = QueryEngine(empty, efield, enc, QueryOptions(spatial="fast"))
     res = eng.temporal(Q)
     assert not res.found and "no Gaussians" in res.message and np.all(res.scores == 0)
     m = eng.relevancy_map(Q, empty.cameras.find("wide"), 0)
     assert np.all(np.isfinite(m["relevancy"])) and np.all(m["alpha"] == 0)
     loc = eng.localize(Q, {"temporal", "best_view", "action_centre"})
     assert loc.best_view is None and loc.messages
-    cb = QueryEngine(empty, efield, enc, path="codebook", codebook_size=16, codebook_dir=None)
+    cb = QueryEngine(empty, efield, enc, QueryOptions(path="codebook", codebook_size=16), codebook_dir=None)
     assert not cb.temporal(Q).found
 
 
@@ -191,16 +191,15 @@ def test_negative_phrases_suppress_an_absent_query(setup):
     enc.table["a dog"] = 0.6 * dirs[4] + 0.8 * dirs[7]  # close to the ball, but not it
     plain = QueryEngine(scene, field, enc).gaussian_relevancy("a dog", 1)
     enc.table["a ball"] = dirs[4]
-    neg = QueryEngine(scene, field, enc, negatives=["a ball"]).gaussian_relevancy("a dog", 1)
+    neg = QueryEngine(scene, field, enc, QueryOptions(negatives=["a ball"])).gaussian_relevancy("a dog", 1)
     assert plain.max() > 0.5 and neg.max() < 0.5
 
 
 @pytest.mark.parametrize("stride", [1, 2])
 def test_codebook_refine_full_margin_decides_as_the_exact_path(setup, tmp_path, stride):
     scene, field, enc, _ = setup
-    exact = QueryEngine(scene, field, enc, temporal_stride=stride).temporal(Q)
-    coarse = QueryEngine(scene, field, enc, path="codebook", codebook_size=2, codebook_dir=tmp_path,
-                         temporal_stride=stride, codebook_refine=1.0, codebook_samples=10 ** 9)
+    exact = QueryEngine(scene, field, enc, QueryOptions(temporal_stride=stride)).temporal(Q)
+    coarse = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=2, temporal_stride=stride, codebook_refine=1.0, codebook_samples=10 ** 9), codebook_dir=tmp_path)
     res = coarse.temporal(Q)
     np.testing.assert_array_equal(res.positive, exact.positive)
     assert res.segment == exact.segment and res.r_avg == pytest.approx(exact.r_avg, abs=1e-6)
@@ -209,15 +208,13 @@ def test_codebook_refine_full_margin_decides_as_the_exact_path(setup, tmp_path, 
     scored = len(range(0, T, stride))
     assert coarse.stats["sampled_latents"] == scored * N  # every pair, at the scored timesteps only
     assert coarse.stats["rescored_latents"] <= scored * N
-    again = QueryEngine(scene, field, enc, path="codebook", codebook_size=2, codebook_dir=tmp_path,
-                        temporal_stride=stride, codebook_refine=1.0, codebook_samples=10 ** 9).temporal(Q)
+    again = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=2, temporal_stride=stride, codebook_refine=1.0, codebook_samples=10 ** 9), codebook_dir=tmp_path).temporal(Q)
     np.testing.assert_array_equal(again.scores, res.scores)  # the same answer every time
 
 
 def test_codebook_refine_samples_at_the_scored_timesteps_only(setup, tmp_path):
     scene, field, enc, _ = setup
-    eng = QueryEngine(scene, field, enc, path="codebook", codebook_size=2, codebook_dir=tmp_path,
-                      temporal_stride=2, codebook_refine=0.05)
+    eng = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=2, temporal_stride=2, codebook_refine=0.05), codebook_dir=tmp_path)
     T, N = scene.num_timesteps, scene.num_gaussians
     ts = np.arange(0, T, 2)
     seen = []
@@ -241,17 +238,17 @@ def test_codebook_refine_samples_at_the_scored_timesteps_only(setup, tmp_path):
     [(codes_all, _)] = eng._sample_members(Q, [np.arange(2)], [len(ts) * N], ts, np.random.default_rng(2))
     np.testing.assert_array_equal(np.sort(seen[0]), np.flatnonzero(np.isin(np.arange(T * N) // N, ts)))
     with pytest.raises(InputError, match="samples"):
-        QueryEngine(scene, field, enc, path="codebook", codebook_refine=0.1, codebook_samples=1)
+        QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_refine=0.1, codebook_samples=1))
 
 
 def test_codebook_refine_margin_zero_decodes_nothing_and_bad_margin_is_refused(setup, tmp_path):
     scene, field, enc, _ = setup
-    eng = QueryEngine(scene, field, enc, path="codebook", codebook_size=2, codebook_dir=tmp_path)
+    eng = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=2), codebook_dir=tmp_path)
     eng.temporal(Q)
     assert eng.stats["rescored_latents"] == 0 and eng.stats["decoded_latents"] == 0
     for bad in (-0.1, 2.0, float("nan")):
         with pytest.raises(InputError, match="refine"):
-            QueryEngine(scene, field, enc, path="codebook", codebook_refine=bad)
+            QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_refine=bad))
 
 
 def test_codebook_refine_on_a_memmapped_field_reads_the_same_rows(setup, tmp_path):
@@ -261,8 +258,7 @@ def test_codebook_refine_on_a_memmapped_field_reads_the_same_rows(setup, tmp_pat
     np.save(tmp_path / "latents.npy", np.asarray(field.latents, dtype=np.float16))
     mm = np.load(tmp_path / "latents.npy", mmap_mode="r")
     mapped = LinearField(mm, field.weight.numpy())
-    eng = QueryEngine(scene, mapped, enc, path="codebook", codebook_size=3, codebook_dir=tmp_path,
-                      codebook_refine=1.0, codebook_samples=10 ** 9)
+    eng = QueryEngine(scene, mapped, enc, QueryOptions(path="codebook", codebook_size=3, codebook_refine=1.0, codebook_samples=10 ** 9), codebook_dir=tmp_path)
     assert eng._rows().path == str(tmp_path / "latents.npy")  # read from the file, not the mapping
     exact = QueryEngine(scene, mapped, enc).temporal(Q)
     res = eng.temporal(Q)
@@ -299,7 +295,7 @@ def test_scattered_exact_reads_do_not_stay_resident(tmp_path):
     mm = np.load(path, mmap_mode="r")
     field = LinearField(mm, rng.normal(size=(d, 16)).astype(np.float32))
     _, _, enc, _ = two_cluster_scene(D=16)
-    eng = QueryEngine(flat_scene(T, N), field, enc, path="codebook", codebook_size=4, codebook_refine=0.01)
+    eng = QueryEngine(flat_scene(T, N), field, enc, QueryOptions(path="codebook", codebook_size=4, codebook_refine=0.01))
     flat = np.sort(rng.choice(T * N, size=4000, replace=False))
     got = eng._score_pairs(Q, flat)
     assert _mapped_rss_kb(path) < 1024

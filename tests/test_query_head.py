@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fourlegs_engine.language.autoencoder import FeatureDecoder
-from fourlegs_engine.query.engine import QueryEngine
+from fourlegs_engine.query.engine import QueryEngine, QueryOptions
 from fourlegs_engine.query.head import RelevancyHead
 from fourlegs_engine.query.relevancy import l2_normalize, relevancy_reference
 
@@ -113,8 +113,8 @@ def test_engine_with_and_without_head_agree(spatial):
     T, N, d = field.latents.shape
     dec = trained_like_decoder(dims=(d, 12, 10, 16), seed=7)  # D=16: the helper encoder's dimension
     lat = np.asarray(field.latents, dtype=np.float32)
-    with_head = QueryEngine(scene, DecoderField(lat, dec), enc, spatial=spatial)
-    plain = QueryEngine(scene, DecoderField(lat, dec, use_head=False), enc, spatial=spatial)
+    with_head = QueryEngine(scene, DecoderField(lat, dec), enc, QueryOptions(spatial=spatial))
+    plain = QueryEngine(scene, DecoderField(lat, dec, use_head=False), enc, QueryOptions(spatial=spatial))
     assert with_head.head is not None and plain.head is None
     q = "a ball flying"
     a, b = with_head.temporal(q), plain.temporal(q)
@@ -207,16 +207,14 @@ def test_codebook_refine_with_norm_bounds_answers_as_the_exact_path(tmp_path):
     table = dict(at, **{c: rng.normal(size=128) for c in CANON[1:]})
     enc = TableTextEncoder(table, 128)
     exact = QueryEngine(scene, DecoderField(lat, dec), enc)
-    refined = QueryEngine(scene, DecoderField(lat, dec), enc, path="codebook", codebook_size=6,
-                          codebook_dir=tmp_path, codebook_refine=1.0, codebook_samples=10 ** 9)
+    refined = QueryEngine(scene, DecoderField(lat, dec), enc, QueryOptions(path="codebook", codebook_size=6, codebook_refine=1.0, codebook_samples=10 ** 9), codebook_dir=tmp_path)
     want = exact.temporal("a ball flying")
     assert want.found and want.segment == (1, 4)  # timesteps 2, 3 dilated by 1
     got = refined.temporal("a ball flying")
     np.testing.assert_array_equal(got.positive, want.positive)
     assert got.segment == want.segment and got.r_avg == pytest.approx(want.r_avg, abs=1e-6)
     # the same engine scoring every re-scored row exactly returns the very same counts
-    unbounded = QueryEngine(scene, DecoderField(lat, dec), enc, path="codebook", codebook_size=6,
-                            codebook_dir=tmp_path, codebook_refine=1.0, codebook_samples=10 ** 9)
+    unbounded = QueryEngine(scene, DecoderField(lat, dec), enc, QueryOptions(path="codebook", codebook_size=6, codebook_refine=1.0, codebook_samples=10 ** 9), codebook_dir=tmp_path)
     score_any = unbounded._score_any
     unbounded._score_any = lambda q, flat, window=None: score_any(q, flat, None)
     plain = unbounded.temporal("a ball flying")

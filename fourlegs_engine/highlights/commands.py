@@ -6,6 +6,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ..cli_options import encoder_config_from_args, parse_resolution
+from ..errors import InputError
+from ..pipeline import EncoderConfig, QueryOptions
+
 
 def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
@@ -44,77 +48,24 @@ def register(subparsers: Any) -> None:
     p.set_defaults(func=run_plan)
 
 
-def _parse_resolution(text: str | None) -> tuple[int, int] | None:
-    from ..errors import InputError
-    if text is None:
-        return None
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise InputError(f"expected WIDTHxHEIGHT, got {text!r}", field="--resolution") from None
-    if w <= 0 or h <= 0:
-        raise InputError(f"must be positive, got {text!r}", field="--resolution")
-    return w, h
-
-
-def open_scene_and_localizer(scene_path: str | Path | None, *, demo: bool, encoder: str = "auto",
-                             query_path: str = "exact", spatial: str = "exact",
-                             encoder_args: argparse.Namespace | None = None):
-    """Load the scene (or the demo scene) and a :class:`~fourlegs_engine.query.engine.QueryEngine` on it.
-
-    A scene without a distilled language field gets one first (extract features -> train the
-    autoencoder -> distil with the learning-free lift; every stage resumes and is skipped when done).
-    A scene that is not a bundle is converted into a cached bundle (the language stages write there).
-    Returns (scene, engine).
-    """
-    from ..errors import InputError
-    from ..language.field import LanguageField
-    from ..query.engine import QueryEngine
-    from ..scene import is_bundle, write_bundle
-    from ..scene.loaders import load_scene
+def open_scene_and_localizer(scene_path: str | Path | None, *, demo: bool, encoder: EncoderConfig = EncoderConfig(),
+                             options: QueryOptions = QueryOptions()):
+    """The scene (or the demo scene) and a query engine on it, through :mod:`fourlegs_engine.pipeline`
+    (a scene without a language field gets one first). Returns (scene, engine)."""
+    from .. import pipeline
 
     if demo:
-        from ..scene.synthetic import ensure_demo_bundle
-        scene_path = ensure_demo_bundle("demo")
-    if scene_path is None:
+        scene = pipeline.open_scene(demo="demo")
+    elif scene_path is None:
         raise InputError("no scene given (SCENE QUERY, or --demo QUERY)", field="scene")
-    scene = load_scene(scene_path)
-    if scene.root is None or not is_bundle(scene.root):
-        import hashlib
-        from ..paths import cache_dir
-        digest = hashlib.sha256(str(Path(scene_path).resolve()).encode()).hexdigest()[:12]
-        target = cache_dir() / "bundles" / f"{scene.name}-{digest}"
-        if not is_bundle(target):
-            write_bundle(scene, target)
-        scene = load_scene(target)
-    text_encoder = _text_encoder(scene, encoder, encoder_args)
-    if not scene.language:
-        from ..language.autoencoder import train_autoencoder
-        from ..language.distill import distill_scene
-        from ..language.extract import extract_features
-        print(f"{scene.name}: no language field yet; extracting features, training the autoencoder and "
-              "distilling (lift) — once per scene", file=sys.stderr)
-        extract_features(scene, text_encoder, progress=True)
-        train_autoencoder(scene, progress=True)
-        distill_scene(scene, mode="lift", progress=True)
-        scene = load_scene(scene.root)
-    field = LanguageField.open(scene.root)
-    return scene, QueryEngine(scene, field, text_encoder, path=query_path, spatial=spatial)
-
-
-def _text_encoder(scene, name: str, encoder_args: argparse.Namespace | None):
-    """The video-text encoder the scene's field was (or will be) distilled with."""
-    from ..language.encoders import load_encoder_from_args
-
-    if name == "auto":
-        name = (scene.language or {}).get("encoder") or (
-            "simulated" if (scene.metadata or {}).get("labels") else "viclip")
-    ns = argparse.Namespace(**{**vars(encoder_args or argparse.Namespace()), "encoder": name})
-    return load_encoder_from_args(ns, **({"scene": scene} if name == "simulated" else {}))
+    else:
+        scene = pipeline.open_scene(scene_path)
+    text_encoder = pipeline.text_encoder(scene, encoder)
+    scene = pipeline.ensure_language_field(scene, text_encoder, progress=True)
+    return scene, pipeline.open_query_engine(scene, text_encoder, options=options)
 
 
 def run_plan(args: argparse.Namespace) -> int:
-    from ..errors import InputError
     from .presets import available_presets, load_preset
 
     if args.list_presets:
@@ -155,10 +106,10 @@ def run_plan(args: argparse.Namespace) -> int:
             raise InputError(f"preset {preset.name!r} has no shot with the effects {wanted}", field="--effects")
 
     from .planner import plan_highlight
-    scene, localizer = open_scene_and_localizer(scene_path, demo=args.demo is not None, encoder=args.encoder,
-                                                query_path=args.query_path, spatial=args.spatial,
-                                                encoder_args=args)
-    plan = plan_highlight(scene, localizer, query, preset, resolution=_parse_resolution(args.resolution),
+    scene, localizer = open_scene_and_localizer(scene_path, demo=args.demo is not None,
+                                                encoder=encoder_config_from_args(args),
+                                                options=QueryOptions(path=args.query_path, spatial=args.spatial))
+    plan = plan_highlight(scene, localizer, query, preset, resolution=parse_resolution(args.resolution),
                           fps=args.fps)
     plan.save(out, overwrite=args.overwrite)
     loc = plan.localization

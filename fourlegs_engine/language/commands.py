@@ -18,7 +18,7 @@ from ..errors import InputError
 
 # ------------------------------------------------------------------------------------ parsers
 def register(subparsers: Any) -> None:
-    from .encoders import add_encoder_arguments
+    from ..cli_options import add_encoder_arguments
 
     p = subparsers.add_parser(
         "extract", help="teacher features: crop-pyramid video-text encodings per timestep",
@@ -164,9 +164,9 @@ def _crop_size(value: str | None) -> int | str | None:
 
 
 def _encoder(args: argparse.Namespace, scene: Any):
-    from .encoders import load_encoder_from_args
-    extra = {"scene": scene} if (getattr(args, "encoder", "") or "").startswith("simulated") else {}
-    return load_encoder_from_args(args, **extra)
+    from ..cli_options import encoder_config_from_args
+    from ..pipeline import text_encoder
+    return text_encoder(scene, encoder_config_from_args(args))
 
 
 def _ae_config(args: argparse.Namespace):

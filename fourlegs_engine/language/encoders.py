@@ -15,7 +15,6 @@ Names: ``"viclip"`` (needs ``checkpoint=`` and ``vocab=``; the size is read off 
 """
 from __future__ import annotations
 
-import argparse
 from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence, runtime_checkable
 
 from ..errors import InputError
@@ -24,7 +23,7 @@ from .phrases import CANONICAL_PHRASES
 if TYPE_CHECKING:  # torch is imported only when an encoder is built (keeps `fourlegs --help` fast)
     import torch
 
-__all__ = ["CANONICAL_PHRASES", "VideoTextEncoder", "add_encoder_arguments", "encoder_names", "get_encoder",
+__all__ = ["CANONICAL_PHRASES", "VideoTextEncoder", "encoder_names", "get_encoder",
            "register_encoder", "resolve_device", "resolve_dtype"]
 
 
@@ -112,7 +111,7 @@ def resolve_device(device: "str | torch.device | None") -> "torch.device":
     return resolved
 
 
-_DTYPES = ("float32", "float16", "bfloat16")
+DTYPES = ("float32", "float16", "bfloat16")
 
 
 def resolve_dtype(dtype: "str | torch.dtype") -> "torch.dtype":
@@ -120,51 +119,6 @@ def resolve_dtype(dtype: "str | torch.dtype") -> "torch.dtype":
     import torch
     if isinstance(dtype, torch.dtype):
         return dtype
-    if dtype not in _DTYPES:
-        raise InputError(f"unknown dtype {dtype!r} (choose from {', '.join(_DTYPES)})", field="dtype")
+    if dtype not in DTYPES:
+        raise InputError(f"unknown dtype {dtype!r} (choose from {', '.join(DTYPES)})", field="dtype")
     return getattr(torch, dtype)
-
-
-def add_encoder_arguments(parser: argparse.ArgumentParser, *, default: str = "viclip") -> None:
-    """The encoder options shared by every command that encodes video or text."""
-    group = parser.add_argument_group("encoder")
-    group.add_argument("--encoder", default=default, choices=encoder_names(),
-                       help=f"video-text encoder (default: {default})")
-    group.add_argument("--checkpoint", default=None,
-                       help="ViCLIP weights: ViClip-InternVid-10M-FLT.pth, a .safetensors file or a "
-                            "ViCLIP-*-hf directory (never downloaded)")
-    group.add_argument("--vocab", default=None, help="CLIP BPE vocabulary bpe_simple_vocab_16e6.txt.gz")
-    group.add_argument("--viclip-size", default="auto", choices=("auto", "l", "b"),
-                       help="ViCLIP size; 'auto' reads it off the checkpoint (default)")
-    group.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 or auto (default)")
-    group.add_argument("--encoder-dtype", default="float32", choices=sorted(_DTYPES),
-                       help="ViCLIP weights precision (float16/bfloat16 only on GPU; default float32)")
-    group.add_argument("--encoder-batch-size", type=int, default=16,
-                       help="clips or texts per encoder forward pass (default 16)")
-    group.add_argument("--pixel-normalization", default="clip", choices=("clip", "imagenet"),
-                       help="pixel statistics ViCLIP sees: 'clip' (as the 4-LEGS pipeline describes, "
-                            "default) or 'imagenet' (the statistics ViCLIP was trained with)")
-
-
-def load_encoder_from_args(args: argparse.Namespace, **extra: Any) -> VideoTextEncoder:
-    """Build the encoder named by ``args.encoder`` from the options of :func:`add_encoder_arguments`.
-
-    ``extra`` goes to the factory as well (the simulated encoder takes e.g. the scene). Options that
-    a parser did not define fall back to their defaults.
-    """
-    name = getattr(args, "encoder", None) or "viclip"
-    if name.startswith("viclip"):
-        size = getattr(args, "viclip_size", "auto")
-        kwargs: dict[str, Any] = dict(
-            checkpoint=getattr(args, "checkpoint", None),
-            vocab=getattr(args, "vocab", None),
-            device=getattr(args, "device", "auto"),
-            dtype=getattr(args, "encoder_dtype", "float32"),
-            batch_size=getattr(args, "encoder_batch_size", 16),
-            normalization=getattr(args, "pixel_normalization", "clip"),
-        )
-        if size not in (None, "auto"):
-            kwargs["size_override"] = size
-        kwargs.update(extra)
-        return get_encoder(name, **kwargs)
-    return get_encoder(name, **extra)

@@ -49,9 +49,8 @@ def register(subparsers: Any) -> None:
 # ------------------------------------------------------------------------------------ query
 def _open(args: argparse.Namespace):
     from ..errors import InputError
+    from ..pipeline import QueryOptions, ensure_language_field, open_query_engine, text_encoder
     from ..scene.bundle import is_bundle, load_bundle
-    from .engine import QueryEngine
-    from .prepare import ensure_language_field
 
     if args.demo:
         from ..scene.synthetic import ensure_demo_bundle
@@ -73,13 +72,14 @@ def _open(args: argparse.Namespace):
     if not scene.language and not (scene.metadata or {}).get("labels"):
         raise InputError("the scene has no distilled language field; run `fourlegs language` first",
                          file=path, field="language")
-    scene, field, encoder = ensure_language_field(scene, progress=True)
-    engine = QueryEngine(scene, field, encoder, path=args.path, codebook_size=args.codebook_size,
-                         codebook_refine=args.codebook_refine,
-                         **({} if args.codebook_samples is None else {"codebook_samples": args.codebook_samples}),
-                         negatives=args.negatives, temporal_stride=args.stride, spatial=args.spatial,
-                         resolution_scale=args.scale, dilation=args.dilation)
-    return scene, engine
+    encoder = text_encoder(scene)
+    scene = ensure_language_field(scene, encoder, progress=True)
+    options = QueryOptions(path=args.path, codebook_size=args.codebook_size, codebook_refine=args.codebook_refine,
+                           negatives=tuple(args.negatives), temporal_stride=args.stride, spatial=args.spatial,
+                           resolution_scale=args.scale, dilation=args.dilation)
+    if args.codebook_samples is not None:
+        options = options.replace(codebook_samples=args.codebook_samples)
+    return scene, open_query_engine(scene, encoder, options=options)
 
 
 def run_query(args: argparse.Namespace) -> int:

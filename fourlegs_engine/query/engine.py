@@ -33,17 +33,17 @@ from ..scene.scene import Scene
 from . import spatial, viewpoint
 from .codebook import Codebook, ensure_codebook
 from .head import RelevancyHead
-from .relevancy import (RELEVANCY_SCALE, as_tensor, l2_normalize, reference_set, relevancy, relevancy_many,
+from .options import QueryOptions
+from .relevancy import (as_tensor, l2_normalize, reference_set, relevancy, relevancy_many,
                         relevancy_of_unit_features)
 from .rows import RowReader
 from .results import CentreResult, Localization, TemporalResult, ViewResult
-from .temporal import (R_AVG_SAMPLES, RELEVANT, counts_from_code_histogram, counts_from_codes_refined,
+from .temporal import (RELEVANT, counts_from_code_histogram, counts_from_codes_refined,
                        counts_from_relevancy, localize_counts, sampled_timesteps, tied_segment_rows, timestep_weights)
 
-__all__ = ["QueryEngine", "TemporalResult", "Localization", "ViewResult", "CentreResult"]
+__all__ = ["QueryEngine", "QueryOptions", "TemporalResult", "Localization", "ViewResult", "CentreResult"]
 
 NEEDS = frozenset({"temporal", "best_view", "action_centre"})
-DEFAULT_CODEBOOK_SIZE = 4096
 GAUSSIAN_CACHE_SIZE = 16  # per-Gaussian relevancy vectors (query, t) kept for reuse
 TEMPORAL_SCORE_BYTES = 512 << 20  # exact temporal scores (T·N float32 per query) kept for per-frame reuse
 
@@ -56,36 +56,22 @@ class QueryEngine:
         field: the distilled language field (``.latents`` (T,N,d), ``.decode(M,d)->(M,D)``,
             ``.canonical_phrases``).
         text_encoder: ``encode_text(list[str]) -> (n,D)`` of the encoder the field was distilled from.
-        path: "exact" or "codebook" (per-Gaussian relevancy and temporal localization).
-        codebook_size: K of the codebook path.
-        codebook_refine: margin of the codebook path's exact re-scoring (0: lookup only): R_avg is corrected
-            by exact scores of ``codebook_samples`` sampled Gaussians, and at every timestep whose decision
-            (s_t > 1/T) depends on them the Gaussians of the codes within this distance of R_avg are
-            decoded exactly (see :func:`~.temporal.counts_from_codes_refined`); a row whose relevancy is
-            certainly on one side of every threshold used gets a bound instead of the full decode (see
-            :meth:`RelevancyHead.relevancy_windowed`).
-        codebook_samples: exact scores spent on R_avg per query with ``codebook_refine`` > 0.
+        options: :class:`~.options.QueryOptions` (paths, strides, scales; default: exact everywhere).
         codebook: a prebuilt :class:`Codebook` (else loaded from / stored in ``codebook_dir``, by default
             the bundle's ``language/`` directory, or built in memory).
-        negatives: scene-specific negative phrases added to the canonical set.
-        temporal_stride: score every k-th timestep.
-        spatial: "exact" (128-channel render, per-pixel decode) or "fast" (1-channel relevancy render).
-        resolution_scale: render spatial maps at this fraction of each camera's resolution.
-        dilation: radius of the temporal dilation.
-        chunk: latents decoded per batch on the exact path.
-        latent_dtype: read latents as this numpy dtype before decoding (e.g. "float16" to measure
-            half-precision storage); None keeps the stored dtype.
-        camera_split: which cameras ``best_view`` considers by default ("train", "test" or "all").
-        render_options / render_backend: passed to the rasterizer.
     """
 
-    def __init__(self, scene: Scene, field: Any, text_encoder: Any, *, path: str = "exact",
-                 codebook_size: int = DEFAULT_CODEBOOK_SIZE, codebook: Optional[Codebook] = None,
-                 codebook_refine: float = 0.0, codebook_samples: int = R_AVG_SAMPLES,
-                 codebook_dir: Optional[Path] = None, negatives: Sequence[str] = (), temporal_stride: int = 1,
-                 spatial: str = "exact", resolution_scale: float = 1.0, dilation: int = 1, chunk: int = 32768,
-                 latent_dtype: Optional[str] = None, camera_split: str = "all", render_options: Any = None,
-                 render_backend: str = "auto", relevancy_scale: float = RELEVANCY_SCALE):
+    def __init__(self, scene: Scene, field: Any, text_encoder: Any, options: Optional[QueryOptions] = None, *,
+                 codebook: Optional[Codebook] = None, codebook_dir: Optional[Path] = None):
+        options = options if options is not None else QueryOptions()
+        self.options = options
+        (path, codebook_size, codebook_refine, codebook_samples, negatives, temporal_stride, spatial,
+         resolution_scale, dilation, chunk, latent_dtype, camera_split, render_options, render_backend,
+         relevancy_scale) = (options.path, options.codebook_size, options.codebook_refine,
+                             options.codebook_samples, options.negatives, options.temporal_stride,
+                             options.spatial, options.resolution_scale, options.dilation, options.chunk,
+                             options.latent_dtype, options.camera_split, options.render_options,
+                             options.render_backend, options.relevancy_scale)
         if path not in ("exact", "codebook"):
             raise InputError(f"unknown query path {path!r} (exact, codebook)", field="path")
         if spatial not in ("exact", "fast"):

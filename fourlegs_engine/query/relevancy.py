@@ -20,8 +20,8 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import InputError
+from .options import RELEVANCY_SCALE
 
-RELEVANCY_SCALE = 10.0
 NORM_EPS = 1e-12
 
 

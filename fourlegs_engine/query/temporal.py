@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from .options import R_AVG_SAMPLES
 from .results import TemporalResult
 
 RELEVANT = 0.5
@@ -77,7 +78,6 @@ def counts_from_code_histogram(code_scores, histogram) -> tuple[np.ndarray, floa
     return counts.astype(np.int64), r_avg, n_rel
 
 
-R_AVG_SAMPLES = 4096  # exact scores sampled per query to correct the codebook's R_avg
 # codes within this distance of 0.5 may hold relevant and irrelevant Gaussians alike; on the bench scene the
 # K = 65536 codebook's per-Gaussian error has a std of 0.015, and a band of 0.1 leaves out relevant pairs
 # worth at most 2e-4 of R_avg (0.02 would leave out 2e-3)

@@ -1,0 +1,61 @@
+"""Command-line options shared by several commands, and their translation into the library's option types.
+
+argparse stays here, at the edge: the library takes :class:`~fourlegs_engine.pipeline.EncoderConfig` and
+:class:`~fourlegs_engine.query.options.QueryOptions`.
+"""
+from __future__ import annotations
+
+import argparse
+from typing import Optional
+
+from .errors import InputError
+from .language.encoders import DTYPES, encoder_names
+from .pipeline import EncoderConfig
+
+
+def add_encoder_arguments(parser: argparse.ArgumentParser, *, default: str = "viclip") -> None:
+    """The encoder options shared by every command that encodes video or text."""
+    group = parser.add_argument_group("encoder")
+    group.add_argument("--encoder", default=default, choices=encoder_names(),
+                       help=f"video-text encoder (default: {default})")
+    group.add_argument("--checkpoint", default=None,
+                       help="ViCLIP weights: ViClip-InternVid-10M-FLT.pth, a .safetensors file or a "
+                            "ViCLIP-*-hf directory (never downloaded)")
+    group.add_argument("--vocab", default=None, help="CLIP BPE vocabulary bpe_simple_vocab_16e6.txt.gz")
+    group.add_argument("--viclip-size", default="auto", choices=("auto", "l", "b"),
+                       help="ViCLIP size; 'auto' reads it off the checkpoint (default)")
+    group.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 or auto (default)")
+    group.add_argument("--encoder-dtype", default="float32", choices=sorted(DTYPES),
+                       help="ViCLIP weights precision (float16/bfloat16 only on GPU; default float32)")
+    group.add_argument("--encoder-batch-size", type=int, default=16,
+                       help="clips or texts per encoder forward pass (default 16)")
+    group.add_argument("--pixel-normalization", default="clip", choices=("clip", "imagenet"),
+                       help="pixel statistics ViCLIP sees: 'clip' (as the 4-LEGS pipeline describes, "
+                            "default) or 'imagenet' (the statistics ViCLIP was trained with)")
+
+
+def encoder_config_from_args(args: argparse.Namespace) -> EncoderConfig:
+    """The :class:`EncoderConfig` of the options :func:`add_encoder_arguments` defined (missing ones: defaults)."""
+    default = EncoderConfig()
+    return EncoderConfig(name=getattr(args, "encoder", None) or default.name,
+                         checkpoint=getattr(args, "checkpoint", None), vocab=getattr(args, "vocab", None),
+                         size=getattr(args, "viclip_size", None) or default.size,
+                         device=getattr(args, "device", None) or default.device,
+                         dtype=getattr(args, "encoder_dtype", None) or default.dtype,
+                         batch_size=getattr(args, "encoder_batch_size", None) or default.batch_size,
+                         normalization=getattr(args, "pixel_normalization", None) or default.normalization)
+
+
+def parse_resolution(text: Optional[str], field: str = "--resolution", *, even: bool = False) -> Optional[tuple[int, int]]:
+    """"WIDTHxHEIGHT" -> (width, height); None stays None. ``even``: both sizes even (H.264)."""
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"expected WIDTHxHEIGHT, got {text!r}", field=field) from None
+    if even and (w <= 0 or h <= 0 or w % 2 or h % 2):
+        raise InputError(f"needs positive even sizes (H.264), got {w}x{h}", field=field)
+    if w <= 0 or h <= 0:
+        raise InputError(f"must be positive, got {text!r}", field=field)
+    return w, h

@@ -1,0 +1,176 @@
+"""The one setup chain every front end uses: open a scene -> choose the encoder -> ensure the language
+field -> open the query engine.
+
+The ``fourlegs`` commands, the headless main job and the Blender add-on all go through these functions;
+their options are plain dataclasses (:class:`EncoderConfig`, :class:`~fourlegs_engine.query.options.QueryOptions`)
+so no command-line type reaches the library::
+
+    from fourlegs_engine import pipeline
+
+    scene = pipeline.open_scene(demo="demo")                       # or a bundle / params.npz dir / .ply
+    scene = pipeline.ensure_language_field(scene, progress=True)   # extract -> train-ae -> distil (lift), once
+    engine = pipeline.open_query_engine(scene, options=pipeline.QueryOptions(spatial="fast"))
+    print(engine.localize("a ball flying in the air", {"temporal"}).temporal.segment)
+
+Heavy modules (torch) are imported on first use, so importing this module is cheap.
+"""
+from __future__ import annotations
+
+import hashlib
+import sys
+from contextlib import nullcontext
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, ContextManager, Optional
+
+from .errors import InputError
+from .query.options import QueryOptions
+
+if TYPE_CHECKING:
+    from .language.encoders import VideoTextEncoder
+    from .query.engine import QueryEngine
+    from .scene.scene import Scene
+
+__all__ = ["EncoderConfig", "QueryOptions", "ensure_language_field", "has_language_field", "open_query_engine",
+           "open_scene", "text_encoder"]
+
+#: a stage reporter: ``stage("extract features")`` returns a context manager around that stage
+StageReporter = Callable[[str], ContextManager[Any]]
+
+
+@dataclass(frozen=True)
+class EncoderConfig:
+    """Which video-text encoder to build, and how.
+
+    Attributes:
+        name: a registered encoder name ("simulated", "viclip", "viclip-b16") or "auto": the encoder the
+            scene's field was distilled with, else "simulated" for synthetic scenes (they carry
+            ``metadata["labels"]``), else "viclip".
+        checkpoint / vocab: ViCLIP weights and CLIP BPE vocabulary (never downloaded).
+        size: ViCLIP size, "auto" (read off the checkpoint), "l" or "b".
+        device: "auto", "cpu", "cuda", "cuda:1", ...
+        dtype: ViCLIP weights precision ("float32", "float16", "bfloat16").
+        batch_size: clips or texts per encoder forward pass.
+        normalization: pixel statistics ViCLIP sees ("clip" or "imagenet").
+    """
+
+    name: str = "auto"
+    checkpoint: Optional[str] = None
+    vocab: Optional[str] = None
+    size: str = "auto"
+    device: str = "auto"
+    dtype: str = "float32"
+    batch_size: int = 16
+    normalization: str = "clip"
+
+    def resolved_name(self, scene: Optional["Scene"] = None) -> str:
+        """The concrete encoder name ("auto" decided for ``scene``)."""
+        if self.name not in (None, "auto"):
+            return self.name
+        if scene is None:
+            return "viclip"
+        return (scene.language or {}).get("encoder") or (
+            "simulated" if (scene.metadata or {}).get("labels") else "viclip")
+
+    def replace(self, **changes: Any) -> "EncoderConfig":
+        return replace(self, **changes)
+
+
+def text_encoder(scene: Optional["Scene"] = None, config: EncoderConfig = EncoderConfig()) -> "VideoTextEncoder":
+    """Build the encoder ``config`` names for ``scene`` (the simulated encoder reads the scene's labels)."""
+    from .language.encoders import get_encoder
+
+    name = config.resolved_name(scene)
+    if name == "simulated":
+        return get_encoder(name, scene=scene)
+    if name.startswith("viclip"):
+        kwargs: dict[str, Any] = dict(checkpoint=config.checkpoint, vocab=config.vocab, device=config.device,
+                                      dtype=config.dtype, batch_size=config.batch_size,
+                                      normalization=config.normalization)
+        if config.size not in (None, "auto"):
+            kwargs["size_override"] = config.size
+        return get_encoder(name, **kwargs)
+    return get_encoder(name)
+
+
+def open_scene(source: str | Path | None = None, *, demo: Optional[str] = None) -> "Scene":
+    """Load a scene as a bundle: ``source`` (a bundle, a Dynamic 3D Gaussians ``params.npz`` directory, a
+    3DGS ``.ply`` file or a directory of per-frame ``.ply`` files) or the synthetic demo scene of size
+    ``demo`` ("tiny", "demo", "bench", "full"; generated on first use).
+
+    A scene that is not a bundle is converted once into a bundle in the cache (the language stages
+    store their results inside the bundle).
+    """
+    from .scene import is_bundle, load_scene, write_bundle
+
+    if demo is not None:
+        if source is not None:
+            raise InputError("give either a demo scene or a scene path, not both", field="scene")
+        from .scene.synthetic import ensure_demo_bundle
+        source = ensure_demo_bundle(demo)
+    elif source is None:
+        raise InputError("no scene given (a path, or the demo scene)", field="scene")
+    scene = load_scene(source)
+    if scene.root is None or not is_bundle(scene.root):
+        from .paths import cache_dir
+        digest = hashlib.sha256(str(Path(source).resolve()).encode()).hexdigest()[:12]
+        target = cache_dir() / "bundles" / f"{scene.name}-{digest}"
+        if not is_bundle(target):
+            write_bundle(scene, target)
+        scene = load_scene(target)
+    return scene
+
+
+def has_language_field(scene: "Scene") -> bool:
+    """Whether the bundle holds a distilled language field (its latents file present)."""
+    return bool(scene.root is not None and scene.language
+                and (Path(scene.root) / str(scene.language.get("latents", ""))).is_file())
+
+
+def ensure_language_field(scene: "Scene", encoder: Any = None, *, encoder_config: EncoderConfig = EncoderConfig(),
+                          mode: str = "lift", progress: bool = False,
+                          stage: Optional[StageReporter] = None) -> "Scene":
+    """Return ``scene`` with a distilled language field, building it first if the bundle has none.
+
+    Building runs extract features -> train the autoencoder -> distil (``mode``, by default the
+    learning-free lift); every stage resumes where it stopped. ``encoder`` (default: built from
+    ``encoder_config``) is the video-text teacher. ``stage`` reports each stage (e.g. a timer).
+    """
+    if scene.root is None:
+        raise InputError("the scene must be a bundle on disk to hold its language field", field="scene")
+    if has_language_field(scene):
+        return scene
+    from .language.autoencoder import train_autoencoder
+    from .language.distill import distill_scene
+    from .language.extract import extract_features
+    from .scene.bundle import load_bundle
+
+    report = stage or (lambda name: nullcontext())
+    encoder = encoder if encoder is not None else text_encoder(scene, encoder_config)
+    if progress:
+        print(f"{scene.name}: no language field yet; extracting features, training the autoencoder and "
+              f"distilling ({mode}) — once per scene", file=sys.stderr)
+    with report("extract features"):
+        extract_features(scene, encoder, progress=progress)
+    with report("train autoencoder"):
+        train_autoencoder(scene, progress=progress)
+    with report(f"distil ({mode})"):
+        distill_scene(scene, mode=mode, progress=progress)
+    return load_bundle(scene.root)
+
+
+def open_query_engine(scene: "Scene", encoder: Any = None, *, options: Optional[QueryOptions] = None,
+                      encoder_config: EncoderConfig = EncoderConfig(), **engine_kwargs: Any) -> "QueryEngine":
+    """A :class:`~fourlegs_engine.query.engine.QueryEngine` on ``scene``'s language field.
+
+    ``encoder`` (default: built from ``encoder_config``) must be the one the field was distilled with;
+    ``engine_kwargs`` are the engine's ``codebook`` / ``codebook_dir``. InputError if the scene has no field.
+    """
+    from .language.field import LanguageField
+    from .query.engine import QueryEngine
+
+    if not has_language_field(scene):
+        raise InputError("the scene has no distilled language field: run `fourlegs highlight` on it once (or "
+                         "the language stages: extract, train-ae, distill)", file=scene.root, field="language")
+    encoder = encoder if encoder is not None else text_encoder(scene, encoder_config)
+    return QueryEngine(scene, LanguageField.open(scene.root), encoder, options, **engine_kwargs)

@@ -107,11 +107,3 @@ class FOURLEGS_PT_render(_SidebarSubPanel, bpy.types.Panel):
 
 
 classes = (FOURLEGS_PT_main, FOURLEGS_PT_query, FOURLEGS_PT_highlight, FOURLEGS_PT_render)
-
-
-def register() -> None:
-    pass
-
-
-def unregister() -> None:
-    pass

@@ -18,14 +18,12 @@ def register() -> None:
         bpy.utils.register_class(cls)
     properties.register()
     render_engine.register()
-    panels.register()
     importer.register()
 
 
 def unregister() -> None:
     operators.cancel_all()
     importer.unregister()
-    panels.unregister()
     render_engine.unregister()
     properties.unregister()
     for cls in reversed(classes):

@@ -232,7 +232,7 @@ def _to_rect(img: np.ndarray) -> np.ndarray:
 
 
 def write_pass(render_pass, img: np.ndarray) -> None:
-    """Copy a top-down (H,W,C) image into a render pass (``foreach_set``: ~1000x faster than ``rect = ...``)."""
+    """Copy a top-down (H,W,C) image into a render pass (``foreach_set``: far faster than ``rect = ...``)."""
     rect = _to_rect(img)
     try:
         render_pass.rect.foreach_set(rect.ravel())

@@ -23,7 +23,7 @@ import sys
 import statistics
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
@@ -370,10 +370,6 @@ def environment() -> dict:
     import platform
     return {"machine": f"{platform.machine()} {os.cpu_count()} CPUs", "torch": torch.__version__,
             "threads": torch.get_num_threads(), "python": platform.python_version()}
-
-
-def with_overrides(cfg: BenchConfig, **kw) -> BenchConfig:
-    return replace(cfg, **{k: v for k, v in kw.items() if v is not None})
 
 
 def _ints(text: str, name: str) -> tuple[int, ...]:

@@ -1,7 +1,7 @@
 """Float64 brute-force rasterization oracle, written independently of fourlegs_engine.render.
 
 Every pixel × every Gaussian, Gaussians blended one at a time front to back (stable depth sort), no
-tiles, no footprint bounds, plain numpy. Conventions (docs/CONTRACTS.md, REFERENCE.md): EWA with the
+tiles, no footprint bounds, plain numpy. Conventions (docs/CONTRACTS.md "render"): EWA with the
 Jacobian at x/z, y/z clamped to 1.3·tan(half fov) (principal-point aware), 0.3 px² low-pass, pixel
 centres at +0.5, α = min(0.99, o·exp(−½dᵀΣ⁻¹d)), α < 1/255 skipped, stop before T < 1e-4.
 """

@@ -13,10 +13,8 @@ Modes (geometry frozen in all of them):
     ``lift_smoothing="blur"`` then replaces each lifted latent by the mean over its ``neighbours``
     nearest Gaussians (itself included; the paper's Local_Blur with fixed weights, no learning) and
     re-normalizes: the learning-free counterpart of optimize's neighbourhood smoothing. It also gives
-    unseen Gaussians their neighbours' latent. Measured (all timesteps, exact temporal path, fast maps):
-    vAP +0.8 to +6.1 over the plain lift on each of 5 tiny seeds (17.0 -> 17.8 on seed 0, where
-    optimize-2000 gets 20.4), but 46.9 vs 47.7 on ``bench``; so it is off by default. Cost: one kNN and
-    one sparse product per timestep (+0.5 s at 100k Gaussians, one thread).
+    unseen Gaussians their neighbours' latent. It helps on small scenes and not on larger ones (see
+    docs/benchmarks.md), so it is off by default. Cost: one kNN and one sparse product per timestep.
 ``optimize`` (the paper)
     Latents start at 0 and are smoothed by single-head self-attention over each Gaussian's 20 nearest
     neighbours (kNN once per timestep); the smoothed latents are rendered and compared with L1 to the

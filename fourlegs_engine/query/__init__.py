@@ -2,24 +2,13 @@
 
 ``relevancy`` (LERF form, stable), ``temporal`` (paper §3.2 / supplementary A.2), ``spatial`` (centre of
 mass, 3D lift, best component box), ``viewpoint`` (best view), ``codebook`` (k-means fast path),
-``multiscene`` (§6.2), and :class:`~.engine.QueryEngine` tying them to a scene and its field.
-Submodules import torch lazily where they can; ``QueryEngine`` is imported on first attribute access.
+``multiscene`` (§6.2), and :class:`~.engine.QueryEngine` tying them to a scene and its field, configured
+by :class:`~.options.QueryOptions`.
 """
-from __future__ import annotations
+from .engine import QueryEngine
+from .options import QueryOptions
+from .relevancy import relevancy
+from .results import CentreResult, Localization, TemporalResult, ViewResult
 
-from typing import Any
-
-__all__ = ["QueryEngine", "TemporalResult", "Localization", "ViewResult", "CentreResult", "relevancy"]
-
-
-def __getattr__(name: str) -> Any:
-    if name == "QueryEngine":
-        from .engine import QueryEngine
-        return QueryEngine
-    if name in ("TemporalResult", "Localization", "ViewResult", "CentreResult"):
-        from . import results
-        return getattr(results, name)
-    if name == "relevancy":
-        from .relevancy import relevancy
-        return relevancy
-    raise AttributeError(name)
+__all__ = ["CentreResult", "Localization", "QueryEngine", "QueryOptions", "TemporalResult", "ViewResult",
+           "relevancy"]

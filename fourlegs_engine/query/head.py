@@ -25,8 +25,8 @@ eigendecomposition RᵀR = Σ λ_i v_i v_iᵀ (λ descending), the top ``BOUND_R
 
 at r·H multiply-adds, while the dot products u·(Qᵀv) = h·(Rᵀ Qᵀ v) + β·Qᵀv stay exact. Each margin is
 monotone in |y|, so the relevancy lies between its values at the two norm bounds; a row whose interval
-is clear of the window needs nothing more (the bench decoder keeps ~97% of |Rh|² in its top 16
-directions, and ~90% of the codebook path's re-scored and sampled rows are decided this way).
+is clear of the window needs nothing more. A trained decoder concentrates |Rh|² in a few directions,
+so most of the codebook path's re-scored and sampled rows are decided this way.
 """
 from __future__ import annotations
 
@@ -49,8 +49,8 @@ BOUND_RANK = 32
 #: relevancy bounds are widened by this much before a row counts as decided (float32 rounding of the
 #: exact path is ~1e-6)
 BOUND_PAD = 1e-4
-#: rows per block of :meth:`RelevancyHead.relevancy_windowed` (its (M,H) activations stay in cache:
-#: ~2.1 µs per row for both hidden layers against ~3-4 µs in one 16k-32k row product, measured)
+#: rows per block of :meth:`RelevancyHead.relevancy_windowed` (its (M,H) activations stay in cache,
+#: which is faster per row than one product over all rows)
 WINDOW_BLOCK_ROWS = 4096
 F32_SAFE = 1e36  # |y|² below this: the float32 exact path computes |u|² without overflow
 
@@ -147,8 +147,8 @@ class RelevancyHead:
             for w, b in self.hidden:
                 h = torch.addmm(b, h, w.T).clamp_min_(0.0)
             return h
-        # CPU: hᵀ = W zᵀ with zᵀ the Fortran view of C-ordered z; scipy's BLAS is measurably faster
-        # than torch's for these tall-skinny products on the machines we measured
+        # CPU: hᵀ = W zᵀ with zᵀ the Fortran view of C-ordered z; scipy's BLAS beats torch's on these
+        # tall-skinny products
         h = z.contiguous()
         for (_, b), w in zip(self.hidden, self.hidden_fortran):
             h = torch.from_numpy(blas.sgemm(1.0, w, h.numpy().T).T).add_(b).clamp_min_(0.0)

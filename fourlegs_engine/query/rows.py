@@ -2,11 +2,10 @@
 
 The codebook path's re-scoring reads a few thousand rows scattered over a latent file of many GB.
 Through a memory mapping each row costs a page fault, and the kernel maps up to 16 cached pages around
-it, so the process's resident size grows by up to 64 kB per row until the pages are unmapped again (a
-``madvise`` over the whole mapping, itself ~2 µs per page). Reading the rows with ``os.pread`` instead
-copies just their bytes out of the page cache: ~2 µs per row on the machines we measured against ~6 µs
-for fault + release, and nothing of the file stays in the process. Runs of consecutive rows are read
-in one call.
+it, so the process's resident size grows by up to 64 kB per row until the pages are unmapped again
+(a ``madvise`` over the whole mapping). Reading the rows with ``os.pread`` instead copies just their
+bytes out of the page cache, cheaper than a fault and its release, and nothing of the file stays in
+the process. Runs of consecutive rows are read in one call.
 """
 from __future__ import annotations
 

@@ -78,9 +78,9 @@ def counts_from_code_histogram(code_scores, histogram) -> tuple[np.ndarray, floa
     return counts.astype(np.int64), r_avg, n_rel
 
 
-# codes within this distance of 0.5 may hold relevant and irrelevant Gaussians alike; on the bench scene the
-# K = 65536 codebook's per-Gaussian error has a std of 0.015, and a band of 0.1 leaves out relevant pairs
-# worth at most 2e-4 of R_avg (0.02 would leave out 2e-3)
+# codes within this distance of 0.5 may hold relevant and irrelevant Gaussians alike; the band is several
+# times the per-Gaussian error of a large codebook, so the relevant pairs it leaves out are negligible
+# against R_avg
 MEMBERSHIP_BAND = 0.1
 R_AVG_Z = 3.0  # R_avg's confidence interval, in standard errors of its sampled estimate
 R_AVG_MAX_SAMPLES_FACTOR = 16  # the sample grows 4x at a time up to this many times the first one

@@ -5,32 +5,11 @@
 - :mod:`.checkpoint`: strict, pickle-free loading (``.pth`` and ``-hf`` safetensors) and saving.
 - :mod:`.encoder`: ``ViCLIPEncoder``, the ``VideoTextEncoder`` the rest of the engine uses.
 - :mod:`.commands`: ``fourlegs viclip-info`` (``fourlegs bench viclip`` lives in ``benchmarks.viclip``).
-
-Names are imported on first use, so the CLI can register its commands without importing torch.
 """
-from __future__ import annotations
+from .checkpoint import check_state_dict, load_viclip, read_state_dict, save_viclip
+from .encoder import ViCLIPEncoder
+from .model import CLIP_MEAN, CLIP_STD, IMAGENET_MEAN, IMAGENET_STD, ViCLIPConfig, ViCLIPModel, infer_config
+from .tokenizer import BPETokenizer
 
-import importlib
-from typing import Any
-
-_EXPORTS = {
-    "BPETokenizer": ".tokenizer",
-    "CLIP_MEAN": ".model", "CLIP_STD": ".model", "IMAGENET_MEAN": ".model", "IMAGENET_STD": ".model",
-    "ViCLIPConfig": ".model", "ViCLIPModel": ".model", "infer_config": ".model",
-    "ViCLIPEncoder": ".encoder",
-    "check_state_dict": ".checkpoint", "load_viclip": ".checkpoint", "read_state_dict": ".checkpoint",
-    "save_viclip": ".checkpoint",
-}
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str) -> Any:
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(_EXPORTS[name], __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+__all__ = ["BPETokenizer", "CLIP_MEAN", "CLIP_STD", "IMAGENET_MEAN", "IMAGENET_STD", "ViCLIPConfig", "ViCLIPEncoder",
+           "ViCLIPModel", "check_state_dict", "infer_config", "load_viclip", "read_state_dict", "save_viclip"]

@@ -67,8 +67,8 @@ class FOURLEGS_OT_import_scene(bpy.types.Operator, ImportHelper):
 class _QueryJob:
     """State shared between the worker thread and the modal operator."""
 
-    def __init__(self, scene: Any, query: str):
-        self.scene, self.query = scene, query
+    def __init__(self, scene: Any, query: str, encoder: Any = None):
+        self.scene, self.query, self.encoder = scene, query, encoder
         self.progress, self.stage = 0.0, "starting"
         self.cancelled = False
         self.done = False
@@ -79,7 +79,7 @@ class _QueryJob:
     def run(self) -> None:
         try:
             self.stage, self.progress = "opening the language field", 0.05
-            self.engine = querying.open_query_engine(self.scene)
+            self.engine = querying.open_query_engine(self.scene, encoder=self.encoder)
             if self.cancelled:
                 return
             self.stage, self.progress = "localizing in time and space", 0.2
@@ -133,7 +133,7 @@ class FOURLEGS_OT_run_query(bpy.types.Operator):
         except Exception as exc:
             self.report({"ERROR"}, f"4-LEGS query: {_err(exc)}")
             return {"CANCELLED"}
-        self._job = _QueryJob(scene, props.query.strip())
+        self._job = _QueryJob(scene, props.query.strip(), querying.encoder_config(props))
         _JOBS.append(self._job)
         threading.Thread(target=self._job.run, name="fourlegs-query", daemon=True).start()
         props.running, props.progress, props.status = True, 0.0, "starting"
@@ -294,7 +294,8 @@ class FOURLEGS_OT_generate_highlight(bpy.types.Operator):
                 localizer = _LOCALIZERS.get(importer.source_key(obj))
                 query = props.query.strip()
                 if localizer is None or localizer.query != query:
-                    localizer = planning.CachedLocalizer(querying.open_query_engine(scene), query)
+                    localizer = planning.CachedLocalizer(
+                        querying.open_query_engine(scene, encoder=querying.encoder_config(props)), query)
                 plan = planning.make_plan(scene, localizer, query, props.preset,
                                           disabled_effects=disabled_effects(props))
             generate_highlight(context.scene, plan)

@@ -74,6 +74,10 @@ class FOURLEGS_PT_query(_SidebarSubPanel, bpy.types.Panel):
         row = layout.row(align=True)
         row.operator("fourlegs.show_relevancy", text="Relevancy").show = True
         row.operator("fourlegs.show_relevancy", text="Colours").show = False
+        col = layout.column(align=True)
+        col.label(text="ViCLIP (fields distilled with it):")
+        col.prop(props, "encoder_checkpoint", text="Weights")
+        col.prop(props, "encoder_vocab", text="Vocabulary")
 
 
 class FOURLEGS_PT_highlight(_SidebarSubPanel, bpy.types.Panel):

@@ -48,6 +48,12 @@ class FourlegsSceneProps(bpy.types.PropertyGroup):
     segment_end: IntProperty(name="Segment End", default=-1)
     peak: IntProperty(name="Peak", default=-1)
     best_view: StringProperty(name="Best View", default="")
+    # --- encoder of fields distilled with ViCLIP (what `--checkpoint` / `--vocab` give the commands)
+    encoder_checkpoint: StringProperty(name="ViCLIP Weights", subtype="FILE_PATH", default="",
+                                       description="ViClip-InternVid-10M-FLT.pth, a .safetensors file or a "
+                                                   "ViCLIP-*-hf directory (never downloaded)")
+    encoder_vocab: StringProperty(name="ViCLIP Vocabulary", subtype="FILE_PATH", default="",
+                                  description="CLIP BPE vocabulary bpe_simple_vocab_16e6.txt.gz")
     # --- highlight
     preset: EnumProperty(name="Preset", description="Highlight preset of the planner", items=_preset_items)
     use_bullet_time: BoolProperty(name="Bullet Time", default=True)

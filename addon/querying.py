@@ -1,7 +1,8 @@
 """Open a query engine on an imported scene (no bpy), through the engine's pipeline.
 
-The text encoder is chosen as ``fourlegs highlight`` chooses it (:class:`fourlegs_engine.api.EncoderConfig`
-with ``name="auto"``: the encoder the field was distilled with).
+The text encoder is chosen as the ``fourlegs`` commands choose it (:class:`fourlegs_engine.api.EncoderConfig`,
+``name="auto"``: the encoder the field was distilled with); ViCLIP weights come from the scene's
+``encoder_checkpoint`` / ``encoder_vocab`` properties, the add-on's ``--checkpoint`` / ``--vocab``.
 """
 from __future__ import annotations
 
@@ -10,15 +11,32 @@ from typing import Any, Optional
 _ENGINES: dict[int, Any] = {}
 
 
-def open_query_engine(scene: Any, options: Optional[Any] = None) -> Any:
-    """A ``QueryEngine`` for ``scene`` (cached per scene object when ``options`` is None: the engine's
-    defaults); InputError if the scene has no language field."""
+def encoder_config(props: Any = None) -> Any:
+    """The :class:`EncoderConfig` of the add-on's properties (``scene.fourlegs``; None: the defaults)."""
+    from fourlegs_engine import api
+
+    def path(value: str) -> Optional[str]:
+        if not value:
+            return None
+        import bpy
+
+        return bpy.path.abspath(value)
+
+    if props is None:
+        return api.EncoderConfig()
+    return api.EncoderConfig(checkpoint=path(props.encoder_checkpoint), vocab=path(props.encoder_vocab))
+
+
+def open_query_engine(scene: Any, options: Optional[Any] = None, encoder: Optional[Any] = None) -> Any:
+    """A ``QueryEngine`` for ``scene`` with ``options`` (QueryOptions; None: the engine's defaults) and the
+    text encoder ``encoder`` (EncoderConfig) names; cached per scene object when ``options`` is None.
+    InputError if the scene has no language field."""
     from fourlegs_engine import api
 
     key = id(scene)
     if options is None and key in _ENGINES:
         return _ENGINES[key]
-    engine = api.open_query_engine(scene, options=options)
+    engine = api.open_query_engine(scene, options=options, encoder_config=encoder or api.EncoderConfig())
     if options is None:
         _ENGINES[key] = engine
     return engine

@@ -138,7 +138,7 @@ def gather_gaussians(scene: bpy.types.Scene, t: float, with_relevancy: bool,
             if rel is None and query:  # e.g. a saved .blend re-opened: ask the scene's language field
                 from . import querying
 
-                engine = querying.open_query_engine(src)
+                engine = querying.open_query_engine(src, encoder=querying.encoder_config(scene.fourlegs))
                 importer.set_relevancy_provider(obj, lambda t, e=engine, q=query: e.gaussian_relevancy(q, t).numpy())
                 rel = importer.gaussian_relevancy(obj, ti)
             part["relevancy"] = (np.zeros(g.num_gaussians, np.float32) if rel is None

@@ -168,3 +168,19 @@ def test_missing_dependency_message_names_the_install_command():
     msg = operators._err(exc)
     assert "torch is not installed" in msg and "-m pip install torch" in msg
     assert operators._err(ValueError("bad: field")) == "bad: field"
+
+
+def test_viclip_weights_come_from_the_scene_properties(bl, tmp_path):
+    """The add-on's encoder is the commands' EncoderConfig; its ViCLIP paths are the scene's properties."""
+    from fourlegs_addon import querying
+    from fourlegs_engine.pipeline import EncoderConfig
+
+    props = bl.context.scene.fourlegs
+    props.encoder_checkpoint, props.encoder_vocab = "", ""
+    assert querying.encoder_config(props) == EncoderConfig()
+    props.encoder_checkpoint = str(tmp_path / "ViClip-InternVid-10M-FLT.pth")
+    props.encoder_vocab = str(tmp_path / "bpe_simple_vocab_16e6.txt.gz")
+    config = querying.encoder_config(props)
+    assert config.name == "auto" and config.checkpoint == str(tmp_path / "ViClip-InternVid-10M-FLT.pth")
+    assert config.vocab == str(tmp_path / "bpe_simple_vocab_16e6.txt.gz")
+    props.encoder_checkpoint, props.encoder_vocab = "", ""

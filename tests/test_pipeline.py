@@ -1,0 +1,78 @@
+"""The one setup chain: open a scene (any format) -> encoder -> language field -> query engine."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fourlegs_engine import pipeline
+from fourlegs_engine.errors import InputError
+from fourlegs_engine.pipeline import EncoderConfig
+from fourlegs_engine.scene import Scene, is_bundle, load_bundle
+from fourlegs_engine.scene.ply import write_ply_scene
+
+from _language_helpers import micro_bundle, micro_scene
+from _scene_helpers import random_scene
+
+
+def test_auto_encoder_is_the_fields_then_simulated_for_synthetic_scenes_then_viclip():
+    scene = micro_scene(T=2)
+    assert EncoderConfig().resolved_name(scene) == "simulated"  # synthetic: labels in the metadata
+    scene.language = {"encoder": "viclip-b16"}
+    assert EncoderConfig().resolved_name(scene) == "viclip-b16"  # the encoder the field was distilled with
+    assert EncoderConfig(name="simulated").resolved_name(scene) == "simulated"  # an explicit name wins
+    plain = Scene(gaussians=scene.gaussians, cameras=scene.cameras, name="plain")
+    assert EncoderConfig().resolved_name(plain) == "viclip" and EncoderConfig().resolved_name(None) == "viclip"
+    with pytest.raises(InputError, match="--checkpoint"):  # ViCLIP weights are never guessed
+        pipeline.text_encoder(plain)
+
+
+def test_open_scene_refuses_both_or_neither_source():
+    with pytest.raises(InputError, match="not both"):
+        pipeline.open_scene("x", demo="tiny")
+    with pytest.raises(InputError, match="no scene given"):
+        pipeline.open_scene()
+
+
+def test_open_scene_converts_a_ply_sequence_once_into_a_cached_bundle(tmp_path, monkeypatch):
+    monkeypatch.setenv("FOURLEGS_CACHE", str(tmp_path / "cache"))
+    source = random_scene(T=2, N=30, sh_degree=0)
+    write_ply_scene(source, tmp_path / "frames")
+    scene = pipeline.open_scene(tmp_path / "frames")
+    assert scene.root is not None and is_bundle(scene.root)
+    assert str(scene.root).startswith(str(tmp_path / "cache" / "bundles"))
+    np.testing.assert_allclose(np.asarray(scene.gaussians.means), np.asarray(source.gaussians.means), atol=1e-6)
+    again = pipeline.open_scene(tmp_path / "frames")
+    assert again.root == scene.root  # converted once, reused
+
+
+def test_language_field_stages_run_once_in_order_with_the_chosen_encoder(tmp_path, monkeypatch):
+    """The wiring of the chain (the stages themselves are tested in test_language_distill.py)."""
+    from fourlegs_engine.language import autoencoder, distill, extract
+    from fourlegs_engine.scene.bundle import update_bundle_meta
+
+    scene = load_bundle(micro_bundle(tmp_path / "micro", T=2))
+    assert not pipeline.has_language_field(scene)
+    with pytest.raises(InputError, match="no distilled language field"):
+        pipeline.open_query_engine(scene)
+    calls: list[tuple] = []
+    monkeypatch.setattr(extract, "extract_features", lambda sc, enc, progress=False: calls.append(("extract", enc.name)))
+    monkeypatch.setattr(autoencoder, "train_autoencoder", lambda sc, progress=False: calls.append(("train",)))
+
+    def fake_distill(sc, mode="lift", progress=False):
+        calls.append(("distill", mode))
+        np.save(sc.root / "latents.npy", np.zeros((2, sc.num_gaussians, 4), np.float32))
+        update_bundle_meta(sc.root, language={"encoder": "simulated", "latents": "latents.npy"})
+
+    monkeypatch.setattr(distill, "distill_scene", fake_distill)
+    stages: list[str] = []
+
+    def stage(name):
+        from contextlib import nullcontext
+        stages.append(name)
+        return nullcontext()
+
+    built = pipeline.ensure_language_field(scene, stage=stage)
+    assert calls == [("extract", "simulated"), ("train",), ("distill", "lift")]
+    assert stages == ["extract features", "train autoencoder", "distil (lift)"]
+    assert built is not scene and pipeline.has_language_field(built)  # the bundle re-read with its field
+    assert pipeline.ensure_language_field(built, stage=stage) is built and len(calls) == 3  # nothing rerun

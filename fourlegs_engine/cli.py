@@ -2,7 +2,9 @@
 
 Each package contributes its sub-commands from a ``commands`` module with ``register(subparsers)``
 (and optionally ``register_bench(bench_subparsers)``); heavy imports happen inside the command
-functions so ``fourlegs --help`` stays fast. Errors from bad input print one line (no traceback).
+functions so ``fourlegs --help`` stays fast. Errors from bad input print one line (no traceback), and so do the machine's limits: an OS error
+(full or read-only disk, an output parent that is a file) names the path, and running out of memory
+says so (:func:`~fourlegs_engine.errors.describe_environment_error`).
 """
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import sys
 from typing import Sequence
 
 from . import __version__
-from .errors import FourlegsError
+from .errors import FourlegsError, describe_environment_error
 
 COMMAND_MODULES = (
     "fourlegs_engine.scene.commands",
@@ -65,6 +67,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("fourlegs: cancelled; run the same command again to resume", file=sys.stderr)
         return 130
+    except (OSError, MemoryError, RuntimeError) as exc:
+        message = describe_environment_error(exc)
+        if message is None:  # not a condition of the machine or the input: a bug, keep its traceback
+            raise
+        print(f"fourlegs: error: {message}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -13,6 +13,9 @@ BENCH_SAMPLES = 4096
 
 
 def register(subparsers: Any) -> None:
+    from ..validate import bounded
+    from .engine import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_TIMESTEP_ARGUMENT
+
     p = subparsers.add_parser(
         "query", help="when and where a text query happens in a scene (segment, peak, maps)",
         description="Localize a text query in a scene with a distilled language field: prints the "
@@ -31,7 +34,7 @@ def register(subparsers: Any) -> None:
                    help="timesteps for the EXR maps: integers or 'peak' (default: peak)")
     p.add_argument("--path", choices=("exact", "codebook"), default="exact",
                    help="per-Gaussian relevancy: exact decode or codebook lookup (default exact)")
-    p.add_argument("--codebook-size", type=int, default=4096, help="K of --path codebook (default 4096)")
+    p.add_argument("--codebook-size", type=bounded(int, 1, MAX_CODEBOOK_SIZE), default=4096, help="K of --path codebook (default 4096)")
     p.add_argument("--codebook-refine", type=float, default=0.0, metavar="MARGIN",
                    help="--path codebook: make the temporal decisions exact where they depend on it: R_avg "
                         "corrected by a sample of exact scores, and the Gaussians of codes within MARGIN of "
@@ -42,9 +45,12 @@ def register(subparsers: Any) -> None:
                         "R_avg's 3-sigma interval leaves a decision open; default: the engine's, 4096)")
     p.add_argument("--spatial", choices=("exact", "fast"), default="exact",
                    help="maps: 128-channel render + per-pixel decode, or 1-channel relevancy render")
-    p.add_argument("--scale", type=float, default=1.0, help="resolution scale of the maps (default 1)")
-    p.add_argument("--stride", type=int, default=1, help="temporal stride (default 1: every timestep)")
-    p.add_argument("--dilation", type=int, default=1, help="temporal dilation radius (default 1)")
+    p.add_argument("--scale", type=bounded(float, 0, MAX_RESOLUTION_SCALE, low_open=True), default=1.0,
+                   help=f"resolution scale of the maps, in (0, {MAX_RESOLUTION_SCALE:g}] (default 1)")
+    p.add_argument("--stride", type=bounded(int, 1, MAX_TIMESTEP_ARGUMENT), default=1,
+                   help="temporal stride (default 1: every timestep)")
+    p.add_argument("--dilation", type=bounded(int, 0, MAX_TIMESTEP_ARGUMENT), default=1,
+                   help="temporal dilation radius, >= 0 (default 1)")
     p.add_argument("--negatives", nargs="+", default=(), metavar="PHRASE",
                    help="scene-specific negative phrases added to the canonical ones")
     p.add_argument("--no-spatial", action="store_true", help="temporal localization only")
@@ -126,8 +132,12 @@ def _open(args: argparse.Namespace):
             raise InputError("expected SCENE TEXT (or --demo TEXT)", field="arguments")
         path = Path(args.scene)
         if not is_bundle(path):
-            raise InputError("not a scene bundle (scene.json missing); convert it with `fourlegs convert` and "
-                             "distil its language field with `fourlegs language`", file=path)
+            raise InputError("not a scene bundle (scene.json missing); `fourlegs query` reads bundles only: "
+                             "`fourlegs plan` and `fourlegs highlight` take this scene directly (they convert "
+                             "it), or write a bundle with fourlegs_engine.scene.write_bundle(load_scene(PATH), "
+                             "OUT) and run `fourlegs language OUT`", file=path)
+    from ..validate import check_text
+    check_text(args.text, "text")
     if not args.text or not args.text.strip():
         raise InputError("the query text is empty", field="text")
     scene = load_bundle(path)
@@ -200,9 +210,12 @@ def _write_maps(args, scene, engine, loc, write_exr) -> list[str]:
             frames.append(int(loc.temporal.peak))
         else:
             try:
-                frames.append(scene.gaussians.check_timestep(int(f)))
+                t = int(f)
             except ValueError:
                 raise InputError(f"{f!r} is neither a timestep nor 'peak'", field="--frames") from None
+            if not 0 <= t < scene.num_timesteps:
+                raise InputError(f"timestep {t} is out of range 0..{scene.num_timesteps - 1}", field="--frames")
+            frames.append(t)
     frames = list(dict.fromkeys(frames))
     names = args.views or ([loc.best_view] if loc.best_view else [])
     if not names:

@@ -7,7 +7,7 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterable, Iterator
 
 import numpy as np
 
@@ -119,3 +119,76 @@ def read_json(path: str | Path) -> Any:
         return json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"not valid JSON ({exc})", file=path) from None
+
+
+def unpickling_detail(exc: BaseException) -> str:
+    """The informative part of a refused ``torch.load(weights_only=True)``, without torch's advice.
+
+    torch's message suggests re-running with ``weights_only=False`` ("will likely succeed"), which
+    would execute the file's code; that advice is dropped, the reason kept (e.g. 'Unsupported
+    global: GLOBAL builtins.print').
+    """
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    for index, line in enumerate(lines):
+        if "WeightsUnpickler error:" in line:
+            rest = line.split("WeightsUnpickler error:", 1)[1].strip()
+            lines = [rest] if rest else lines[index + 1:index + 2]
+            break
+    keep = [line for line in lines if "weights_only" not in line and "likely succeed" not in line
+            and "trusted source" not in line]
+    text = (keep[0] if keep else "unsupported content").split(" Please use", 1)[0].strip()
+    return text.replace("was not an allowed global by default.", "is not allowed").rstrip(".")[:200]
+
+
+OUTPUTS_MARKER = ".fourlegs-outputs.json"
+
+
+def check_outputs(paths: Iterable[str | Path | None], *, overwrite: bool) -> None:
+    """Check every output of a command before any is written: existing ones are refused, all named
+    in one :class:`OutputExistsError`, unless ``overwrite``. ``None`` entries are skipped."""
+    existing = [str(p) for p in paths if p is not None and Path(p).exists()]
+    if existing and not overwrite:
+        raise OutputExistsError(", ".join(existing))
+
+
+def claim_outputs(directory: str | Path, paths: Iterable[str | Path], *, overwrite: bool) -> None:
+    """Check a command's outputs in ``directory`` up front and record them as the command's own.
+
+    A file already there is the user's unless an earlier, interrupted run recorded it in
+    ``directory/.fourlegs-outputs.json``; the user's files are refused (all named in one line)
+    unless ``overwrite``. The record is written before any output, so a resumed run may replace
+    what the interrupted one wrote, and only that.
+    """
+    directory = Path(directory)
+    paths = [Path(p) for p in paths]
+    marker = directory / OUTPUTS_MARKER
+    owned: set[str] = set()
+    if marker.is_file():
+        try:
+            recorded = json.loads(marker.read_text(encoding="utf-8"))
+            owned = {str(n) for n in recorded.get("outputs", [])} if isinstance(recorded, dict) else set()
+        except (ValueError, UnicodeDecodeError):
+            owned = set()
+    foreign = [p for p in paths if p.exists() and p.name not in owned]
+    if foreign and not overwrite:
+        raise OutputExistsError(", ".join(map(str, foreign)))
+    write_json_atomic(marker, {"outputs": sorted(owned | {p.name for p in paths})})
+
+
+@contextlib.contextmanager
+def output_group() -> Iterator[list[Path]]:
+    """All of a command's outputs or none: yields a list the command appends each written path to;
+    if the block fails, the ones already written are removed, so a re-run is not refused by a
+    partial result (each file itself is written atomically)."""
+    written: list[Path] = []
+    try:
+        yield written
+    except BaseException:
+        for path in reversed(written):
+            path = Path(path)
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()
+        raise

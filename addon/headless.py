@@ -361,6 +361,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     existing = [str(out[k]) for k in ("video", "blend", "report") if out[k].exists()]
     if existing and not args.overwrite:
         raise errors.OutputExistsError(", ".join(existing))
+    engine_module("validate").check_text(args.query, "query")
+    fileio.claim_outputs(out_dir, [out[k] for k in ("plan", "plot")], overwrite=args.overwrite)
     resolution = parse_resolution(args.resolution, args.demo)
 
     with timer("scene"):
@@ -406,6 +408,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "versions": versions(),
     }
     fileio.write_json_atomic(out["report"], report, overwrite=True)
+    (out_dir / fileio.OUTPUTS_MARKER).unlink(missing_ok=True)  # finished: report.json guards it now
     return report
 
 
@@ -458,6 +461,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except errors.FourlegsError as exc:
         print(f"fourlegs: error: {exc}", file=sys.stderr)
         return 2
+    except (OSError, MemoryError, RuntimeError) as exc:
+        message = errors.describe_environment_error(exc)
+        if message is None:
+            raise
+        print(f"fourlegs: error: {message}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("fourlegs: cancelled; run the same command again to resume", file=sys.stderr)
         return 130

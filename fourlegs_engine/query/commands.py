@@ -155,7 +155,7 @@ def _open(args: argparse.Namespace):
 
 def run_query(args: argparse.Namespace) -> int:
     from ..errors import OutputExistsError
-    from ..fileio import write_json_atomic
+    from ..fileio import output_group, write_json_atomic
     from .exr import write_exr
     from .plots import plot_temporal
     from .temporal import sparkline
@@ -188,18 +188,23 @@ def run_query(args: argparse.Namespace) -> int:
             print(m)
     print("timings: " + ", ".join(f"{k} {v:.3f} s" for k, v in loc.timings.items()))
     result = loc.to_dict()
-    if args.exr:
-        result["exr"] = _write_maps(args, scene, engine, loc, write_exr)
-    if args.json:
-        write_json_atomic(args.json, result, overwrite=args.overwrite)
-        print(f"wrote {args.json}")
-    if plot is not None:
-        plot_temporal(tmp, plot, query=args.text, overwrite=args.overwrite)
-        print(f"wrote {plot}")
+    with output_group() as written:  # a failure part-way leaves none of this run's outputs behind
+        if args.exr:
+            result["exr"] = _write_maps(args, scene, engine, loc, write_exr, written)
+        if args.json:
+            if not Path(args.json).exists():
+                written.append(Path(args.json))
+            write_json_atomic(args.json, result, overwrite=args.overwrite)
+            print(f"wrote {args.json}")
+        if plot is not None:
+            if not plot.exists():
+                written.append(plot)
+            plot_temporal(tmp, plot, query=args.text, overwrite=args.overwrite)
+            print(f"wrote {plot}")
     return 0
 
 
-def _write_maps(args, scene, engine, loc, write_exr) -> list[str]:
+def _write_maps(args, scene, engine, loc, write_exr, written: list[Path]) -> list[str]:
     from ..errors import InputError
 
     frames: list[int] = []
@@ -223,17 +228,19 @@ def _write_maps(args, scene, engine, loc, write_exr) -> list[str]:
         if not cams:
             raise InputError("the scene has no cameras", field="--views")
         names = [cams[0].name]
-    written = []
+    paths = []
     for t in frames:
         for name in names:
             cam = scene.cameras.find(name, t)
             maps = engine.relevancy_map(args.text, cam, t)
             path = Path(args.exr) / f"{name or 'view'}_t{t:04d}.exr"
+            if not path.exists():
+                written.append(path)
             write_exr(path, maps, overwrite=args.overwrite)
-            written.append(str(path))
+            paths.append(str(path))
             print(f"wrote {path} (relevancy, depth, alpha; {maps['relevancy'].shape[1]}x"
                   f"{maps['relevancy'].shape[0]})")
-    return written
+    return paths
 
 
 # ------------------------------------------------------------------------------------ benches

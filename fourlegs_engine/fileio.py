@@ -192,3 +192,78 @@ def output_group() -> Iterator[list[Path]]:
                 with contextlib.suppress(FileNotFoundError):
                     path.unlink()
         raise
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+EXR_MAGIC = b"\x76\x2f\x31\x01"
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # colour type -> samples per pixel
+
+
+def image_file_problem(path: str | Path, size: tuple[int, int] | None = None) -> str | None:
+    """Why the PNG or EXR at ``path`` is not a complete image (None when it is).
+
+    PNG: signature, every chunk's length and CRC, IHDR size (== ``size`` (width, height) if given),
+    the image data inflated to exactly the rows IHDR announces, and a final IEND. EXR: its magic
+    number and a non-trivial length. A frame written to a full disk (0 bytes, or cut short) fails.
+    """
+    import struct
+    import zlib
+
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        return f"unreadable ({exc.strerror or exc})"
+    if not data:
+        return "empty (0 bytes)"
+    if path.suffix.lower() == ".exr":
+        return None if data[:4] == EXR_MAGIC and len(data) > 64 else "not a complete OpenEXR file"
+    if not data.startswith(PNG_SIGNATURE):
+        return "not a PNG file"
+    pos, header, idat, ended = len(PNG_SIGNATURE), None, [], False
+    while pos + 12 <= len(data):
+        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        body = data[pos + 8:pos + 8 + length]
+        crc = data[pos + 8 + length:pos + 12 + length]
+        if len(body) != length or len(crc) != 4 or zlib.crc32(kind + body) != struct.unpack(">I", crc)[0]:
+            return f"cut short or damaged in its {kind.decode('latin-1')!r} chunk"
+        if kind == b"IHDR":
+            header = struct.unpack(">IIBBBBB", body[:13])
+        elif kind == b"IDAT":
+            idat.append(body)
+        elif kind == b"IEND":
+            ended = True
+            break
+        pos += 12 + length
+    if header is None or not ended:
+        return "cut short (no IHDR or IEND chunk)"
+    width, height, depth, colour, _, _, interlace = header
+    if size is not None and (width, height) != tuple(size):
+        return f"is {width}x{height}, expected {size[0]}x{size[1]}"
+    try:
+        pixels = zlib.decompress(b"".join(idat))
+    except zlib.error as exc:
+        return f"image data damaged ({exc})"
+    if not interlace and colour in _PNG_CHANNELS:
+        row = 1 + (width * _PNG_CHANNELS[colour] * depth + 7) // 8
+        if len(pixels) != row * height:
+            return f"image data has {len(pixels)} bytes, expected {row * height}"
+    return None
+
+
+def incomplete_write_error(path: str | Path, problem: str, needed_bytes: int = 1 << 20) -> OSError:
+    """The error for a file a writer we do not control (Blender) left incomplete: ENOSPC when the
+    disk has less than ``needed_bytes`` free (it filled up), else EIO naming the problem."""
+    import errno
+
+    path = Path(path)
+    probe = path.parent
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    try:
+        free = shutil.disk_usage(probe).free
+    except OSError:
+        free = None
+    if free is not None and free < needed_bytes:
+        return OSError(errno.ENOSPC, "No space left on device", str(path))
+    return OSError(errno.EIO, f"written incomplete: {problem}", str(path))

@@ -362,7 +362,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if existing and not args.overwrite:
         raise errors.OutputExistsError(", ".join(existing))
     engine_module("validate").check_text(args.query, "query")
-    fileio.claim_outputs(out_dir, [out[k] for k in ("plan", "plot")], overwrite=args.overwrite)
+    record_outputs = fileio.claim_outputs(out_dir, [out[k] for k in ("plan", "plot")], overwrite=args.overwrite)
     resolution = parse_resolution(args.resolution, args.demo)
 
     with timer("scene"):
@@ -380,6 +380,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     with timer("localize + plan"):
         plan_obj = planner.plan_highlight(scene, engine, args.query, preset, resolution=resolution, fps=args.fps)
         plan = plan_obj.to_dict()
+    record_outputs()
     fileio.write_json_atomic(out["plan"], plan, overwrite=True)
     loc = plan.get("localization") or {}
     if loc.get("scores"):
@@ -459,13 +460,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         report = run(args)
     except errors.FourlegsError as exc:
-        print(f"fourlegs: error: {exc}", file=sys.stderr)
+        engine_module("cli").print_error(str(exc))
         return 2
     except (OSError, MemoryError, RuntimeError) as exc:
         message = errors.describe_environment_error(exc)
         if message is None:
             raise
-        print(f"fourlegs: error: {message}", file=sys.stderr)
+        engine_module("cli").print_error(message)
         return 1
     except KeyboardInterrupt:
         print("fourlegs: cancelled; run the same command again to resume", file=sys.stderr)

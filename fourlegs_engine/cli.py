@@ -50,6 +50,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def print_error(message: str) -> None:
+    """``fourlegs: error: <message>`` on stderr; bytes that are not UTF-8 (in paths or text given on the
+    command line) are shown as escapes instead of failing the print."""
+    line = f"fourlegs: error: {message}".encode("utf-8", "backslashreplace").decode("utf-8")
+    print(line, file=sys.stderr)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -59,7 +66,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except FourlegsError as exc:
-        print(f"fourlegs: error: {exc}", file=sys.stderr)
+        print_error(str(exc))
         return 2
     except BrokenPipeError:  # output piped into e.g. `head`
         sys.stderr.close()
@@ -71,7 +78,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         message = describe_environment_error(exc)
         if message is None:  # not a condition of the machine or the input: a bug, keep its traceback
             raise
-        print(f"fourlegs: error: {message}", file=sys.stderr)
+        print_error(message)
         return 1
 
 

@@ -6,8 +6,9 @@ import json
 import os
 import shutil
 import tempfile
+import tokenize
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -107,8 +108,10 @@ def load_npy(path: str | Path, *, mmap: bool = True, field: str | None = None) -
             raise InputError("holds an object/pickled array, which is refused (never unpickled)",
                              file=path, field=field) from None
         raise InputError(f"corrupt or truncated .npy file ({msg})", file=path, field=field) from None
-    except (OSError, EOFError) as exc:
-        raise InputError(f"corrupt or truncated .npy file ({exc})", file=path, field=field) from None
+    except (OSError, EOFError, SyntaxError, TypeError, OverflowError, tokenize.TokenError) as exc:
+        # a damaged header reaches numpy's literal parser (SyntaxError/TokenError) or its shape checks
+        raise InputError(f"corrupt or truncated .npy file ({type(exc).__name__}: {str(exc)[:120]})", file=path,
+                         field=field) from None
 
 
 def read_json(path: str | Path) -> Any:
@@ -151,13 +154,13 @@ def check_outputs(paths: Iterable[str | Path | None], *, overwrite: bool) -> Non
         raise OutputExistsError(", ".join(existing))
 
 
-def claim_outputs(directory: str | Path, paths: Iterable[str | Path], *, overwrite: bool) -> None:
-    """Check a command's outputs in ``directory`` up front and record them as the command's own.
+def claim_outputs(directory: str | Path, paths: Iterable[str | Path], *, overwrite: bool) -> Callable[[], None]:
+    """Check a command's outputs in ``directory`` up front; returns ``record()`` to call just before
+    the first of them is written, which marks them as the command's own.
 
     A file already there is the user's unless an earlier, interrupted run recorded it in
     ``directory/.fourlegs-outputs.json``; the user's files are refused (all named in one line)
-    unless ``overwrite``. The record is written before any output, so a resumed run may replace
-    what the interrupted one wrote, and only that.
+    unless ``overwrite``. Recorded files may be replaced by a resumed run, and only those.
     """
     directory = Path(directory)
     paths = [Path(p) for p in paths]
@@ -172,7 +175,11 @@ def claim_outputs(directory: str | Path, paths: Iterable[str | Path], *, overwri
     foreign = [p for p in paths if p.exists() and p.name not in owned]
     if foreign and not overwrite:
         raise OutputExistsError(", ".join(map(str, foreign)))
-    write_json_atomic(marker, {"outputs": sorted(owned | {p.name for p in paths})})
+
+    def record() -> None:
+        write_json_atomic(marker, {"outputs": sorted(owned | {p.name for p in paths})})
+
+    return record
 
 
 @contextlib.contextmanager

@@ -50,8 +50,10 @@ def test_highlight_refuses_to_replace_the_users_plan_and_plot(tmp_path, monkeypa
 
 def test_an_interrupted_highlight_resumes_over_its_own_files(tmp_path, monkeypatch):
     out = tmp_path / "out"
-    with pytest.raises(_Stop):  # first run claims its outputs, then is "killed"
+    with pytest.raises(_Stop):  # a failure before the first output leaves nothing behind
         _headless_run(monkeypatch, ["--demo", "ball", "-o", str(out)])
+    assert not out.exists()
+    claim_outputs(out, [out / "plan.json", out / "scores.png"], overwrite=False)()  # the job's first write
     assert json.loads((out / OUTPUTS_MARKER).read_text())["outputs"] == ["plan.json", "scores.png"]
     (out / "plan.json").write_text("{}")          # what the interrupted run had written
     with pytest.raises(_Stop):
@@ -68,9 +70,13 @@ def test_highlight_refuses_non_utf8_query_before_writing(tmp_path, monkeypatch):
 def test_claim_outputs_names_every_foreign_file_at_once(tmp_path):
     for name in ("a.json", "b.png"):
         (tmp_path / name).write_text("x")
+    outputs = [tmp_path / "a.json", tmp_path / "b.png", tmp_path / "c.txt"]
     with pytest.raises(OutputExistsError, match="a.json.*b.png"):
-        claim_outputs(tmp_path, [tmp_path / "a.json", tmp_path / "b.png", tmp_path / "c.txt"], overwrite=False)
-    assert not (tmp_path / OUTPUTS_MARKER).exists()
+        claim_outputs(tmp_path, outputs, overwrite=False)
+    record = claim_outputs(tmp_path, outputs, overwrite=True)
+    assert not (tmp_path / OUTPUTS_MARKER).exists()   # nothing written before the command's first output
+    record()
+    claim_outputs(tmp_path, outputs, overwrite=False)  # now they are the command's own
 
 
 def test_output_group_removes_what_it_wrote_when_a_later_output_fails(tmp_path):

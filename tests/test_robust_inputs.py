@@ -208,3 +208,15 @@ def test_look_at_with_a_far_eye_is_a_valid_camera_not_coincident():
                                               ([math.inf, 0.5], "██"), ([math.inf], "█"), ([0.0, 0.5, 1.0], " ▄█"), ([], "")])
 def test_sparkline_of_non_finite_scores(scores, expected):
     assert sparkline(scores) == expected
+
+
+@pytest.mark.parametrize("w", [1e30, float("inf"), 10**6])
+def test_a_dynamic3dgs_meta_with_a_huge_width_is_refused_at_load(bundle, tmp_path, w):
+    from fourlegs_engine.scene.dynamic3dgs import write_dynamic3dgs
+    path = write_dynamic3dgs(load_scene(bundle), tmp_path / "d3")
+    meta = json.loads((path / "train_meta.json").read_text())
+    meta["w"] = w
+    (path / "train_meta.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError) as exc:
+        load_scene(path)
+    assert exc.value.field == "w/h" and exc.value.file == str(path / "train_meta.json")

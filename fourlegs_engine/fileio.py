@@ -7,12 +7,22 @@ import os
 import shutil
 import tempfile
 import tokenize
+import zipfile
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
 from .errors import InputError, OutputExistsError
+
+
+#: what a damaged ``.npy`` header raises inside numpy: its literal parser (SyntaxError, TokenError),
+#: its shape and dtype checks, or the file read itself
+NPY_HEADER_ERRORS = (OSError, EOFError, SyntaxError, TypeError, OverflowError, tokenize.TokenError)
+#: what ``torch.load(weights_only=True)`` raises for files that are not torch files at all (garbage
+#: reaches the restricted unpickler as unknown opcodes or memo keys)
+TORCH_LOAD_ERRORS = (RuntimeError, OSError, EOFError, ValueError, KeyError, IndexError, TypeError,
+                     AttributeError, UnicodeDecodeError, zipfile.BadZipFile)
 
 
 @contextlib.contextmanager
@@ -108,7 +118,7 @@ def load_npy(path: str | Path, *, mmap: bool = True, field: str | None = None) -
             raise InputError("holds an object/pickled array, which is refused (never unpickled)",
                              file=path, field=field) from None
         raise InputError(f"corrupt or truncated .npy file ({msg})", file=path, field=field) from None
-    except (OSError, EOFError, SyntaxError, TypeError, OverflowError, tokenize.TokenError) as exc:
+    except NPY_HEADER_ERRORS as exc:
         # a damaged header reaches numpy's literal parser (SyntaxError/TokenError) or its shape checks
         raise InputError(f"corrupt or truncated .npy file ({type(exc).__name__}: {str(exc)[:120]})", file=path,
                          field=field) from None

@@ -188,7 +188,7 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
         if not path.is_file():
             continue
         old = (read_json(path).get("config_hash") if path.suffix == ".json"
-               else torch.load(path, weights_only=True, map_location="cpu").get("config_hash"))
+               else _read_checkpoint(path).get("config_hash"))
         if old != chash:
             if not overwrite:
                 raise ConfigMismatchError(
@@ -216,7 +216,7 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
     history: list[float] = []
     first_epoch = 0
     if ckpt_path.is_file():
-        ckpt = torch.load(ckpt_path, weights_only=True, map_location="cpu")
+        ckpt = _read_checkpoint(ckpt_path)
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
         first_epoch = int(ckpt["epoch"])
@@ -266,6 +266,25 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
     return report
 
 
+def _read_checkpoint(path: Path) -> dict[str, Any]:
+    """The training checkpoint (a dict of tensors and numbers), or InputError naming it."""
+    import pickle
+
+    from ..errors import InputError
+    from ..fileio import TORCH_LOAD_ERRORS, unpickling_detail
+    try:
+        ckpt = torch.load(path, weights_only=True, map_location="cpu")
+    except pickle.UnpicklingError as exc:
+        raise InputError(f"refused: not a plain checkpoint ({unpickling_detail(exc)}); pickled objects are never "
+                         "loaded: delete it or pass --overwrite", file=path) from None
+    except TORCH_LOAD_ERRORS as exc:
+        raise InputError(f"damaged checkpoint ({type(exc).__name__}); delete it or pass --overwrite",
+                         file=path) from None
+    if not isinstance(ckpt, dict) or not {"model", "optimizer", "epoch", "history"} <= set(ckpt):
+        raise InputError("not a training checkpoint of this program; delete it or pass --overwrite", file=path)
+    return ckpt
+
+
 @torch.no_grad()
 def reconstruction_cosine(model: FeatureAutoencoder, x: torch.Tensor) -> float:
     """Mean cosine between features and their reconstructions (model in eval mode)."""
@@ -297,10 +316,9 @@ def load_decoder(path: str | Path) -> FeatureDecoder:
 
 def _load(path: str | Path, cls: type) -> Any:
     import pickle
-    import zipfile
 
     from ..errors import InputError
-    from ..fileio import unpickling_detail
+    from ..fileio import TORCH_LOAD_ERRORS, unpickling_detail
     path = Path(path)
     if not path.is_file():
         raise InputError("file is missing; run `fourlegs train-ae` first", file=path)
@@ -310,7 +328,7 @@ def _load(path: str | Path, cls: type) -> Any:
         raise InputError(f"refused: holds pickled Python objects or is not a torch file "
                          f"({unpickling_detail(exc)}); pickled objects are never loaded, only tensor state "
                          "dicts: run `fourlegs train-ae --overwrite` to write it again", file=path) from None
-    except (RuntimeError, ValueError, EOFError, OSError, zipfile.BadZipFile) as exc:
+    except TORCH_LOAD_ERRORS as exc:
         raise InputError(f"not a readable torch file ({str(exc).splitlines()[0][:200] if str(exc) else exc!r}); "
                          "run `fourlegs train-ae --overwrite` to write it again", file=path) from None
     if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)

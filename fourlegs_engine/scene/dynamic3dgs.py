@@ -25,7 +25,7 @@ from typing import Any, Optional
 import numpy as np
 
 from ..errors import InputError, OutputExistsError
-from ..fileio import atomic_directory, atomic_path, read_json, write_json_atomic
+from ..fileio import NPY_HEADER_ERRORS, atomic_directory, atomic_path, read_json, write_json_atomic
 from .camera import MAX_IMAGE_SIDE, Camera, CameraRig
 from .gaussians import GaussianSequence, normalize_quaternions_chunked, sh_dc_to_rgb
 from .scene import Scene
@@ -83,7 +83,7 @@ class NpzArrays:
                 raise InputError("holds an object/pickled array, which is refused (never unpickled)",
                                  file=self.path, field=key) from None
             raise InputError(f"corrupt array ({exc})", file=self.path, field=key) from None
-        except (zipfile.BadZipFile, OSError, EOFError, struct.error, RuntimeError, NotImplementedError) as exc:
+        except (zipfile.BadZipFile, struct.error, RuntimeError, NotImplementedError) + NPY_HEADER_ERRORS as exc:
             # RuntimeError: encrypted entry; NotImplementedError: unsupported compression method
             raise InputError(f"corrupt, truncated or unreadable array ({exc})", file=self.path, field=key) from None
 

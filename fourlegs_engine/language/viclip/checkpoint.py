@@ -24,7 +24,7 @@ from typing import Mapping
 import torch
 
 from ...errors import InputError
-from ...fileio import atomic_path
+from ...fileio import TORCH_LOAD_ERRORS, atomic_path
 from .model import ViCLIPConfig, ViCLIPModel, expected_shapes, infer_config
 
 SAFETENSORS_NAME = "model.safetensors"
@@ -101,8 +101,9 @@ def _read_torch(path: Path) -> dict[str, torch.Tensor]:
                              "from a source you trust, re-save its 'model' entry alone with torch.save "
                              "once and load that", file=path) from None
         raise InputError(f"not a readable torch checkpoint ({detail})", file=path) from None
-    except (RuntimeError, OSError, EOFError, ValueError) as exc:
-        raise InputError(f"not a readable torch checkpoint ({exc})", file=path) from None
+    except TORCH_LOAD_ERRORS as exc:
+        raise InputError(f"not a readable torch checkpoint ({type(exc).__name__}: {str(exc)[:200]})",
+                         file=path) from None
     if isinstance(obj, Mapping) and "model" in obj and isinstance(obj["model"], Mapping):
         return dict(obj["model"])
     if isinstance(obj, Mapping) and obj and all(isinstance(k, str) for k in obj):

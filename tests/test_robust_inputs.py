@@ -220,3 +220,16 @@ def test_a_dynamic3dgs_meta_with_a_huge_width_is_refused_at_load(bundle, tmp_pat
     with pytest.raises(InputError) as exc:
         load_scene(path)
     assert exc.value.field == "w/h" and exc.value.file == str(path / "train_meta.json")
+
+
+@pytest.mark.parametrize("key", ["latents", "decoder"])
+def test_language_files_outside_the_bundle_are_refused(bundle, tmp_path, key):
+    from fourlegs_engine.language.field import LanguageField
+    path = _edited(bundle, tmp_path, lambda m: m.update(language={"latents": "language/latents.npy",
+                                                                  "decoder": "language/decoder.pt",
+                                                                  "encoder": "simulated", key: "/etc/hostname"}))
+    with pytest.raises(InputError, match="inside the bundle") as exc:
+        load_scene(path)
+    assert exc.value.field == f"language.{key}"
+    with pytest.raises(InputError, match="inside the bundle"):
+        LanguageField.open(path)

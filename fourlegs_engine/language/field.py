@@ -105,6 +105,11 @@ class LanguageField:
         for key in ("decoder", "latents", "encoder"):
             if key not in lang:
                 raise InputError("missing key", file=meta_path, field=f"language.{key}")
+        from ..scene.bundle import is_inside
+        for key in ("decoder", "latents"):
+            if not isinstance(lang[key], str) or not is_inside(root.resolve(), lang[key]):
+                raise InputError(f"{lang[key]!r} is not a file inside the bundle", file=meta_path,
+                                 field=f"language.{key}")
         info = dict(lang)
         lat_path = root / lang["latents"]
         if latents is not None:

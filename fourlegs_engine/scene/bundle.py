@@ -30,6 +30,7 @@ FORMAT_VERSION = 1
 SCENE_FILE = "scene.json"
 ARRAY_FIELDS = ("means", "rotations", "log_scales", "opacity_logits", "colors", "sh", "foreground", "labels")
 REQUIRED_FIELDS = ("means", "rotations", "log_scales", "opacity_logits")
+LANGUAGE_FILE_KEYS = ("latents", "decoder", "codebook")  # language entries that name files in the bundle
 MAX_TIMESTEPS = 1 << 20
 MAX_GAUSSIANS = 1 << 34
 MAX_FPS = 10_000.0
@@ -151,6 +152,9 @@ def validate_bundle_meta(meta: dict[str, Any], meta_file: Path) -> None:
         if not is_inside(root, rel):
             raise InputError(f"{rel!r} points outside the bundle; array files must lie inside it",
                              file=meta_file, field=f"arrays.{name}")
+    for key, rel in (meta.get("language") or {}).items():
+        if key in LANGUAGE_FILE_KEYS and (not isinstance(rel, str) or not is_inside(root, rel)):
+            raise InputError(f"{rel!r} is not a file inside the bundle", file=meta_file, field=f"language.{key}")
     cameras = meta["cameras"]
     if not isinstance(cameras, dict):
         raise InputError(f"must be an object, got {type(cameras).__name__}", file=meta_file, field="cameras")

@@ -88,7 +88,8 @@ def write_bundle(scene: Scene, path: str | Path, *, overwrite: bool = False) -> 
 def _copy_language_files(src_root: Path, dst_root: Path, language: dict[str, Any]) -> None:
     """Copy files the language description points to (e.g. the decoder) along with the bundle."""
     for key, value in language.items():
-        if isinstance(value, str) and key in ("decoder", "codebook") and (src_root / value).is_file():
+        if (isinstance(value, str) and key in ("decoder", "codebook") and is_inside(src_root.resolve(), value)
+                and (src_root / value).is_file()):
             (dst_root / value).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(src_root / value, dst_root / value)
 

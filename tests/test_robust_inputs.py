@@ -80,6 +80,16 @@ def test_a_read_only_folder_is_one_line(tmp_path, capsys):
     assert code == 1 and "permission denied" in line.lower() and str(ro) in line
 
 
+def test_a_read_only_file_system_is_one_line(tmp_path, monkeypatch, capsys):
+    def read_only(path, *a, **kw):
+        raise OSError(errno.EROFS, "Read-only file system", str(path))
+
+    monkeypatch.setattr(os, "mkdir", read_only)   # what every write below a read-only mount meets first
+    code, line = _one_line_error(capsys, ["generate", "--size", "tiny", "-o", str(tmp_path / "ro" / "b")])
+    assert code == 1 and line == (f"fourlegs: error: {tmp_path / 'ro'}: read-only file system "
+                                  "(choose a writable output location)")
+
+
 def test_memory_errors_are_one_line_and_bugs_keep_their_traceback():
     assert describe_environment_error(MemoryError()).startswith("out of memory")
     torch_msg = ("[enforce fail at alloc_cpu.cpp:117] data. DefaultCPUAllocator: not enough memory: you tried "

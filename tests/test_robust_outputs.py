@@ -137,3 +137,14 @@ def test_plan_refuses_non_utf8_query_before_any_work(tmp_path, capsys):
     assert main(["plan", "--demo", NOT_UTF8, "-o", str(tmp_path / "plan.json")]) == 2
     assert "query: is not valid UTF-8" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("frame, message", [("999", "timestep 999 is out of range 0..2"),
+                                            ("-1", "timestep -1 is out of range 0..2"),
+                                            ("soon", "'soon' is neither a timestep nor 'peak'")])
+def test_query_frames_out_of_range_say_so_and_write_nothing(distilled, tmp_path, capsys, frame, message):
+    argv = ["query", str(distilled), "a ball flying", "--exr", str(tmp_path / "maps"), "--frames", frame,
+            "--json", str(tmp_path / "q.json")]
+    assert main(argv) == 2
+    assert capsys.readouterr().err.strip().endswith(f"--frames: {message}")
+    assert list(tmp_path.iterdir()) == []

@@ -165,6 +165,7 @@ def run_query(args: argparse.Namespace) -> int:
         if out is not None and Path(out).exists() and not args.overwrite:
             raise OutputExistsError(out)
     scene, engine = _open(args)
+    _timesteps_of_frames(args.frames or [], scene)  # before the query: a bad --frames costs nothing
     need = {"temporal"} if args.no_spatial else {"temporal", "best_view", "action_centre"}
     start = time.perf_counter()
     loc = engine.localize(args.text, need)
@@ -204,6 +205,24 @@ def run_query(args: argparse.Namespace) -> int:
     return 0
 
 
+def _timesteps_of_frames(values: list[str], scene) -> list[int]:
+    """The integer timesteps among ``--frames`` values ('peak' skipped), each checked against T."""
+    from ..errors import InputError
+
+    out = []
+    for f in values:
+        if f == "peak":
+            continue
+        try:
+            t = int(f)
+        except ValueError:
+            raise InputError(f"{f!r} is neither a timestep nor 'peak'", field="--frames") from None
+        if not 0 <= t < scene.num_timesteps:
+            raise InputError(f"timestep {t} is out of range 0..{scene.num_timesteps - 1}", field="--frames")
+        out.append(t)
+    return out
+
+
 def _write_maps(args, scene, engine, loc, write_exr, written: list[Path]) -> list[str]:
     from ..errors import InputError
 
@@ -214,13 +233,7 @@ def _write_maps(args, scene, engine, loc, write_exr, written: list[Path]) -> lis
                 raise InputError("no peak to write maps at (query not found); pass --frames T", field="--frames")
             frames.append(int(loc.temporal.peak))
         else:
-            try:
-                t = int(f)
-            except ValueError:
-                raise InputError(f"{f!r} is neither a timestep nor 'peak'", field="--frames") from None
-            if not 0 <= t < scene.num_timesteps:
-                raise InputError(f"timestep {t} is out of range 0..{scene.num_timesteps - 1}", field="--frames")
-            frames.append(t)
+            frames += _timesteps_of_frames([f], scene)
     frames = list(dict.fromkeys(frames))
     names = args.views or ([loc.best_view] if loc.best_view else [])
     if not names:

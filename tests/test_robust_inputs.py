@@ -243,3 +243,13 @@ def test_language_files_outside_the_bundle_are_refused(bundle, tmp_path, key):
     assert exc.value.field == f"language.{key}"
     with pytest.raises(InputError, match="inside the bundle"):
         LanguageField.open(path)
+
+
+def test_no_message_points_to_a_command_that_does_not_exist():
+    import re
+    from fourlegs_engine.cli import build_parser
+    commands = set(build_parser()._subparsers._group_actions[0].choices)
+    root = Path(__file__).resolve().parents[1]
+    sources = list((root / "fourlegs_engine").rglob("*.py")) + list((root / "addon").rglob("*.py"))
+    named = {m for p in sources for m in re.findall(r"`fourlegs ([a-z][a-z0-9-]+)", p.read_text(encoding="utf-8"))}
+    assert named and named <= commands | {"bench"}, sorted(named - commands)

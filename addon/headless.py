@@ -297,6 +297,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     existing = [str(out[k]) for k in ("video", "blend", "report") if out[k].exists()]
     if existing and not args.overwrite:
         raise api.OutputExistsError(", ".join(existing))
+    api.check_text(args.query, "query")
+    record_outputs = api.claim_outputs(out_dir, [out[k] for k in ("plan", "plot")], overwrite=args.overwrite)
     resolution = parse_resolution(args.resolution, args.demo)
 
     if args.demo and args.scene is not None:
@@ -318,6 +320,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     with timer("localize + plan"):
         plan_obj = api.plan_highlight(scene, engine, args.query, preset, resolution=resolution, fps=args.fps)
         plan = plan_obj.to_dict()
+    record_outputs()
     api.write_json_atomic(out["plan"], plan, overwrite=True)
     loc = plan.get("localization") or {}
     if loc.get("scores"):
@@ -346,6 +349,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "versions": versions(),
     }
     api.write_json_atomic(out["report"], report, overwrite=True)
+    (out_dir / api.OUTPUTS_MARKER).unlink(missing_ok=True)  # finished: report.json guards it now
     return report
 
 
@@ -395,8 +399,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         report = run(args)
     except api.FourlegsError as exc:
-        print(f"fourlegs: error: {exc}", file=sys.stderr)
+        api.print_error(str(exc))
         return 2
+    except (OSError, MemoryError, RuntimeError) as exc:
+        message = api.describe_environment_error(exc)
+        if message is None:
+            raise
+        api.print_error(message)
+        return 1
     except KeyboardInterrupt:
         print("fourlegs: cancelled; run the same command again to resume", file=sys.stderr)
         return 130

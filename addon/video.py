@@ -103,6 +103,12 @@ def render_animation(scene: bpy.types.Scene, output: str | Path, *, fmt: str = "
         if "FINISHED" not in result:
             raise RuntimeError(f"rendering stopped ({result})")
         files = sorted(p for p in tmp.iterdir() if p.is_file())
+        if fmt != "MP4":
+            size = _output_size(scene)
+            for path in files:
+                _check_complete(path, output / path.name, size)
+        elif any(p.stat().st_size == 0 for p in files):
+            raise _engine_api().incomplete_write_error(output, "the movie file is empty")
         if fmt == "MP4":
             movies = [p for p in files if p.suffix.lower() == ".mp4"]
             if len(movies) != 1:
@@ -121,6 +127,39 @@ def render_animation(scene: bpy.types.Scene, output: str | Path, *, fmt: str = "
         scene.render.filepath = old_path
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _engine_api():
+    from fourlegs_engine import api
+
+    return api
+
+
+def _output_size(scene: bpy.types.Scene) -> tuple[int, int]:
+    """(width, height) in pixels of the scene's rendered images."""
+    pct = scene.render.resolution_percentage / 100.0
+    return int(scene.render.resolution_x * pct), int(scene.render.resolution_y * pct)
+
+
+def _png_size(path: Path) -> tuple[int, int]:
+    import struct
+
+    with open(path, "rb") as fh:
+        head = fh.read(24)
+    return struct.unpack(">II", head[16:24])
+
+
+def _check_complete(written: Path, target: Path, size: Optional[tuple[int, int]]) -> None:
+    """Raise ``OSError`` naming ``target`` unless ``written`` is a complete image of ``size``.
+
+    Blender reports success when a full disk truncated the file; ENOSPC is raised when the disk
+    has too little space left for another frame, EIO otherwise.
+    """
+    check = size if written.suffix.lower() == ".png" else None
+    problem = _engine_api().image_file_problem(written, check)
+    if problem is not None:
+        needed = 4 * size[0] * size[1] + (1 << 20) if size else 1 << 20
+        raise _engine_api().incomplete_write_error(target, problem, needed_bytes=needed)
 
 
 def movie_frame_count(path: str | Path) -> int:
@@ -150,8 +189,9 @@ def render_frames(scene: bpy.types.Scene, frames_dir: str | Path, *,
                   on_frame: Optional[Callable[[int, int], None]] = None) -> list[Path]:
     """Render every frame of the range to ``frames_dir/frame_####.png``, skipping frames already there.
 
-    Each frame is written to a temporary name and renamed when complete, so an interrupted run
-    resumes at the first missing frame. The compositor runs only on frames where the plan's
+    Each frame is written to a temporary name, checked (a complete PNG of the output size) and only
+    then renamed, so an interrupted run resumes at the first missing frame and a frame a full disk
+    cut short is rendered again instead of reused. The compositor runs only on frames where the plan's
     desaturation is non-zero (:func:`compositing_frames`). Returns the frame files in order.
     """
     frames_dir = Path(frames_dir)
@@ -160,11 +200,14 @@ def render_frames(scene: bpy.types.Scene, frames_dir: str | Path, *,
     old_path = scene.render.filepath
     old_compositing = scene.render.use_compositing
     composite = compositing_frames(scene)
+    size = _output_size(scene)
     out = []
     try:
         configure_output(scene, "PNG")
         for i, frame in enumerate(frames):
             target = frames_dir / f"frame_{frame:04d}.png"
+            if target.is_file() and _engine_api().image_file_problem(target, size) is not None:
+                target.unlink()  # left by a failed write (e.g. a full disk): not a finished frame
             if not target.is_file():
                 tmp = frames_dir / f".frame_{frame:04d}.part.png"
                 if composite is not None:
@@ -177,6 +220,11 @@ def render_frames(scene: bpy.types.Scene, frames_dir: str | Path, *,
                     raise KeyboardInterrupt
                 if "FINISHED" not in result or not tmp.is_file():
                     raise RuntimeError(f"rendering frame {frame} stopped ({result})")
+                try:
+                    _check_complete(tmp, target, size)
+                except BaseException:
+                    tmp.unlink(missing_ok=True)
+                    raise
                 tmp.replace(target)
             out.append(target)
             if on_frame is not None:
@@ -192,6 +240,13 @@ def encode_mp4(frames: Sequence[Path], output: str | Path, *, fps: int, fps_base
     """Encode PNG frames to an H.264 MP4 with Blender's FFmpeg (through a temporary sequencer scene)."""
     if not frames:
         raise ValueError("no frames to encode")
+    first_size = None
+    for path in frames:  # a damaged frame would reach FFmpeg (or Blender's image loader) as garbage
+        problem = _engine_api().image_file_problem(path, first_size)
+        if problem is not None:
+            raise _engine_api().incomplete_write_error(path, problem)
+        if first_size is None:
+            first_size = _png_size(path)
     first = bpy.data.images.load(str(frames[0]), check_existing=False)
     width, height = first.size
     bpy.data.images.remove(first)

@@ -12,16 +12,20 @@ into the engine's internals, so the engine can reorganize without breaking them:
 """
 from __future__ import annotations
 
-from .errors import FourlegsError, InputError, OutputExistsError
-from .fileio import atomic_path, write_json_atomic
+from .errors import FourlegsError, InputError, OutputExistsError, describe_environment_error, print_error
+from .fileio import (OUTPUTS_MARKER, atomic_path, claim_outputs, image_file_problem, incomplete_write_error,
+                     write_json_atomic)
 from .highlights import available_presets, load_preset, plan_highlight, plan_needs
 from .pipeline import (EncoderConfig, QueryOptions, ensure_language_field, has_language_field, open_query_engine,
                        open_scene, text_encoder)
 from .render import rasterize
 from .scene import Camera, Scene, load_scene
 from .threads import torch_threads
+from .validate import check_text
 
-__all__ = ["Camera", "EncoderConfig", "FourlegsError", "InputError", "OutputExistsError", "QueryOptions", "Scene",
-           "atomic_path", "available_presets", "ensure_language_field", "has_language_field", "load_preset",
-           "load_scene", "open_query_engine", "open_scene", "plan_highlight", "plan_needs", "rasterize",
-           "text_encoder", "torch_threads", "write_json_atomic"]
+__all__ = ["Camera", "EncoderConfig", "FourlegsError", "InputError", "OUTPUTS_MARKER", "OutputExistsError",
+           "QueryOptions", "Scene", "atomic_path", "available_presets", "check_text", "claim_outputs",
+           "describe_environment_error", "ensure_language_field", "has_language_field", "image_file_problem",
+           "incomplete_write_error", "load_preset", "load_scene", "open_query_engine", "open_scene",
+           "plan_highlight", "plan_needs", "print_error", "rasterize", "text_encoder", "torch_threads",
+           "write_json_atomic"]

@@ -5,7 +5,9 @@ Each engine package contributes its sub-commands from a ``commands`` module with
 packages (the Blender add-on, the benchmarks) add theirs through the entry-point group
 ``fourlegs.commands`` (pyproject.toml), so the engine never imports them by name. Heavy imports happen
 inside the command functions so ``fourlegs --help`` stays fast. Errors from bad input print one line
-(no traceback).
+(no traceback), and so do the machine's limits: an OS error (full or read-only disk, an output parent
+that is a file) names the path, and running out of memory says so
+(:func:`~fourlegs_engine.errors.describe_environment_error`).
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ from types import ModuleType
 from typing import Iterator, Sequence
 
 from . import __version__
-from .errors import FourlegsError
+from .errors import FourlegsError, describe_environment_error, print_error
 
 COMMAND_MODULES = (
     "fourlegs_engine.scene.commands",
@@ -67,7 +69,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except FourlegsError as exc:
-        print(f"fourlegs: error: {exc}", file=sys.stderr)
+        print_error(str(exc))
         return 2
     except BrokenPipeError:  # output piped into e.g. `head`
         sys.stderr.close()
@@ -75,6 +77,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("fourlegs: cancelled; run the same command again to resume", file=sys.stderr)
         return 130
+    except (OSError, MemoryError, RuntimeError) as exc:
+        message = describe_environment_error(exc)
+        if message is None:  # not a condition of the machine or the input: a bug, keep its traceback
+            raise
+        print_error(message)
+        return 1
 
 
 if __name__ == "__main__":

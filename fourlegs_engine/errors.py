@@ -5,6 +5,8 @@ the problem, so the CLI can print one clear line instead of a traceback.
 """
 from __future__ import annotations
 
+import sys
+
 from pathlib import Path
 
 
@@ -37,3 +39,57 @@ class OutputExistsError(FourlegsError, FileExistsError):
     def __init__(self, path: str | Path):
         self.path = str(path)
         super().__init__(f"{path}: already exists (pass --overwrite / overwrite=True to replace it)")
+
+
+_ALLOCATION_FAILURES = ("can't allocate memory", "cannot allocate memory", "out of memory",
+                        "not enough memory", "bad_alloc")
+
+
+def describe_environment_error(exc: BaseException) -> str | None:
+    """One line for a failure caused by the machine rather than by the code, or None for a bug.
+
+    ``OSError`` (full or read-only disk, permissions, a path component that is a file) names the
+    path and what to do; ``MemoryError`` and allocation failures reported as ``RuntimeError`` by
+    torch say that memory ran out. Anything else returns None (it deserves its traceback).
+
+    >>> import errno
+    >>> describe_environment_error(OSError(errno.ENOSPC, "No space left on device", "out/a.json"))
+    'no space left on device while writing out/a.json; free some space and run the same command again'
+    """
+    import errno
+
+    if isinstance(exc, OSError):
+        path = exc.filename if exc.filename is not None else None
+        if exc.filename2 is not None:
+            path = f"{exc.filename} -> {exc.filename2}"
+        where = f" while writing {path}" if path else ""
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return (f"no space left on device{where}; free some space and run the same command again")
+        reason = (exc.strerror or str(exc) or type(exc).__name__).rstrip(".")
+        hint = {errno.EROFS: "choose a writable output location",
+                errno.EACCES: "check the permissions or choose another location",
+                errno.EPERM: "check the permissions or choose another location",
+                errno.ENOTDIR: "a parent of this path is a file, not a folder",
+                errno.EISDIR: "this path is a folder; give a file name",
+                errno.ENAMETOOLONG: "use a shorter path"}.get(exc.errno)
+        if exc.errno == errno.EEXIST and exc.filename is not None and Path(exc.filename).is_file():
+            hint = "it is a file where a folder is needed"
+        prefix = f"{path}: " if path else ""
+        return f"{prefix}{reason[:1].lower() + reason[1:]}" + (f" ({hint})" if hint else "")
+    if isinstance(exc, MemoryError):
+        return ("out of memory" + (f" ({exc})" if str(exc) else "")
+                + "; use smaller settings (resolution scale, timesteps, batch size) or a machine with more memory")
+    if isinstance(exc, RuntimeError):
+        text = str(exc)
+        if any(k in text.lower() for k in _ALLOCATION_FAILURES):
+            first = next((line.strip() for line in text.splitlines() if "alloc" in line.lower() or
+                          "memory" in line.lower()), text.splitlines()[0] if text else "")
+            return f"out of memory ({first[:200]}); use smaller settings or a machine with more memory"
+    return None
+
+
+def print_error(message: str) -> None:
+    """``fourlegs: error: <message>`` on stderr; bytes that are not UTF-8 (in paths or text given on the
+    command line) are shown as escapes instead of failing the print."""
+    line = f"fourlegs: error: {message}".encode("utf-8", "backslashreplace").decode("utf-8")
+    print(line, file=sys.stderr)

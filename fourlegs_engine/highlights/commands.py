@@ -81,7 +81,8 @@ def run_plan(args: argparse.Namespace) -> int:
         if len(args.inputs) != 2:
             raise InputError("expected SCENE QUERY (or --demo QUERY)", field="inputs")
         scene_path, query = args.inputs
-    if not query.strip():
+    from ..validate import check_text
+    if not check_text(query, "query").strip():
         raise InputError("the query text is empty", field="query")
     if not args.output:
         raise InputError("missing -o PLAN.json", field="--output")

@@ -188,7 +188,7 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
         if not path.is_file():
             continue
         old = (read_json(path).get("config_hash") if path.suffix == ".json"
-               else torch.load(path, weights_only=True, map_location="cpu").get("config_hash"))
+               else _read_checkpoint(path).get("config_hash"))
         if old != chash:
             if not overwrite:
                 raise ConfigMismatchError(
@@ -216,7 +216,7 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
     history: list[float] = []
     first_epoch = 0
     if ckpt_path.is_file():
-        ckpt = torch.load(ckpt_path, weights_only=True, map_location="cpu")
+        ckpt = _read_checkpoint(ckpt_path)
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
         first_epoch = int(ckpt["epoch"])
@@ -266,6 +266,25 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
     return report
 
 
+def _read_checkpoint(path: Path) -> dict[str, Any]:
+    """The training checkpoint (a dict of tensors and numbers), or InputError naming it."""
+    import pickle
+
+    from ..errors import InputError
+    from ..fileio import TORCH_LOAD_ERRORS, unpickling_detail
+    try:
+        ckpt = torch.load(path, weights_only=True, map_location="cpu")
+    except pickle.UnpicklingError as exc:
+        raise InputError(f"refused: not a plain checkpoint ({unpickling_detail(exc)}); pickled objects are never "
+                         "loaded: delete it or pass --overwrite", file=path) from None
+    except TORCH_LOAD_ERRORS as exc:
+        raise InputError(f"damaged checkpoint ({type(exc).__name__}); delete it or pass --overwrite",
+                         file=path) from None
+    if not isinstance(ckpt, dict) or not {"model", "optimizer", "epoch", "history"} <= set(ckpt):
+        raise InputError("not a training checkpoint of this program; delete it or pass --overwrite", file=path)
+    return ckpt
+
+
 @torch.no_grad()
 def reconstruction_cosine(model: FeatureAutoencoder, x: torch.Tensor) -> float:
     """Mean cosine between features and their reconstructions (model in eval mode)."""
@@ -296,14 +315,51 @@ def load_decoder(path: str | Path) -> FeatureDecoder:
 
 
 def _load(path: str | Path, cls: type) -> Any:
+    import pickle
+
     from ..errors import InputError
+    from ..fileio import TORCH_LOAD_ERRORS, unpickling_detail
     path = Path(path)
     if not path.is_file():
         raise InputError("file is missing; run `fourlegs train-ae` first", file=path)
     try:
         state = torch.load(path, weights_only=True, map_location="cpu")
+    except pickle.UnpicklingError as exc:
+        raise InputError(f"refused: holds pickled Python objects or is not a torch file "
+                         f"({unpickling_detail(exc)}); pickled objects are never loaded, only tensor state "
+                         "dicts: run `fourlegs train-ae --overwrite` to write it again", file=path) from None
+    except TORCH_LOAD_ERRORS as exc:
+        raise InputError(f"not a readable torch file ({str(exc).splitlines()[0][:200] if str(exc) else exc!r}); "
+                         "run `fourlegs train-ae --overwrite` to write it again", file=path) from None
+    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
+                                              for k, v in state.items()):
+        raise InputError(f"not a {cls.__name__} state dict (a mapping of names to tensors; found "
+                         f"{type(state).__name__})", file=path)
+    try:
         model = cls(_dims_from_state(state))
         model.load_state_dict(state, strict=True)
-    except (RuntimeError, ValueError, KeyError, EOFError) as exc:
-        raise InputError(f"not a valid {cls.__name__} state dict ({exc})", file=path) from None
+    except (RuntimeError, ValueError, KeyError, IndexError) as exc:
+        raise InputError(f"not a valid {cls.__name__} state dict ({str(exc).splitlines()[0][:200]})",
+                         file=path) from None
+    bad = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise InputError(f"weights {', '.join(bad[:3])} contain NaN or Inf; run `fourlegs train-ae --overwrite`",
+                         file=path)
     return model.eval()
+
+
+def weights_fingerprint(module_or_state: nn.Module | dict[str, torch.Tensor]) -> str:
+    """SHA-256 (first 16 hex digits) of a state dict's names, dtypes, shapes and values.
+
+    A language field records the fingerprint of the decoder it was distilled with, so a decoder
+    retrained later (``train-ae --overwrite``) is noticed instead of silently decoding old latents.
+    """
+    import hashlib
+
+    state = module_or_state.state_dict() if isinstance(module_or_state, nn.Module) else module_or_state
+    digest = hashlib.sha256()
+    for name in sorted(state):
+        tensor = state[name].detach().cpu().reshape(-1).contiguous()
+        digest.update(f"{name}|{state[name].dtype}|{tuple(state[name].shape)}|".encode())
+        digest.update(tensor.view(torch.uint8).numpy().tobytes() if tensor.numel() else b"")
+    return digest.hexdigest()[:16]

@@ -43,6 +43,7 @@ and written only when finished), merged into ``language/latents.npy`` (T, N, 128
 from __future__ import annotations
 
 import math
+import os
 import shutil
 import time
 import warnings
@@ -60,7 +61,8 @@ from ..render.options import RasterOptions
 from ..scene.scene import Scene
 from ..threads import torch_threads
 from .attention import NeighbourhoodAttention, knn_indices, neighbour_blur, smoothness_loss
-from .autoencoder import AE_REPORT, DECODER_FILE, ENCODER_FILE, FeatureEncoder, l2_normalize, load_encoder
+from .autoencoder import (AE_REPORT, DECODER_FILE, ENCODER_FILE, FeatureEncoder, l2_normalize, load_decoder,
+                          load_encoder, weights_fingerprint)
 from .encoders import CANONICAL_PHRASES
 from .extract import feature_store, load_step_features
 from .pyramid import PyramidLayout, interpolate_grid, sample_positions, upsample_to_pixels
@@ -72,6 +74,7 @@ LIFT_SMOOTHING = ("none", "blur")
 LANGUAGE_DIR = "language"
 STEPS_DIR = "language/steps"
 LATENTS_FILE = "language/latents.npy"
+NEXT_LATENTS_NAME = "latents.next.npy"  # a merged field on its way in (see _swap_in_latents)
 DEFAULT_ITERATIONS = {"optimize": 2000, "lift": 0, "lift+refine": 200}
 #: lift's splat pass: 64-entry chunks are faster for the wide (d+1)-channel splat; same result up to
 #: float32 summation order
@@ -514,14 +517,17 @@ def distill_scene(scene: Scene, mode: str = "lift", iterations: int | None = Non
     out = root / LANGUAGE_DIR if default_out else Path(out_dir)
     latents_path = out / "latents.npy"
     store = StepStore(out / "steps", "latents", cfg, scene.num_timesteps)
+    if default_out:
+        _finish_swap(root)
     merged_hash = _merged_hash(scene, out, default_out)
     if merged_hash is not None and merged_hash != chash:
         if not overwrite:
             raise ConfigMismatchError(
                 f"{latents_path}: latents of another configuration exist (hash {merged_hash}, now {chash}); "
                 "pass --overwrite to replace them, or use the same settings")
-        latents_path.unlink(missing_ok=True)
-        _forget_merged(out)
+        # the old field stays in place (and readable) until the new one is merged and swapped in
+        if not default_out:
+            _forget_merged(out)
         merged_hash = None
     result = DistillResult(config.mode, cfg, chash, str(out), None)
     steps = select_timesteps(scene.num_timesteps, timesteps, shard)
@@ -575,29 +581,60 @@ def merge_latents(scene: Scene, store: StepStore, out: Path, chash: str, config:
     """Assemble the per-timestep files into (T,N,d) float16 ``latents.npy`` atomically; then record it
     (scene.json ``language`` for the bundle's own field, ``latents.json`` elsewhere) and drop the parts."""
     from ..fileio import write_json_atomic
-    from ..scene.bundle import update_bundle_meta, read_bundle_meta
     first = store.load(0)
+    root = Path(scene.root)
     T = scene.num_timesteps
     path = out / "latents.npy"
-    with atomic_path(path) as tmp:
+    info = {"encoder": _encoder_name(store, scene), "latent_dim": int(first.shape[1]),
+            "canonical_phrases": list(CANONICAL_PHRASES), "decoder": DECODER_FILE, "latents": LATENTS_FILE,
+            "decoder_fingerprint": weights_fingerprint(load_decoder(root / DECODER_FILE)),
+            "mode": config.mode, "config_hash": chash, "config": store.config}
+    next_path = out / NEXT_LATENTS_NAME
+    with atomic_path(next_path) as tmp:
         arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=(T,) + tuple(first.shape))
         for t in range(T):
             arr[t] = store.load(t)
         arr.flush()
         del arr
-    root = Path(scene.root)
-    info = {"encoder": _encoder_name(store, scene), "latent_dim": int(first.shape[1]),
-            "canonical_phrases": list(CANONICAL_PHRASES), "decoder": DECODER_FILE, "latents": LATENTS_FILE,
-            "mode": config.mode, "config_hash": chash, "config": store.config}
     if update_bundle:
-        meta = read_bundle_meta(root)
-        arrays = dict(meta["arrays"])
-        arrays["latents"] = LATENTS_FILE
-        update_bundle_meta(root, language=info, arrays=arrays)
+        _swap_in_latents(root, next_path, path, info)
     else:
+        next_path.replace(path)
         write_json_atomic(out / "latents.json", {**info, "latents": str(path)})
     shutil.rmtree(store.root, ignore_errors=True)
     return path
+
+
+def _finish_swap(root: Path) -> None:
+    """Complete a swap that a kill interrupted after scene.json named the new field's file."""
+    lang = read_json(root / "scene.json").get("language") or {}
+    next_path = root / LANGUAGE_DIR / NEXT_LATENTS_NAME
+    if isinstance(lang, dict) and lang.get("latents") == next_path.relative_to(root).as_posix() \
+            and next_path.is_file():
+        _swap_in_latents(root, next_path, root / LATENTS_FILE, dict(lang))
+
+
+def _swap_in_latents(root: Path, next_path: Path, path: Path, info: dict[str, Any]) -> None:
+    """Make the complete ``next_path`` the bundle's field; ``scene.json`` always names a complete file
+    whose description it holds, so a reader (or a kill) at any point sees the old or the new field.
+
+    1. scene.json -> next_path (new description), 2. ``path`` replaced by a hard link to the new file,
+    3. scene.json -> ``path``, 4. ``next_path`` removed.
+    """
+    from ..scene.bundle import read_bundle_meta, update_bundle_meta
+
+    arrays = dict(read_bundle_meta(root)["arrays"])
+    arrays["latents"] = info["latents"] = next_path.relative_to(root).as_posix()
+    update_bundle_meta(root, language=dict(info), arrays=arrays)
+    with atomic_path(path) as tmp:
+        tmp.unlink()
+        try:
+            os.link(next_path, tmp)
+        except OSError:  # no hard links on this file system: a copy
+            shutil.copyfile(next_path, tmp)
+    arrays["latents"] = info["latents"] = LATENTS_FILE
+    update_bundle_meta(root, language=info, arrays=arrays)
+    next_path.unlink(missing_ok=True)
 
 
 def _encoder_name(store: StepStore, scene: Scene) -> str:

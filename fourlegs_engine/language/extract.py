@@ -96,8 +96,8 @@ def camera_layouts(scene: Scene, t: int, ratios: Sequence[float], split: str = "
 def feature_store(scene: Scene, config_dict: dict[str, Any] | None = None) -> StepStore:
     """The features store of a bundle scene (``config_dict`` None: read it from the manifest)."""
     if scene.root is None:
-        raise InputError("the scene must be a bundle on disk (write it with `fourlegs convert` first)",
-                         field="scene")
+        raise InputError("the scene must be a bundle on disk (write it with "
+                         "fourlegs_engine.scene.write_bundle(scene, PATH) first)", field="scene")
     root = Path(scene.root) / FEATURES_DIR
     if config_dict is None:
         store = StepStore(root, "features", {}, scene.num_timesteps)

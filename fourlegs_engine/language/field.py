@@ -13,8 +13,54 @@ import torch
 
 from ..errors import InputError
 from ..fileio import load_npy, read_json
-from .autoencoder import FeatureDecoder, load_decoder
+from .autoencoder import AE_REPORT, FeatureDecoder, load_decoder, weights_fingerprint
 from .encoders import CANONICAL_PHRASES
+
+
+FULL_FINITE_CHECK_BYTES = 64 << 20  # latents up to this size are checked whole when opened
+SAMPLED_TIMESTEPS = 8
+SAMPLED_ROWS = 4096
+
+
+def check_field_matches_decoder(root: Path, lang: dict[str, Any], decoder: FeatureDecoder) -> None:
+    """Refuse a field distilled with another autoencoder than the one now in the bundle.
+
+    Fields record the decoder's :func:`weights_fingerprint`; older fields are compared through the
+    autoencoder's config hash (``language.config.autoencoder`` vs ``autoencoder.json``).
+    """
+    decoder_file = root / str(lang["decoder"])
+    fix = "run `fourlegs distill --overwrite` to distil the field again with the current autoencoder"
+    recorded = lang.get("decoder_fingerprint")
+    if recorded is not None:
+        now = weights_fingerprint(decoder)
+        if now != recorded:
+            raise InputError(f"the language field was distilled with another autoencoder (decoder fingerprint "
+                             f"{recorded}, {decoder_file.name} now {now}); {fix}", file=decoder_file)
+        return
+    config = lang.get("config")
+    report = root / AE_REPORT
+    if isinstance(config, dict) and config.get("autoencoder") and report.is_file():
+        trained = read_json(report)
+        now = trained.get("config_hash") if isinstance(trained, dict) else None
+        if now is not None and now != config["autoencoder"]:
+            raise InputError(f"the language field was distilled with another autoencoder (hash "
+                             f"{config['autoencoder']}, {report.name} now {now}); {fix}", file=decoder_file)
+
+
+def check_latents_finite(latents: np.ndarray, path: Path) -> None:
+    """InputError naming ``path`` when latents hold NaN/Inf: checked whole for files up to
+    ``FULL_FINITE_CHECK_BYTES``, else on evenly spaced rows of evenly spaced timesteps."""
+    T = latents.shape[0]
+    if latents.nbytes <= FULL_FINITE_CHECK_BYTES:
+        steps, rows = range(T), slice(None)
+    else:
+        steps = sorted(set(np.linspace(0, T - 1, min(T, SAMPLED_TIMESTEPS)).astype(int).tolist()))
+        rows = np.unique(np.linspace(0, latents.shape[1] - 1, min(latents.shape[1], SAMPLED_ROWS)).astype(int))
+    for t in steps:
+        block = np.asarray(latents[t][rows])
+        if not np.isfinite(block).all():
+            raise InputError(f"timestep {t} holds NaN or Inf latents; the field is damaged: run "
+                             "`fourlegs distill --overwrite`", file=path, field="latents")
 
 
 class LanguageField:
@@ -59,6 +105,11 @@ class LanguageField:
         for key in ("decoder", "latents", "encoder"):
             if key not in lang:
                 raise InputError("missing key", file=meta_path, field=f"language.{key}")
+        from ..scene.bundle import is_inside
+        for key in ("decoder", "latents"):
+            if not isinstance(lang[key], str) or not is_inside(root.resolve(), lang[key]):
+                raise InputError(f"{lang[key]!r} is not a file inside the bundle", file=meta_path,
+                                 field=f"language.{key}")
         info = dict(lang)
         lat_path = root / lang["latents"]
         if latents is not None:
@@ -71,7 +122,10 @@ class LanguageField:
         if arr.ndim != 3 or tuple(arr.shape[:2]) != (T, N):
             raise InputError(f"has shape {tuple(arr.shape)}, expected (T={T}, N={N}, d)", file=lat_path,
                              field="latents")
-        return cls(arr, load_decoder(root / lang["decoder"]), encoder_name=str(info["encoder"]),
+        decoder = load_decoder(root / lang["decoder"])
+        check_field_matches_decoder(root, lang, decoder)
+        check_latents_finite(arr, lat_path)
+        return cls(arr, decoder, encoder_name=str(info["encoder"]),
                    canonical_phrases=info.get("canonical_phrases") or CANONICAL_PHRASES,
                    mode=str(info.get("mode", "")), config_hash=str(info.get("config_hash", "")), device=device)
 

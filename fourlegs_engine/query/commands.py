@@ -7,6 +7,9 @@ from pathlib import Path
 from typing import Any
 
 def register(subparsers: Any) -> None:
+    from ..validate import bounded
+    from .engine import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_TIMESTEP_ARGUMENT
+
     p = subparsers.add_parser(
         "query", help="when and where a text query happens in a scene (segment, peak, maps)",
         description="Localize a text query in a scene with a distilled language field: prints the "
@@ -25,7 +28,7 @@ def register(subparsers: Any) -> None:
                    help="timesteps for the EXR maps: integers or 'peak' (default: peak)")
     p.add_argument("--path", choices=("exact", "codebook"), default="exact",
                    help="per-Gaussian relevancy: exact decode or codebook lookup (default exact)")
-    p.add_argument("--codebook-size", type=int, default=4096, help="K of --path codebook (default 4096)")
+    p.add_argument("--codebook-size", type=bounded(int, 1, MAX_CODEBOOK_SIZE), default=4096, help="K of --path codebook (default 4096)")
     p.add_argument("--codebook-refine", type=float, default=0.0, metavar="MARGIN",
                    help="--path codebook: make the temporal decisions exact where they depend on it: R_avg "
                         "corrected by a sample of exact scores, and the Gaussians of codes within MARGIN of "
@@ -36,9 +39,12 @@ def register(subparsers: Any) -> None:
                         "R_avg's 3-sigma interval leaves a decision open; default: the engine's, 4096)")
     p.add_argument("--spatial", choices=("exact", "fast"), default="exact",
                    help="maps: 128-channel render + per-pixel decode, or 1-channel relevancy render")
-    p.add_argument("--scale", type=float, default=1.0, help="resolution scale of the maps (default 1)")
-    p.add_argument("--stride", type=int, default=1, help="temporal stride (default 1: every timestep)")
-    p.add_argument("--dilation", type=int, default=1, help="temporal dilation radius (default 1)")
+    p.add_argument("--scale", type=bounded(float, 0, MAX_RESOLUTION_SCALE, low_open=True), default=1.0,
+                   help=f"resolution scale of the maps, in (0, {MAX_RESOLUTION_SCALE:g}] (default 1)")
+    p.add_argument("--stride", type=bounded(int, 1, MAX_TIMESTEP_ARGUMENT), default=1,
+                   help="temporal stride (default 1: every timestep)")
+    p.add_argument("--dilation", type=bounded(int, 0, MAX_TIMESTEP_ARGUMENT), default=1,
+                   help="temporal dilation radius, >= 0 (default 1)")
     p.add_argument("--negatives", nargs="+", default=(), metavar="PHRASE",
                    help="scene-specific negative phrases added to the canonical ones")
     p.add_argument("--no-spatial", action="store_true", help="temporal localization only")
@@ -64,8 +70,12 @@ def _open(args: argparse.Namespace):
             raise InputError("expected SCENE TEXT (or --demo TEXT)", field="arguments")
         path = Path(args.scene)
         if not is_bundle(path):
-            raise InputError("not a scene bundle (scene.json missing); convert it with `fourlegs convert` and "
-                             "distil its language field with `fourlegs language`", file=path)
+            raise InputError("not a scene bundle (scene.json missing); `fourlegs query` reads bundles only: "
+                             "`fourlegs plan` and `fourlegs highlight` take this scene directly (they convert "
+                             "it), or write a bundle with fourlegs_engine.scene.write_bundle(load_scene(PATH), "
+                             "OUT) and run `fourlegs language OUT`", file=path)
+    from ..validate import check_text
+    check_text(args.text, "text")
     if not args.text or not args.text.strip():
         raise InputError("the query text is empty", field="text")
     scene = load_bundle(path)
@@ -84,7 +94,7 @@ def _open(args: argparse.Namespace):
 
 def run_query(args: argparse.Namespace) -> int:
     from ..errors import OutputExistsError
-    from ..fileio import write_json_atomic
+    from ..fileio import output_group, write_json_atomic
     from .exr import write_exr
     from .plots import plot_temporal
     from .temporal import sparkline
@@ -94,6 +104,7 @@ def run_query(args: argparse.Namespace) -> int:
         if out is not None and Path(out).exists() and not args.overwrite:
             raise OutputExistsError(out)
     scene, engine = _open(args)
+    _timesteps_of_frames(args.frames or [], scene)  # before the query: a bad --frames costs nothing
     need = {"temporal"} if args.no_spatial else {"temporal", "best_view", "action_centre"}
     start = time.perf_counter()
     loc = engine.localize(args.text, need)
@@ -117,18 +128,41 @@ def run_query(args: argparse.Namespace) -> int:
             print(m)
     print("timings: " + ", ".join(f"{k} {v:.3f} s" for k, v in loc.timings.items()))
     result = loc.to_dict()
-    if args.exr:
-        result["exr"] = _write_maps(args, scene, engine, loc, write_exr)
-    if args.json:
-        write_json_atomic(args.json, result, overwrite=args.overwrite)
-        print(f"wrote {args.json}")
-    if plot is not None:
-        plot_temporal(tmp, plot, query=args.text, overwrite=args.overwrite)
-        print(f"wrote {plot}")
+    with output_group() as written:  # a failure part-way leaves none of this run's outputs behind
+        if args.exr:
+            result["exr"] = _write_maps(args, scene, engine, loc, write_exr, written)
+        if args.json:
+            if not Path(args.json).exists():
+                written.append(Path(args.json))
+            write_json_atomic(args.json, result, overwrite=args.overwrite)
+            print(f"wrote {args.json}")
+        if plot is not None:
+            if not plot.exists():
+                written.append(plot)
+            plot_temporal(tmp, plot, query=args.text, overwrite=args.overwrite)
+            print(f"wrote {plot}")
     return 0
 
 
-def _write_maps(args, scene, engine, loc, write_exr) -> list[str]:
+def _timesteps_of_frames(values: list[str], scene) -> list[int]:
+    """The integer timesteps among ``--frames`` values ('peak' skipped), each checked against T."""
+    from ..errors import InputError
+
+    out = []
+    for f in values:
+        if f == "peak":
+            continue
+        try:
+            t = int(f)
+        except ValueError:
+            raise InputError(f"{f!r} is neither a timestep nor 'peak'", field="--frames") from None
+        if not 0 <= t < scene.num_timesteps:
+            raise InputError(f"timestep {t} is out of range 0..{scene.num_timesteps - 1}", field="--frames")
+        out.append(t)
+    return out
+
+
+def _write_maps(args, scene, engine, loc, write_exr, written: list[Path]) -> list[str]:
     from ..errors import InputError
 
     frames: list[int] = []
@@ -138,10 +172,7 @@ def _write_maps(args, scene, engine, loc, write_exr) -> list[str]:
                 raise InputError("no peak to write maps at (query not found); pass --frames T", field="--frames")
             frames.append(int(loc.temporal.peak))
         else:
-            try:
-                frames.append(scene.gaussians.check_timestep(int(f)))
-            except ValueError:
-                raise InputError(f"{f!r} is neither a timestep nor 'peak'", field="--frames") from None
+            frames += _timesteps_of_frames([f], scene)
     frames = list(dict.fromkeys(frames))
     names = args.views or ([loc.best_view] if loc.best_view else [])
     if not names:
@@ -149,14 +180,16 @@ def _write_maps(args, scene, engine, loc, write_exr) -> list[str]:
         if not cams:
             raise InputError("the scene has no cameras", field="--views")
         names = [cams[0].name]
-    written = []
+    paths = []
     for t in frames:
         for name in names:
             cam = scene.cameras.find(name, t)
             maps = engine.relevancy_map(args.text, cam, t)
             path = Path(args.exr) / f"{name or 'view'}_t{t:04d}.exr"
+            if not path.exists():
+                written.append(path)
             write_exr(path, maps, overwrite=args.overwrite)
-            written.append(str(path))
+            paths.append(str(path))
             print(f"wrote {path} (relevancy, depth, alpha; {maps['relevancy'].shape[1]}x"
                   f"{maps['relevancy'].shape[0]})")
-    return written
+    return paths

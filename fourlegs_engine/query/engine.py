@@ -30,6 +30,7 @@ import torch
 from ..errors import InputError
 from ..scene.camera import Camera
 from ..scene.scene import Scene
+from ..validate import check_number
 from . import spatial, viewpoint
 from .codebook import Codebook, ensure_codebook
 from .head import RelevancyHead
@@ -44,6 +45,9 @@ from .temporal import (RELEVANT, counts_from_code_histogram, counts_from_codes_r
 __all__ = ["QueryEngine", "QueryOptions", "TemporalResult", "Localization", "ViewResult", "CentreResult"]
 
 NEEDS = frozenset({"temporal", "best_view", "action_centre"})
+MAX_CODEBOOK_SIZE = 1 << 20
+MAX_RESOLUTION_SCALE = 8.0  # of the camera resolution; Camera.scaled also bounds the image size
+MAX_TIMESTEP_ARGUMENT = 1 << 20  # strides and dilation radii beyond any scene's length
 GAUSSIAN_CACHE_SIZE = 16  # per-Gaussian relevancy vectors (query, t) kept for reuse
 TEMPORAL_SCORE_BYTES = 512 << 20  # exact temporal scores (T·N float32 per query) kept for per-frame reuse
 
@@ -76,10 +80,10 @@ class QueryEngine:
             raise InputError(f"unknown query path {path!r} (exact, codebook)", field="path")
         if spatial not in ("exact", "fast"):
             raise InputError(f"unknown spatial path {spatial!r} (exact, fast)", field="spatial")
-        if not resolution_scale > 0:
-            raise InputError(f"resolution scale must be positive, got {resolution_scale}", field="resolution_scale")
-        if int(temporal_stride) < 1:
-            raise InputError(f"temporal stride must be >= 1, got {temporal_stride}", field="temporal_stride")
+        check_number(resolution_scale, "resolution_scale", low=0, high=MAX_RESOLUTION_SCALE, low_open=True)
+        check_number(temporal_stride, "temporal_stride", low=1, high=MAX_TIMESTEP_ARGUMENT, integer=True)
+        check_number(dilation, "dilation", low=0, high=MAX_TIMESTEP_ARGUMENT, integer=True)
+        check_number(codebook_size, "codebook_size", low=1, high=MAX_CODEBOOK_SIZE, integer=True)
         latents = getattr(field, "latents", None)
         if latents is None:
             raise InputError("the scene has no distilled language field (run `fourlegs distill` first)",

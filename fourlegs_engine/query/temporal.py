@@ -429,11 +429,17 @@ def sampled_timesteps(num_timesteps: int, stride: int) -> np.ndarray:
 
 
 def sparkline(scores: Sequence[float], width: int = 80) -> str:
-    """Unicode sparkline of s_t (resampled to at most ``width`` characters by max-pooling)."""
+    """Unicode sparkline of s_t (resampled to at most ``width`` characters by max-pooling).
+
+    NaN and -inf draw as the lowest block, +inf as the highest finite score (or the top block).
+    """
     blocks = " ▁▂▃▄▅▆▇█"
-    s = np.asarray(scores, dtype=np.float64)
+    s = np.asarray(scores, dtype=np.float64).reshape(-1)
     if s.size == 0:
         return ""
+    finite = s[np.isfinite(s)]
+    s = np.nan_to_num(s, nan=0.0, neginf=0.0, posinf=max(float(finite.max()), 0.0) if finite.size and
+                      finite.max() > 0 else 1.0)
     if s.size > width:
         edges = np.linspace(0, s.size, width + 1).astype(int)
         s = np.array([s[a:max(b, a + 1)].max() for a, b in zip(edges[:-1], edges[1:])])

@@ -30,6 +30,10 @@ FORMAT_VERSION = 1
 SCENE_FILE = "scene.json"
 ARRAY_FIELDS = ("means", "rotations", "log_scales", "opacity_logits", "colors", "sh", "foreground", "labels")
 REQUIRED_FIELDS = ("means", "rotations", "log_scales", "opacity_logits")
+LANGUAGE_FILE_KEYS = ("latents", "decoder", "codebook")  # language entries that name files in the bundle
+MAX_TIMESTEPS = 1 << 20
+MAX_GAUSSIANS = 1 << 34
+MAX_FPS = 10_000.0
 
 
 def is_bundle(path: str | Path) -> bool:
@@ -84,7 +88,8 @@ def write_bundle(scene: Scene, path: str | Path, *, overwrite: bool = False) -> 
 def _copy_language_files(src_root: Path, dst_root: Path, language: dict[str, Any]) -> None:
     """Copy files the language description points to (e.g. the decoder) along with the bundle."""
     for key, value in language.items():
-        if isinstance(value, str) and key in ("decoder", "codebook") and (src_root / value).is_file():
+        if (isinstance(value, str) and key in ("decoder", "codebook") and is_inside(src_root.resolve(), value)
+                and (src_root / value).is_file()):
             (dst_root / value).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(src_root / value, dst_root / value)
 
@@ -105,7 +110,81 @@ def read_bundle_meta(path: str | Path) -> dict[str, Any]:
     for key in ("arrays", "cameras", "num_timesteps", "num_gaussians"):
         if key not in meta:
             raise InputError("missing key", file=meta_file, field=key)
+    validate_bundle_meta(meta, meta_file)
     return meta
+
+
+def _integer(meta: dict[str, Any], key: str, low: int, high: int, file: Path) -> int:
+    value = meta[key]
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InputError(f"must be an integer, got {value!r}", file=file, field=key)
+    if not low <= value <= high:
+        raise InputError(f"must be in {low}..{high}, got {value}", file=file, field=key)
+    return value
+
+
+def validate_bundle_meta(meta: dict[str, Any], meta_file: Path) -> None:
+    """Check the types and bounds of every ``scene.json`` entry before anything is allocated.
+
+    Raises :class:`InputError` naming the key: integer counts within bounds, a positive finite
+    ``fps``, ``arrays`` a mapping of known fields to relative ``.npy`` paths inside the bundle,
+    ``cameras`` an object whose ``num_timesteps`` matches the scene, ``language``/``metadata``
+    objects (or null). Camera entries themselves are checked by :meth:`CameraRig.from_dict`.
+    """
+    T = _integer(meta, "num_timesteps", 1, MAX_TIMESTEPS, meta_file)
+    _integer(meta, "num_gaussians", 1, MAX_GAUSSIANS, meta_file)
+    fps = meta.get("fps", 30.0)
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not 0 < fps <= MAX_FPS:
+        raise InputError(f"must be a number in (0, {MAX_FPS:g}], got {fps!r}", file=meta_file, field="fps")
+    if "name" in meta and not isinstance(meta["name"], str):
+        raise InputError(f"must be a string, got {meta['name']!r}", file=meta_file, field="name")
+    for key in ("language", "metadata"):
+        if meta.get(key) is not None and not isinstance(meta[key], dict):
+            raise InputError(f"must be an object or null, got {type(meta[key]).__name__}", file=meta_file,
+                             field=key)
+    arrays = meta["arrays"]
+    if not isinstance(arrays, dict):
+        raise InputError(f"must be an object mapping array names to files, got {type(arrays).__name__}",
+                         file=meta_file, field="arrays")
+    root = meta_file.parent.resolve()
+    for name, rel in arrays.items():
+        if not isinstance(rel, str) or not rel:
+            raise InputError(f"must be a file name, got {rel!r}", file=meta_file, field=f"arrays.{name}")
+        if not is_inside(root, rel):
+            raise InputError(f"{rel!r} points outside the bundle; array files must lie inside it",
+                             file=meta_file, field=f"arrays.{name}")
+    for key, rel in (meta.get("language") or {}).items():
+        if key in LANGUAGE_FILE_KEYS and (not isinstance(rel, str) or not is_inside(root, rel)):
+            raise InputError(f"{rel!r} is not a file inside the bundle", file=meta_file, field=f"language.{key}")
+    cameras = meta["cameras"]
+    if not isinstance(cameras, dict):
+        raise InputError(f"must be an object, got {type(cameras).__name__}", file=meta_file, field="cameras")
+    for split in ("train", "test"):
+        if not isinstance(cameras.get(split, []), list):
+            raise InputError(f"must be a list, got {type(cameras[split]).__name__}", file=meta_file,
+                             field=f"cameras.{split}")
+    if cameras.get("static", False):
+        cam_T = cameras.get("num_timesteps")
+        if isinstance(cam_T, bool) or not isinstance(cam_T, int) or cam_T not in (0, T):
+            raise InputError(f"must be an integer equal to the scene's {T} timesteps, got {cam_T!r}",
+                             file=meta_file, field="cameras.num_timesteps")
+    else:
+        for split in ("train", "test"):
+            lists = cameras.get(split, [])
+            if len(lists) not in (0, T):
+                raise InputError(f"has {len(lists)} timesteps but the scene has {T}", file=meta_file,
+                                 field=f"cameras.{split}")
+            if any(not isinstance(l, list) for l in lists):
+                raise InputError("must be a list of per-timestep camera lists", file=meta_file,
+                                 field=f"cameras.{split}")
+
+
+def is_inside(root: Path, relative: str) -> bool:
+    """Whether ``root / relative`` (symlinks resolved) stays inside ``root`` (``root`` resolved)."""
+    if Path(relative).is_absolute():
+        return False
+    target = (root / relative).resolve()
+    return target == root or root in target.parents
 
 
 def load_bundle(path: str | Path) -> Scene:

@@ -7,6 +7,7 @@ the Panoptic-Sports metadata (``k[t][c]``, ``w2c[t][c]``).
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
@@ -15,6 +16,8 @@ import numpy as np
 from ..errors import InputError
 
 RIGIDITY_TOL = 1e-4
+MAX_IMAGE_SIDE = 1 << 15  # pixels; beyond any camera, and keeps per-image buffers allocatable
+MAX_RIG_TIMESTEPS = 1 << 20
 
 
 def _as_matrix(value: Any, shape: tuple[int, int], name: str, file: str | None) -> np.ndarray:
@@ -71,8 +74,8 @@ class Camera:
                 or np.abs(self.w2c[3] - [0, 0, 0, 1]).max() > RIGIDITY_TOL):
             raise InputError("is not a rigid transform (rotation not orthonormal with det +1, or last row "
                              "not [0,0,0,1])", file=file, field=f"{name}.w2c")
-        if self.width <= 0 or self.height <= 0:
-            raise InputError(f"image size must be positive, got {self.width}x{self.height}",
+        if not (0 < self.width <= MAX_IMAGE_SIDE and 0 < self.height <= MAX_IMAGE_SIDE):
+            raise InputError(f"image size must be 1..{MAX_IMAGE_SIDE} pixels a side, got {self.width}x{self.height}",
                              file=file, field=f"{name}.size")
         if not (0 < self.near < self.far) or not math.isfinite(self.far):
             raise InputError(f"need 0 < near < far < inf, got near={self.near} far={self.far}",
@@ -158,15 +161,28 @@ class Camera:
         Exactly one of ``fov_y`` (radians) or ``focal`` (pixels) may be given (default fov_y=50°).
         When ``up`` is parallel to the viewing direction a stable fallback up vector is used.
         """
-        eye_v = np.asarray(eye, dtype=np.float64)
-        fwd = np.asarray(target, dtype=np.float64) - eye_v
-        dist = np.linalg.norm(fwd)
-        if not np.isfinite(dist) or dist < 1e-12:
+        eye_v = _finite_vector(eye, "look_at.eye")
+        target_v = _finite_vector(target, "look_at.target")
+        up_v = _finite_vector(up, "look_at.up")
+        fwd = target_v - eye_v
+        extent = float(np.abs(fwd).max())  # scaled first: the norm of 1e300-sized vectors overflows
+        if not math.isfinite(extent):
+            raise InputError("eye and target are too far apart to represent", field="look_at")
+        if extent < 1e-12:
             raise InputError("eye and target coincide; the viewing direction is undefined", field="look_at")
-        fwd = fwd / dist
-        R = look_rotation(fwd, np.asarray(up, dtype=np.float64))
+        fwd = fwd / extent
+        fwd = fwd / np.linalg.norm(fwd)
+        R = look_rotation(fwd, up_v / max(float(np.abs(up_v).max()), 1e-300))
+        width = _json_number(width, "look_at.width", None, integer=True, low=1, high=MAX_IMAGE_SIDE)
+        height = _json_number(height, "look_at.height", None, integer=True, low=1, high=MAX_IMAGE_SIDE)
         if focal is None:
-            focal = 0.5 * height / math.tan(0.5 * (fov_y if fov_y is not None else math.radians(50.0)))
+            fov = math.radians(50.0) if fov_y is None else fov_y
+            if not (isinstance(fov, numbers.Real) and 0 < fov < math.pi):
+                raise InputError(f"vertical field of view must be in (0, pi) radians, got {fov_y!r}",
+                                 field="look_at.fov_y")
+            focal = 0.5 * height / math.tan(0.5 * fov)
+        elif not (isinstance(focal, numbers.Real) and math.isfinite(focal) and focal > 0):
+            raise InputError(f"focal length must be positive and finite, got {focal!r}", field="look_at.focal")
         K = np.array([[focal, 0.0, width / 2.0], [0.0, focal, height / 2.0], [0.0, 0.0, 1.0]])
         w2c = np.eye(4)
         w2c[:3, :3] = R
@@ -175,10 +191,13 @@ class Camera:
 
     def scaled(self, factor: float) -> "Camera":
         """The same camera at ``factor`` times the resolution (intrinsics scaled to match)."""
-        if not factor > 0:
-            raise InputError(f"resolution scale must be positive, got {factor}", field="scale")
+        if not (factor > 0 and math.isfinite(factor)):
+            raise InputError(f"resolution scale must be positive and finite, got {factor}", field="scale")
         w = max(1, int(round(self.width * factor)))
         h = max(1, int(round(self.height * factor)))
+        if w > MAX_IMAGE_SIDE or h > MAX_IMAGE_SIDE:
+            raise InputError(f"{self.width}x{self.height} scaled by {factor:g} is {w}x{h}, over the "
+                             f"{MAX_IMAGE_SIDE}-pixel limit a side", field="scale")
         sx, sy = w / self.width, h / self.height
         K = self.K.copy()
         K[0] *= sx
@@ -192,14 +211,47 @@ class Camera:
 
     @staticmethod
     def from_dict(d: dict[str, Any], file: str | None = None, field_prefix: str = "camera") -> "Camera":
+        if not isinstance(d, dict):
+            raise InputError(f"must be an object, got {type(d).__name__}", file=file, field=field_prefix)
         try:
+            size = [_json_number(d[k], f"{field_prefix}.{k}", file, integer=True, low=1, high=MAX_IMAGE_SIDE)
+                    for k in ("width", "height")]
+            near = _json_number(d.get("near", 0.01), f"{field_prefix}.near", file)
+            far = _json_number(d.get("far", 100.0), f"{field_prefix}.far", file)
+            name = d.get("name", "")
+            if not isinstance(name, (str, int)):
+                raise InputError(f"must be a string, got {name!r}", file=file, field=f"{field_prefix}.name")
             cam = Camera(K=_as_matrix(d["K"], (3, 3), f"{field_prefix}.K", file),
                          w2c=_as_matrix(d["w2c"], (4, 4), f"{field_prefix}.w2c", file),
-                         width=int(d["width"]), height=int(d["height"]), near=float(d.get("near", 0.01)),
-                         far=float(d.get("far", 100.0)), name=str(d.get("name", "")))
+                         width=size[0], height=size[1], near=near, far=far, name=str(name))
         except KeyError as exc:
             raise InputError(f"missing key {exc}", file=file, field=field_prefix) from None
         return cam.validate(file, field_prefix)
+
+
+def _finite_vector(value: Any, name: str) -> np.ndarray:
+    try:
+        v = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"must be 3 numbers, got {value!r}", field=name) from None
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise InputError(f"must be 3 finite numbers, got {value!r}", field=name)
+    return v
+
+
+def _json_number(value: Any, name: str, file: str | None, *, integer: bool = False,
+                 low: float | None = None, high: float | None = None) -> Any:
+    """A JSON number of the right kind and range (an integer-valued float counts as an integer)."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and integer:
+        ok = float(value).is_integer()
+    if ok and ((low is not None and value < low) or (high is not None and value > high)):
+        ok = False
+    if not ok:
+        kind = "an integer" if integer else "a finite number"
+        bounds = f" in {low:g}..{high:g}" if low is not None and high is not None else ""
+        raise InputError(f"must be {kind}{bounds}, got {value!r}", file=file, field=name)
+    return int(value) if integer else float(value)
 
 
 def look_rotation(forward: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -283,16 +335,31 @@ class CameraRig:
 
     @staticmethod
     def from_dict(d: dict[str, Any], file: str | None = None) -> "CameraRig":
-        try:
-            if d.get("static", False):
-                T = int(d["num_timesteps"])
-                tr = [Camera.from_dict(c, file, f"cameras.train[{i}]") for i, c in enumerate(d["train"])]
-                te = [Camera.from_dict(c, file, f"cameras.test[{i}]") for i, c in enumerate(d["test"])]
-                return CameraRig.static(tr, te, T)
-            return CameraRig(
-                train=[[Camera.from_dict(c, file, f"cameras.train[{t}][{i}]") for i, c in enumerate(l)]
-                       for t, l in enumerate(d["train"])],
-                test=[[Camera.from_dict(c, file, f"cameras.test[{t}][{i}]") for i, c in enumerate(l)]
-                      for t, l in enumerate(d["test"])])
-        except KeyError as exc:
-            raise InputError(f"missing key {exc}", file=file, field="cameras") from None
+        """The rig of a ``to_dict`` object; every entry's type and bound is checked (InputError)."""
+        if not isinstance(d, dict):
+            raise InputError(f"must be an object, got {type(d).__name__}", file=file, field="cameras")
+
+        def lists(split: str, depth: int) -> list:
+            value = d.get(split, [])
+            if not isinstance(value, list) or (depth == 2 and not all(isinstance(l, list) for l in value)):
+                raise InputError("must be a list" + (" of per-timestep camera lists" if depth == 2 else ""),
+                                 file=file, field=f"cameras.{split}")
+            return value
+
+        static = d.get("static", False)
+        if not isinstance(static, bool):
+            raise InputError(f"must be true or false, got {static!r}", file=file, field="cameras.static")
+        if static:
+            T = _json_number(d.get("num_timesteps"), "cameras.num_timesteps", file, integer=True, low=0,
+                             high=MAX_RIG_TIMESTEPS)
+            tr = [Camera.from_dict(c, file, f"cameras.train[{i}]") for i, c in enumerate(lists("train", 1))]
+            te = [Camera.from_dict(c, file, f"cameras.test[{i}]") for i, c in enumerate(lists("test", 1))]
+            return CameraRig.static(tr, te, T)
+        train, test = lists("train", 2), lists("test", 2)
+        if max(len(train), len(test)) > MAX_RIG_TIMESTEPS:
+            raise InputError(f"more than {MAX_RIG_TIMESTEPS} timesteps of cameras", file=file, field="cameras")
+        return CameraRig(
+            train=[[Camera.from_dict(c, file, f"cameras.train[{t}][{i}]") for i, c in enumerate(l)]
+                   for t, l in enumerate(train)],
+            test=[[Camera.from_dict(c, file, f"cameras.test[{t}][{i}]") for i, c in enumerate(l)]
+                  for t, l in enumerate(test)])

@@ -25,8 +25,8 @@ from typing import Any, Optional
 import numpy as np
 
 from ..errors import InputError, OutputExistsError
-from ..fileio import atomic_directory, atomic_path, read_json, write_json_atomic
-from .camera import Camera, CameraRig
+from ..fileio import NPY_HEADER_ERRORS, atomic_directory, atomic_path, read_json, write_json_atomic
+from .camera import MAX_IMAGE_SIDE, Camera, CameraRig
 from .gaussians import GaussianSequence, normalize_quaternions_chunked, sh_dc_to_rgb
 from .scene import Scene
 
@@ -83,7 +83,7 @@ class NpzArrays:
                 raise InputError("holds an object/pickled array, which is refused (never unpickled)",
                                  file=self.path, field=key) from None
             raise InputError(f"corrupt array ({exc})", file=self.path, field=key) from None
-        except (zipfile.BadZipFile, OSError, EOFError, struct.error, RuntimeError, NotImplementedError) as exc:
+        except (zipfile.BadZipFile, struct.error, RuntimeError, NotImplementedError) + NPY_HEADER_ERRORS as exc:
             # RuntimeError: encrypted entry; NotImplementedError: unsupported compression method
             raise InputError(f"corrupt, truncated or unreadable array ({exc})", file=self.path, field=key) from None
 
@@ -189,11 +189,14 @@ def read_meta(path: Path, T: int) -> list[list[Camera]]:
             raise InputError("missing key", file=path, field=key)
     try:
         width, height = int(meta["w"]), int(meta["h"])
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"image size must be integers, got w={meta['w']!r} h={meta['h']!r}", file=path,
                          field="w/h") from None
     if width <= 0 or height <= 0:
         raise InputError(f"image size must be positive, got {width}x{height}", file=path, field="w/h")
+    if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE:
+        raise InputError(f"image size must be at most {MAX_IMAGE_SIDE} pixels a side, got w={meta['w']!r} "
+                         f"h={meta['h']!r}", file=path, field="w/h")
     ks, w2cs = meta["k"], meta["w2c"]
     cam_ids = meta.get("cam_id")
     for key, value in (("k", ks), ("w2c", w2cs)) + ((("cam_id", cam_ids),) if cam_ids is not None else ()):

@@ -24,7 +24,7 @@ from typing import Mapping
 import torch
 
 from ...errors import InputError
-from ...fileio import atomic_path
+from ...fileio import TORCH_LOAD_ERRORS, atomic_path
 from .model import ViCLIPConfig, ViCLIPModel, expected_shapes, infer_config
 
 SAFETENSORS_NAME = "model.safetensors"
@@ -96,13 +96,14 @@ def _read_torch(path: Path) -> dict[str, torch.Tensor]:
     except pickle.UnpicklingError as exc:
         detail = _unpickler_detail(str(exc))
         if "global" in detail.lower():
-            raise InputError("refused: the file holds pickled Python objects beyond tensors, which are "
-                             f"never executed (torch.load weights_only=True: {detail}). If the file comes "
+            raise InputError("refused: the file holds pickled Python objects beyond tensors, and pickled "
+                             f"objects are refused, never executed ({detail}). If the file comes "
                              "from a source you trust, re-save its 'model' entry alone with torch.save "
                              "once and load that", file=path) from None
         raise InputError(f"not a readable torch checkpoint ({detail})", file=path) from None
-    except (RuntimeError, OSError, EOFError, ValueError) as exc:
-        raise InputError(f"not a readable torch checkpoint ({exc})", file=path) from None
+    except TORCH_LOAD_ERRORS as exc:
+        raise InputError(f"not a readable torch checkpoint ({type(exc).__name__}: {str(exc)[:200]})",
+                         file=path) from None
     if isinstance(obj, Mapping) and "model" in obj and isinstance(obj["model"], Mapping):
         return dict(obj["model"])
     if isinstance(obj, Mapping) and obj and all(isinstance(k, str) for k in obj):
@@ -114,13 +115,8 @@ def _read_torch(path: Path) -> dict[str, torch.Tensor]:
 
 def _unpickler_detail(message: str) -> str:
     """The one informative sentence of torch's long weights-only error, e.g. 'Unsupported global: ...'."""
-    lines = [line.strip() for line in message.splitlines() if line.strip()]
-    for index, line in enumerate(lines):
-        if "WeightsUnpickler error:" in line:
-            rest = line.split("WeightsUnpickler error:", 1)[1].strip()
-            text = rest or (lines[index + 1] if index + 1 < len(lines) else "")
-            return text.split(" Please use", 1)[0].strip()
-    return lines[0] if lines else "unsupported content"
+    from ...fileio import unpickling_detail
+    return unpickling_detail(Exception(message))
 
 
 def _listing(keys: list[str]) -> str:

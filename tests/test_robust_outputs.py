@@ -25,11 +25,12 @@ class _Stop(Exception):
 
 def _headless_run(monkeypatch, argv):
     from fourlegs_addon import headless
+    from fourlegs_engine import api
 
-    def stop(args):
+    def stop(*args, **kwargs):
         raise _Stop
 
-    monkeypatch.setattr(headless, "resolve_scene", stop)
+    monkeypatch.setattr(api, "open_scene", stop)
     args = headless.build_parser().parse_args(argv)
     return headless.run(args)
 

@@ -150,3 +150,23 @@ def test_missing_ray_names_the_extra_to_install(reference, tmp_path, monkeypatch
     assert not (path / "features").exists()
     assert main(["distill", str(path), "--ray=auto"]) == 2
     assert 'pip install "fourlegs[cluster]"' in capsys.readouterr().err
+
+
+def test_list_scheduling_simulation():
+    from benchmarks.cluster import SequenceAssumptions, list_schedule, simulate_sequence
+    assert list_schedule([3, 1, 1, 1], 2) == (3.0, [3.0, 3.0])
+    assert list_schedule([2, 2, 2], 1) == (6.0, [6.0])
+    assert list_schedule([5], 4)[0] == 5.0
+    a = SequenceAssumptions(jitter=0.0)
+    one = simulate_sequence(a, 1, overhead_s=0.0)
+    # one GPU: the stages' work back to back: 150 × 27 × (572 clips × 13 ms) + renders + load + AE + distill
+    work = (150 * 27 * 572 * 0.013 + (150 + 7 * one["extract_tasks"]) * 27 * 0.01 + 20.0 + 600.0
+            + 150 * (300.0 + a.feature_mb / a.transfer_mb_per_s))
+    assert one["total_hours"] * 3600 == pytest.approx(work, rel=1e-9)
+    assert one["efficiency"] == pytest.approx(1.0)
+    many = simulate_sequence(a, 64, overhead_s=0.0)
+    assert many["extract_tasks"] == 150 and many["extract_chunk"] == 1
+    # 150 equal distill tasks on 64 GPUs take 3 rounds; the autoencoder stays serial
+    assert many["distill_hours"] * 3600 == pytest.approx(3 * (300.0 + a.feature_mb / a.transfer_mb_per_s))
+    assert many["total_hours"] > many["autoencoder_hours"] + many["distill_hours"]
+    assert 0 < many["efficiency"] < 1

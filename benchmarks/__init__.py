@@ -1,0 +1,1 @@
+"""Benchmarks and evaluation commands (``fourlegs bench ...``), kept out of the engine."""

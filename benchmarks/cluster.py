@@ -9,8 +9,8 @@ task (one at a time, and pipelined over all workers) and, for the real tasks,
 (wall × slots − Σ task seconds) / tasks, i.e. what the cluster adds per task including idle slots.
 
 Simulated part: list scheduling (each task, in submission order, goes to the earliest free GPU, as
-Ray's scheduler does for equal tasks) of one sequence's extraction (one task per timestep, chunked
-as ``--ray-chunk`` auto would), the autoencoder training (one task) and the distillation (one task
+Ray's scheduler does for equal tasks) of one sequence's extraction (one task per timestep, as
+``--ray`` does with ViCLIP; and one run of timesteps per GPU for comparison), the autoencoder training (one task) and the distillation (one task
 per timestep) on 1, 8 and 64 GPUs. Every per-task cost is an explicit, printed assumption (or the
 overhead measured above); durations get a seeded ±``jitter`` spread.
 """
@@ -108,7 +108,7 @@ def simulate_sequence(a: SequenceAssumptions, gpus: int, overhead_s: float, grai
     """Extraction → autoencoder → distillation of one sequence on ``gpus`` GPUs (stages in order).
 
     ``grain="timestep"`` is what ``--ray`` schedules (chunks of ``chunk`` consecutive timesteps; None:
-    the auto size of ``--ray-chunk``);
+    the auto size of ``--ray-chunk`` for ViCLIP, 1);
     ``"camera-timestep"`` is a what-if with one task per camera and timestep (not implemented: the
     result files hold whole timesteps).
     """
@@ -117,7 +117,7 @@ def simulate_sequence(a: SequenceAssumptions, gpus: int, overhead_s: float, grai
     rng = random.Random(a.seed * 1000 + gpus)
     clip_per_cam = a.clips_per_camera * a.clip_seconds
     if grain == "timestep":
-        chunk = chunk or auto_chunk(a.timesteps, gpus)
+        chunk = chunk or auto_chunk(a.timesteps, gpus, "rgb")
         n_tasks = math.ceil(a.timesteps / chunk)
         sizes = [min(chunk, a.timesteps - i * chunk) for i in range(n_tasks)]
         # a task renders the 8-frame tubes of its timesteps: (c + 7) frames per camera
@@ -142,9 +142,8 @@ def simulate_sequence(a: SequenceAssumptions, gpus: int, overhead_s: float, grai
 
 
 def simulation_table(a: SequenceAssumptions, gpu_counts: Sequence[int], overhead_s: float) -> list[dict[str, Any]]:
-    from fourlegs_engine.cluster import auto_chunk
     rows = [simulate_sequence(a, g, overhead_s) for g in gpu_counts]
-    rows += [simulate_sequence(a, g, overhead_s, chunk=1) for g in gpu_counts if auto_chunk(a.timesteps, g) > 1]
+    rows += [simulate_sequence(a, g, overhead_s, chunk=math.ceil(a.timesteps / g)) for g in gpu_counts if g > 1]
     rows += [simulate_sequence(a, g, overhead_s, "camera-timestep") for g in gpu_counts if g > 1]
     return sorted(rows, key=lambda r: (r["gpus"], r["grain"] != "timestep", -r["extract_chunk"]))
 
@@ -190,7 +189,8 @@ def measure(source: Path, timesteps: str, workers: int, chunk: int | None, share
     """Single process vs local Ray cluster on copies of ``source`` (see the module docstring)."""
     import torch
     from fourlegs_engine import cluster
-    from fourlegs_engine.language.autoencoder import AE_CHECKPOINT, AE_REPORT, DECODER_FILE, ENCODER_FILE, train_autoencoder
+    from fourlegs_engine.language.autoencoder import (AE_CHECKPOINT, AE_REPORT, DECODER_FILE, ENCODER_FILE,
+                                                      AETrainConfig, train_autoencoder)
     from fourlegs_engine.language.distill import DistillConfig, distill_scene
     from fourlegs_engine.language.encoders import get_encoder
     from fourlegs_engine.language.extract import ExtractConfig, extract_features
@@ -213,7 +213,8 @@ def measure(source: Path, timesteps: str, workers: int, chunk: int | None, share
                          progress=progress)
         out["single_extract_s"] = time.perf_counter() - w0
         out["single_extract_cpu_s"] = time.process_time() - c0
-        train_autoencoder(scene, timesteps=steps, progress=progress)
+        # the same autoencoder serves both runs; its quality does not matter here
+        train_autoencoder(scene, AETrainConfig(epochs=1, samples=8192), timesteps=steps, progress=progress)
         for rel in (AE_REPORT, ENCODER_FILE, DECODER_FILE, AE_CHECKPOINT):
             if (single / rel).is_file():
                 (multi / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -243,7 +244,6 @@ def measure(source: Path, timesteps: str, workers: int, chunk: int | None, share
                                       progress=False)
             out["empty_task_pipelined_ms"] = 1000 * noop.wall_seconds / n
             mscene = load_bundle(multi)
-            from fourlegs_engine.language.encoders import get_encoder as _ge  # noqa: F401 (workers import it)
             rep, ext = cluster.extract_on_ray(mscene, _simulated_encoder, timesteps=steps, options=options,
                                               progress=progress)
             res, dis = cluster.distill_on_ray(mscene, DistillConfig(mode="lift"), timesteps=steps,

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
-from .errors import FourlegsError, InputError, OutputExistsError
+from .errors import FourlegsError, InputError
 
 if TYPE_CHECKING:  # heavy modules stay out of `fourlegs --help`
     from .language.distill import DistillConfig, DistillResult
@@ -47,8 +47,6 @@ RETRYABLE = (OSError, MemoryError, RuntimeError)
 DEFAULT_RETRIES = 2
 #: top-level bundle entries that are stage outputs, never shipped to workers as inputs
 OUTPUT_DIRS = ("features", "language", "bench")
-#: auto chunking aims at this many tasks per worker slot (load balance vs. tube re-rendering)
-TASKS_PER_SLOT = 4
 
 
 class ClusterError(FourlegsError):
@@ -66,7 +64,7 @@ class RayOptions:
             CUDA, or "auto" on a cluster with GPUs; else 0).
         retries: how many times a failed task is retried (worker death or a transient error).
         shared_fs: the bundle is visible at the same path on every node.
-        chunk: timesteps per task (None: extraction aims at 4 tasks per worker slot, distillation 1).
+        chunk: timesteps per task (None: distillation 1, extraction :func:`auto_chunk`).
         local_cpus: CPUs of a locally started cluster (None: all of the machine's).
     """
 
@@ -102,7 +100,8 @@ def add_ray_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--ray-retries", type=int, default=DEFAULT_RETRIES,
                    help=f"retries of a failed task (default {DEFAULT_RETRIES})")
     g.add_argument("--ray-chunk", type=int, default=None,
-                   help="timesteps per task (default: extraction ~4 tasks per worker, distillation 1)")
+                   help="timesteps per task (default: distillation 1; extraction 1 with RGB encoders such as "
+                        "ViCLIP, one run per worker with label encoders, whose cost is rendering)")
     g.add_argument("--ray-no-shared-fs", action="store_true",
                    help="the bundle is not on a filesystem every node sees: ship inputs and results "
                         "through Ray's object store (the driver writes the files)")
@@ -191,8 +190,16 @@ def worker_slots(ray: Any, options: RayOptions, num_gpus: float) -> int:
     return max(1, int(min(slots))) if slots else 1
 
 
-def auto_chunk(num_timesteps: int, slots: int) -> int:
-    return max(1, math.ceil(num_timesteps / (TASKS_PER_SLOT * slots)))
+def auto_chunk(num_timesteps: int, slots: int, input_kind: str = "rgb") -> int:
+    """Timesteps per extraction task when ``--ray-chunk`` is not given.
+
+    A task renders (chunk + 7) frames per camera for its chunk's 8-frame tubes. For RGB encoders
+    (ViCLIP) encoding dominates by far, so one timestep per task balances best; for label encoders
+    (the simulated one) rendering dominates, so each worker slot gets one run of consecutive timesteps.
+    """
+    if input_kind == "rgb":
+        return 1
+    return max(1, math.ceil(num_timesteps / max(1, slots)))
 
 
 @dataclass
@@ -202,7 +209,8 @@ class TaskFailure:
 
     def describe(self, unit: str) -> str:
         from .language.store import format_ranges
-        return f"{unit} {format_ranges(list(self.chunk))}: {self.error}"
+        where = f"{unit} {format_ranges(list(self.chunk))}" if self.chunk else "the set-up task"
+        return f"{where}: {self.error}"
 
 
 @dataclass
@@ -281,7 +289,10 @@ def run_chunks(function: Callable[..., Any], job: Any, chunks: Sequence[tuple[in
         bar = tqdm(total=sum(len(c) for c in chunks), desc=f"{stage} (ray)", unit=unit)
     try:
         while pending:
-            ready, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
+            refs = list(pending)
+            ready, _ = ray.wait(refs, num_returns=1, timeout=1.0)
+            if ready:  # everything else already finished, without waiting
+                ready, _ = ray.wait(refs, num_returns=len(refs), timeout=0)
             for ref in ready:
                 chunk = pending.pop(ref)
                 try:
@@ -394,21 +405,46 @@ def _task_bundle(ref: BundleRef, payload: dict[str, bytes] | None = None) -> Pat
         return root
     import ray
     from .fileio import write_bytes_atomic
-    root = Path(tempfile.gettempdir()) / "fourlegs-cluster" / ref.snapshot_digest / "bundle"
+    root = _snapshot_dir(ref.snapshot_digest) / "bundle"
     if not (root / "scene.json").is_file():
-        from .fileio import atomic_directory
         files = ray.get(ref.snapshot)
+        root.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=".bundle.", suffix=".part", dir=root.parent))
         try:
-            with atomic_directory(root) as tmp:
-                for rel, data in files.items():
-                    (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
-                    (tmp / rel).write_bytes(data)
-        except (OutputExistsError, OSError):
-            if not (root / "scene.json").is_file():  # another worker on this node finished it first
+            for rel, data in files.items():
+                (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+                (tmp / rel).write_bytes(data)
+            tmp.rename(root)          # never replaces a copy another worker of this node finished first
+        except OSError:
+            if not (root / "scene.json").is_file():
                 raise
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
     for rel, data in (payload or {}).items():
         write_bytes_atomic(root / rel, data)
     return root
+
+
+def _snapshot_dir(digest: str) -> Path:
+    return Path(tempfile.gettempdir()) / "fourlegs-cluster" / digest
+
+
+def _remove_snapshot(digest: str) -> None:
+    shutil.rmtree(_snapshot_dir(digest), ignore_errors=True)
+
+
+def release_bundle(ray: Any, ref: BundleRef) -> None:
+    """Remove the node-local copies of a ``shared_fs=False`` bundle: one small task pinned to each node."""
+    if ref.shared:
+        return
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+    remote = ray.remote(_remove_snapshot)
+    try:
+        refs = [remote.options(num_cpus=0, scheduling_strategy=NodeAffinitySchedulingStrategy(node["NodeID"], soft=True))
+                .remote(ref.snapshot_digest) for node in ray.nodes() if node.get("Alive")]
+        ray.get(refs, timeout=60)
+    except Exception:  # noqa: BLE001 - best effort: temporary files on a node that may be gone
+        pass
 
 
 _WORKER_CACHE: dict[str, Any] = {}
@@ -501,7 +537,7 @@ def extract_on_ray(scene: "Scene", encoder_factory: Callable[["Scene"], Any], co
     must be picklable (a module-level function or a ``functools.partial`` of one). The driver never
     builds the encoder: the features' configuration comes from one small task first.
     """
-    from .language.extract import ExtractConfig, ExtractReport, feature_store
+    from .language.extract import ExtractConfig
     from .language.store import select_timesteps
     options = (options or RayOptions()).check()
     config = config or ExtractConfig()
@@ -509,19 +545,29 @@ def extract_on_ray(scene: "Scene", encoder_factory: Callable[["Scene"], Any], co
         raise InputError(f"must be in (0, 1], got {config.frame_scale}", field="frame_scale")
     if scene.root is None:
         raise InputError("the scene must be a bundle on disk (write it with `fourlegs convert` first)", field="scene")
+    steps = select_timesteps(scene.num_timesteps, timesteps, shard)
     ray = connect(options)
     gpus = _gpus_for(options, ray, device)
     root = Path(scene.root)
     job = ExtractJob(bundle_ref(ray, root, options), uuid.uuid4().hex, encoder_factory, config)
+    try:
+        return _extract_on_ray(ray, scene, job, steps, gpus, overwrite, progress, options)
+    finally:
+        release_bundle(ray, job.bundle)
+
+
+def _extract_on_ray(ray: Any, scene: "Scene", job: ExtractJob, steps: list[int], gpus: float, overwrite: bool,
+                    progress: bool, options: RayOptions) -> tuple["ExtractReport", ClusterReport]:
+    from .language.extract import ExtractReport, feature_store
+    root = Path(scene.root)
     configs: list[dict[str, Any]] = []
     probe = run_chunks(_extract_config_task, job, [()], options=options, stage="extract-config", num_gpus=gpus,
                        progress=False, on_result=lambda chunk, value: configs.append(value))
     probe.raise_failures()
     store = feature_store(scene, configs[0]).open(overwrite=overwrite)
-    steps = select_timesteps(scene.num_timesteps, timesteps, shard)
     todo = [t for t in steps if not store.is_done(t)]
     slots = worker_slots(ray, options, gpus)
-    chunks = plan_chunks(todo, options.chunk or auto_chunk(len(todo), slots))
+    chunks = plan_chunks(todo, options.chunk or auto_chunk(len(todo), slots, configs[0]["input_kind"]))
     stats = {"render": 0.0, "encode": 0.0, "crops": 0, "done": []}
 
     def collect(chunk: tuple[int, ...], value: dict[str, Any]) -> None:
@@ -601,8 +647,11 @@ def distill_on_ray(scene: "Scene", config: "DistillConfig", *, timesteps: Any = 
             _write_results(root, value["files"])
         timings.extend(value["timings"])
 
-    tasks = run_chunks(_distill_chunk, DistillJob(ref, uuid.uuid4().hex, config), chunks, options=options,
-                       stage="distill", num_gpus=gpus, progress=progress, payloads=payloads, on_result=collect)
+    try:
+        tasks = run_chunks(_distill_chunk, DistillJob(ref, uuid.uuid4().hex, config), chunks, options=options,
+                           stage="distill", num_gpus=gpus, progress=progress, payloads=payloads, on_result=collect)
+    finally:
+        release_bundle(ray, ref)
     tasks.skipped = [t for t in steps if t not in set(todo)]
     tasks.raise_failures()
     result = distill_scene(scene, config=config, timesteps=[], merge=True)   # merges when every timestep is done

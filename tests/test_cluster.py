@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -80,12 +81,15 @@ def test_extract_and_lift_on_ray_give_the_single_process_bytes(reference, ray_cl
     assert not (path / "language" / "steps").exists()                      # merged, parts dropped
     assert not [p for p in path.rglob("*") if ".part" in p.name]           # nothing half-written left
     assert main(["distill", str(path), "--check"]) == 0
+    if not shared:                                                  # node-local copies removed
+        assert not list((Path(tempfile.gettempdir()) / "fourlegs-cluster").glob("*/bundle"))
 
 
 def test_plan_chunks_splits_at_gaps_and_size():
     assert cluster.plan_chunks([5, 0, 1, 2, 3, 9, 6], 3) == [(0, 1, 2), (3,), (5, 6), (9,)]
     assert cluster.plan_chunks([], 4) == []
-    assert cluster.auto_chunk(150, 8) == 5 and cluster.auto_chunk(3, 64) == 1
+    assert cluster.auto_chunk(150, 8, "rgb") == 1                  # encoding dominates: balance
+    assert cluster.auto_chunk(150, 8, "labels") == 19 and cluster.auto_chunk(3, 64, "labels") == 1
 
 
 @pytest.mark.cluster
@@ -160,12 +164,14 @@ def test_list_scheduling_simulation():
     a = SequenceAssumptions(jitter=0.0)
     one = simulate_sequence(a, 1, overhead_s=0.0)
     # one GPU: the stages' work back to back: 150 × 27 × (572 clips × 13 ms) + renders + load + AE + distill
-    work = (150 * 27 * 572 * 0.013 + (150 + 7 * one["extract_tasks"]) * 27 * 0.01 + 20.0 + 600.0
+    assert one["extract_tasks"] == 150
+    work = (150 * 27 * 572 * 0.013 + (150 + 7 * 150) * 27 * 0.01 + 20.0 + 600.0
             + 150 * (300.0 + a.feature_mb / a.transfer_mb_per_s))
     assert one["total_hours"] * 3600 == pytest.approx(work, rel=1e-9)
     assert one["efficiency"] == pytest.approx(1.0)
     many = simulate_sequence(a, 64, overhead_s=0.0)
     assert many["extract_tasks"] == 150 and many["extract_chunk"] == 1
+    assert simulate_sequence(a, 8, 0.0, chunk=19)["extract_tasks"] == 8
     # 150 equal distill tasks on 64 GPUs take 3 rounds; the autoencoder stays serial
     assert many["distill_hours"] * 3600 == pytest.approx(3 * (300.0 + a.feature_mb / a.transfer_mb_per_s))
     assert many["total_hours"] > many["autoencoder_hours"] + many["distill_hours"]

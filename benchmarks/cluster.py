@@ -17,6 +17,7 @@ overhead measured above); durations get a seeded ±``jitter`` spread.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import heapq
 import math
 import os
@@ -43,6 +44,8 @@ def register_bench(bench_subparsers: Any) -> None:
     p.add_argument("--timesteps", default="0:16", help="timesteps extracted and lifted (default 0:16)")
     p.add_argument("--workers", type=int, default=2, help="CPUs of the local Ray cluster = workers (default 2)")
     p.add_argument("--chunk", type=int, default=None, help="timesteps per extraction task (default auto)")
+    p.add_argument("--single-threads", type=int, default=1,
+                   help="torch threads of the single-process run (default 1, as each one-CPU Ray worker has)")
     p.add_argument("--no-shared-fs", action="store_true", help="measure the object-store mode instead")
     p.add_argument("--skip-measure", action="store_true", help="only the simulation (with --overhead-ms)")
     p.add_argument("--overhead-ms", type=float, default=None,
@@ -185,7 +188,7 @@ def _compare(a: Path, b: Path) -> dict[str, Any]:
 
 
 def measure(source: Path, timesteps: str, workers: int, chunk: int | None, shared_fs: bool,
-            progress: bool = True) -> dict[str, Any]:
+            progress: bool = True, single_threads: int | None = 1) -> dict[str, Any]:
     """Single process vs local Ray cluster on copies of ``source`` (see the module docstring)."""
     import torch
     from fourlegs_engine import cluster
@@ -205,24 +208,27 @@ def measure(source: Path, timesteps: str, workers: int, chunk: int | None, share
         steps = select_timesteps(scene.num_timesteps, timesteps)
         out: dict[str, Any] = {"scene": scene.name, "num_gaussians": scene.num_gaussians,
                                "cameras": scene.cameras.num_cameras("train"), "timesteps": steps,
-                               "single_threads": torch.get_num_threads(), "workers": workers,
+                               "workers": workers,
                                "shared_fs": shared_fs}
         # ---- single process
-        c0, w0 = time.process_time(), time.perf_counter()
-        extract_features(scene, get_encoder("simulated", scene=scene), ExtractConfig(), timesteps=steps,
-                         progress=progress)
-        out["single_extract_s"] = time.perf_counter() - w0
-        out["single_extract_cpu_s"] = time.process_time() - c0
-        # the same autoencoder serves both runs; its quality does not matter here
-        train_autoencoder(scene, AETrainConfig(epochs=1, samples=8192), timesteps=steps, progress=progress)
-        for rel in (AE_REPORT, ENCODER_FILE, DECODER_FILE, AE_CHECKPOINT):
-            if (single / rel).is_file():
-                (multi / rel).parent.mkdir(parents=True, exist_ok=True)
-                shutil.copy2(single / rel, multi / rel)
-        c0, w0 = time.process_time(), time.perf_counter()
-        distill_scene(scene, config=DistillConfig(mode="lift"), timesteps=steps, merge=False, progress=progress)
-        out["single_lift_s"] = time.perf_counter() - w0
-        out["single_lift_cpu_s"] = time.process_time() - c0
+        from fourlegs_engine.threads import torch_threads
+        with torch_threads(single_threads) if single_threads else contextlib.nullcontext():
+            out["single_threads"] = torch.get_num_threads()
+            c0, w0 = time.process_time(), time.perf_counter()
+            extract_features(scene, get_encoder("simulated", scene=scene), ExtractConfig(), timesteps=steps,
+                             progress=progress)
+            out["single_extract_s"] = time.perf_counter() - w0
+            out["single_extract_cpu_s"] = time.process_time() - c0
+            # the same autoencoder serves both runs; its quality does not matter here
+            train_autoencoder(scene, AETrainConfig(epochs=1, samples=8192), timesteps=steps, progress=progress)
+            for rel in (AE_REPORT, ENCODER_FILE, DECODER_FILE, AE_CHECKPOINT):
+                if (single / rel).is_file():
+                    (multi / rel).parent.mkdir(parents=True, exist_ok=True)
+                    shutil.copy2(single / rel, multi / rel)
+            c0, w0 = time.process_time(), time.perf_counter()
+            distill_scene(scene, config=DistillConfig(mode="lift"), timesteps=steps, merge=False, progress=progress)
+            out["single_lift_s"] = time.perf_counter() - w0
+            out["single_lift_cpu_s"] = time.process_time() - c0
         # ---- local Ray cluster
         w0 = time.perf_counter()
         ray.init(num_cpus=workers, include_dashboard=False, logging_level="WARNING")
@@ -244,16 +250,28 @@ def measure(source: Path, timesteps: str, workers: int, chunk: int | None, share
                                       progress=False)
             out["empty_task_pipelined_ms"] = 1000 * noop.wall_seconds / n
             mscene = load_bundle(multi)
+            w0 = time.perf_counter()
             rep, ext = cluster.extract_on_ray(mscene, _simulated_encoder, timesteps=steps, options=options,
                                               progress=progress)
+            ext_wall = time.perf_counter() - w0
+            w0 = time.perf_counter()
             res, dis = cluster.distill_on_ray(mscene, DistillConfig(mode="lift"), timesteps=steps,
                                               options=options, progress=progress)
+            walls = {"extract": ext_wall, "lift": time.perf_counter() - w0}
+            gaps = noop.dispatch_gaps()
+            out["empty_task_dispatch_gap_ms"] = 1000 * statistics.median(gaps) if gaps else None
             for name, r in (("extract", ext), ("lift", dis)):
-                out[f"ray_{name}_s"] = r.wall_seconds
+                setup = r.setup or cluster.ClusterReport(name)
+                out[f"ray_{name}_s"] = walls[name]            # the whole call: set-up task, tasks, merge
                 out[f"ray_{name}_tasks"] = len(r.done)
-                out[f"ray_{name}_task_s"] = sum(r.task_seconds)
+                out[f"ray_{name}_task_s"] = sum(r.task_seconds) + sum(setup.task_seconds)
+                out[f"ray_{name}_task_cpu_s"] = sum(r.task_cpu_seconds) + sum(setup.task_cpu_seconds)
                 out[f"ray_{name}_overhead_ms_per_task"] = (
                     1000 * (r.wall_seconds * r.slots - sum(r.task_seconds)) / max(1, len(r.done)))
+                gaps = r.dispatch_gaps()
+                out[f"ray_{name}_dispatch_gap_ms"] = 1000 * statistics.median(gaps) if gaps else None
+                out[f"ray_{name}_result_latency_ms"] = 1000 * statistics.median(
+                    arrived - end for _, _, end, arrived in r.timeline)
                 out[f"ray_{name}_slots"] = r.slots
         finally:
             ray.shutdown()
@@ -286,7 +304,8 @@ def run_bench_cluster(args: argparse.Namespace) -> int:
         raise InputError("GPU counts must be >= 1", field="--gpus")
     report: dict[str, Any] = {"benchmark": "cluster", "command": "fourlegs bench cluster " + " ".join(sys.argv[3:])}
     if not args.skip_measure:
-        report["measured"] = measure(source, args.timesteps, args.workers, args.chunk, not args.no_shared_fs)
+        report["measured"] = measure(source, args.timesteps, args.workers, args.chunk, not args.no_shared_fs,
+                                     single_threads=args.single_threads)
     overhead_ms = args.overhead_ms
     if overhead_ms is None:
         overhead_ms = report.get("measured", {}).get("empty_task_pipelined_ms", 5.0)
@@ -310,15 +329,24 @@ def markdown(report: dict[str, Any]) -> str:
                   f"{len(m['timesteps'])} timesteps ({m['timesteps'][0]}..{m['timesteps'][-1]}); single process "
                   f"with {m['single_threads']} torch threads vs a local Ray cluster of {m['workers']} one-CPU "
                   f"workers ({'shared filesystem' if m['shared_fs'] else 'object store'}).", "",
-                  "| stage | single process s (CPU s) | Ray s | Ray tasks | Σ task s | overhead ms / task | bitwise identical |",
-                  "|---|---:|---:|---:|---:|---:|---|"]
+                  "| stage | single process s (CPU s) | Ray s | Ray tasks | Σ task s (CPU s) | (wall × slots − Σ task s) / task, ms "
+                  "| dispatch gap ms | result latency ms | bitwise identical |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+
+        def ms(v: Any) -> str:
+            return "-" if v is None else f"{v:.1f}"
         for name, key, files in (("extract", "extract", "features"), ("lift", "lift", "latents")):
             lines.append(f"| {name} | {m[f'single_{key}_s']:.1f} ({m[f'single_{key}_cpu_s']:.1f}) | "
-                         f"{m[f'ray_{key}_s']:.1f} | {m[f'ray_{key}_tasks']} | {m[f'ray_{key}_task_s']:.1f} | "
-                         f"{m[f'ray_{key}_overhead_ms_per_task']:.0f} | {m[files]['bitwise_identical']} "
-                         f"({m[files]['files']} files, max diff {m[files]['max_abs_diff']:.3g}) |")
+                         f"{m[f'ray_{key}_s']:.1f} | {m[f'ray_{key}_tasks']} | {m[f'ray_{key}_task_s']:.1f} "
+                         f"({m[f'ray_{key}_task_cpu_s']:.1f}) | {m[f'ray_{key}_overhead_ms_per_task']:.0f} | "
+                         f"{ms(m[f'ray_{key}_dispatch_gap_ms'])} | {ms(m[f'ray_{key}_result_latency_ms'])} | "
+                         f"{m[files]['bitwise_identical']} ({m[files]['files']} files, max diff "
+                         f"{m[files]['max_abs_diff']:.3g}) |")
         lines += ["", f"Ray start {m['ray_init_s']:.1f} s; empty task: {m['empty_task_roundtrip_ms']:.1f} ms round trip "
-                  f"(one at a time), {m['empty_task_pipelined_ms']:.2f} ms per task pipelined over the workers.", ""]
+                  f"(one at a time), {m['empty_task_pipelined_ms']:.2f} ms per task pipelined over the workers, "
+                  f"dispatch gap {ms(m['empty_task_dispatch_gap_ms'])} ms. Dispatch gap: median time between one "
+                  "task's end and the next task's start on the same worker; result latency: median time from a "
+                  "task's end to its result in the driver (files written there without a shared filesystem).", ""]
     s = report["simulation"]
     a = s["assumptions"]
     lines += [f"## Simulation: one sequence, {a['cameras']} cameras × {a['timesteps']} timesteps, "

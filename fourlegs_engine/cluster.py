@@ -87,13 +87,24 @@ class RayOptions:
 
 
 # ----------------------------------------------------------------------------------- the CLI side
+class _RayAddress(argparse.Action):
+    """``--ray [ADDRESS]``; in ``--ray BUNDLE`` (the optional value swallowed the scene argument) the
+    value is a scene bundle, not an address: it becomes the scene and the cluster a local one."""
+
+    def __call__(self, parser: Any, namespace: argparse.Namespace, values: Any, option_string: Any = None) -> None:
+        if (values not in (None, "local", "auto") and getattr(namespace, "scene", None) is None
+                and (Path(values) / "scene.json").is_file()):
+            parser.set_defaults(scene=values)   # the scene positional, matched empty afterwards, takes it
+            namespace.scene, values = values, "local"
+        setattr(namespace, self.dest, values)
+
+
 def add_ray_arguments(parser: argparse.ArgumentParser) -> None:
     """``--ray [ADDRESS]`` and its task options (shared by extract, distill and language)."""
     g = parser.add_argument_group("cluster (Ray; needs " + INSTALL_HINT + ")")
-    g.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+    g.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS", action=_RayAddress,
                    help="run the stage as Ray tasks: on a local cluster (no ADDRESS) or the cluster at "
-                        "ADDRESS (auto, HOST:6379, ray://HOST:10001). Put it after the scene, or write "
-                        "--ray=ADDRESS")
+                        "ADDRESS (auto, HOST:6379, ray://HOST:10001)")
     g.add_argument("--ray-cpus", type=float, default=1.0, help="CPUs each task declares (default 1)")
     g.add_argument("--ray-gpus", type=float, default=None,
                    help="GPUs each task declares (default 1 with a CUDA encoder device, else 0)")
@@ -222,11 +233,16 @@ class ClusterReport:
     chunks: list[tuple[int, ...]] = field(default_factory=list)
     done: list[tuple[int, ...]] = field(default_factory=list)
     task_seconds: list[float] = field(default_factory=list)
+    task_cpu_seconds: list[float] = field(default_factory=list)
+    #: per finished task: (worker pid, start, end, arrival at the driver), wall-clock seconds
+    timeline: list[tuple[int, float, float, float]] = field(default_factory=list)
     failures: list[TaskFailure] = field(default_factory=list)
     skipped: list[int] = field(default_factory=list)
     wall_seconds: float = 0.0
     slots: int = 1
     nodes: int = 1
+    #: the set-up task run before these (extraction: the features' configuration)
+    setup: "ClusterReport | None" = None
 
     def summary(self) -> str:
         done = sum(len(c) for c in self.done)
@@ -242,18 +258,32 @@ class ClusterReport:
                                f"after their retries ({lines}); the finished {self.unit}s are kept: run the "
                                "same command again to resume")
 
+    def dispatch_gaps(self) -> list[float]:
+        """Seconds between one task's end and the next task's start on the same worker process: the
+        per-task cost of the cluster while tasks are queued (scheduling, argument and result transfer)."""
+        by_worker: dict[int, list[tuple[float, float]]] = {}
+        for pid, start, end, _ in self.timeline:
+            by_worker.setdefault(pid, []).append((start, end))
+        gaps = []
+        for spans in by_worker.values():
+            spans.sort()
+            gaps += [b[0] - a[1] for a, b in zip(spans, spans[1:])]
+        return gaps
+
     def to_dict(self) -> dict[str, Any]:
         return {"stage": self.stage, "tasks": len(self.chunks), "done": [list(c) for c in self.done],
                 "failures": [{"chunk": list(f.chunk), "error": f.error} for f in self.failures],
-                "skipped": self.skipped, "task_seconds": self.task_seconds, "wall_seconds": self.wall_seconds,
+                "skipped": self.skipped, "task_seconds": self.task_seconds,
+                "task_cpu_seconds": self.task_cpu_seconds, "wall_seconds": self.wall_seconds,
                 "slots": self.slots, "nodes": self.nodes}
 
 
 def _run_task(function: Callable[..., Any], job: Any, chunk: tuple[int, ...], payload: Any) -> dict[str, Any]:
     """The remote body of every task: the stage function plus its worker-side wall time."""
-    start = time.perf_counter()
+    start, wall, cpu = time.perf_counter(), time.time(), time.process_time()
     value = function(job, chunk, payload)
-    return {"value": value, "seconds": time.perf_counter() - start, "pid": os.getpid()}
+    return {"value": value, "seconds": time.perf_counter() - start, "cpu_seconds": time.process_time() - cpu,
+            "pid": os.getpid(), "started": wall, "ended": time.time()}
 
 
 def run_chunks(function: Callable[..., Any], job: Any, chunks: Sequence[tuple[int, ...]], *,
@@ -306,6 +336,8 @@ def run_chunks(function: Callable[..., Any], job: Any, chunks: Sequence[tuple[in
                 else:
                     report.done.append(chunk)
                     report.task_seconds.append(float(out["seconds"]))
+                    report.task_cpu_seconds.append(float(out["cpu_seconds"]))
+                    report.timeline.append((int(out["pid"]), float(out["started"]), float(out["ended"]), time.time()))
                 if bar is not None:
                     bar.update(len(chunk))
                     bar.set_postfix_str(f"tasks {len(report.done)}/{len(report.chunks)}"
@@ -582,6 +614,7 @@ def _extract_on_ray(ray: Any, scene: "Scene", job: ExtractJob, steps: list[int],
     tasks = run_chunks(_extract_chunk, job, chunks, options=options, stage="extract", num_gpus=gpus,
                        progress=progress, on_result=collect)
     tasks.skipped = [t for t in steps if t not in set(todo)]
+    tasks.setup = probe
     tasks.raise_failures()
     report = ExtractReport(sorted(stats["done"]), tasks.skipped, time.perf_counter() - start, stats["render"],
                            stats["encode"], stats["crops"])

@@ -72,8 +72,9 @@ def _same_files(a: Path, b: Path, pattern: str) -> list[str]:
 @pytest.mark.parametrize("shared", [True, False], ids=["shared-fs", "object-store"])
 def test_extract_and_lift_on_ray_give_the_single_process_bytes(reference, ray_cluster, tmp_path, shared):
     path = _fresh_copy(reference, tmp_path / "bundle")
-    flags = ["--ray", "--no-progress"] + ([] if shared else ["--ray-no-shared-fs"])
-    assert main(["extract", str(path), *flags, "--ray-chunk", "2"]) == 0
+    flags = ["--no-progress"] + ([] if shared else ["--ray-no-shared-fs"])
+    assert main(["extract", "--ray", str(path), *flags, "--ray-chunk", "2"]) == 0    # --ray BUNDLE: local
+    flags.append("--ray")
     assert _same_files(reference / "features", path / "features", "t*.npy") == [
         "t000000.npy", "t000001.npy", "t000002.npy"]
     assert main(["distill", str(path), *flags]) == 0

@@ -3,7 +3,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python -m pip install --quiet torch==2.13.0
-python -m pip install --quiet -e ".[dev,blender]"
+python -m pip install --quiet -e ".[dev,blender,cluster]"
 export FOURLEGS_CACHE="${FOURLEGS_CACHE:-$PWD/.cache/fourlegs}"
 set +e
 python -m pytest -q -p no:cacheprovider --timeout=600 "$@"

@@ -7,11 +7,13 @@ independent workers with ``--timesteps a:b`` and ``--shard i/n``.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import time
 from pathlib import Path
 from typing import Any
 
+from ..cluster import add_ray_arguments
 from ..errors import InputError
 
 
@@ -39,6 +41,7 @@ def register(subparsers: Any) -> None:
                         "(speed knob; default 1)")
     _split_arguments(p)
     p.add_argument("--check", action="store_true", help="only report finished, missing and unreadable timesteps")
+    add_ray_arguments(p)
     p.set_defaults(func=run_extract)
 
     p = subparsers.add_parser(
@@ -62,6 +65,7 @@ def register(subparsers: Any) -> None:
     _split_arguments(p)
     p.add_argument("--check", action="store_true",
                    help="report missing timesteps; merge the latents if every timestep is finished")
+    add_ray_arguments(p)
     p.set_defaults(func=run_distill)
 
     p = subparsers.add_parser(
@@ -75,6 +79,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--frame-scale", type=float, default=1.0,
                    help="extract: render frames at this fraction of the resolution (default 1)")
+    add_ray_arguments(p)
     p.set_defaults(func=run_language)
 
 
@@ -200,11 +205,15 @@ def run_extract(args: argparse.Namespace) -> int:
         return _print_check(check_features(scene))
     if args.batch_size is not None and args.batch_size < 1:
         raise InputError(f"must be >= 1, got {args.batch_size}", field="--batch-size")
-    encoder = _encoder(args, scene)
     config = ExtractConfig(ratios=_ratios(args.ratios, args.steps), crop_size=_crop_size(args.crop_size),
                            batch_size=args.batch_size, frame_scale=args.frame_scale)
-    report = extract_features(scene, encoder, config, timesteps=args.timesteps, shard=args.shard,
-                              overwrite=args.overwrite, progress=not args.no_progress)
+    if args.ray is not None:
+        from ..cluster import cli_extract
+        report = cli_extract(args, scene, functools.partial(_encoder, args), config, timesteps=args.timesteps,
+                             shard=args.shard)
+    else:
+        report = extract_features(scene, _encoder(args, scene), config, timesteps=args.timesteps, shard=args.shard,
+                                  overwrite=args.overwrite, progress=not args.no_progress)
     print(f"extract: {len(report.timesteps_done)} timestep(s) encoded, {len(report.timesteps_skipped)} already "
           f"done, {report.seconds:.1f} s (render {report.render_seconds:.1f} s, encoder "
           f"{report.encode_seconds:.1f} s), {report.crops_per_timestep} crops per timestep")
@@ -236,8 +245,12 @@ def run_distill(args: argparse.Namespace) -> int:
             report = check_distill(scene)
             report["merged_into"] = result.latents
         return _print_check(report)
-    result = distill_scene(scene, config=_distill_config(args), timesteps=args.timesteps, shard=args.shard,
-                           overwrite=args.overwrite, progress=not args.no_progress)
+    if args.ray is not None:
+        from ..cluster import cli_distill
+        result = cli_distill(args, scene, _distill_config(args), timesteps=args.timesteps, shard=args.shard)
+    else:
+        result = distill_scene(scene, config=_distill_config(args), timesteps=args.timesteps, shard=args.shard,
+                               overwrite=args.overwrite, progress=not args.no_progress)
     done = len(result.timings)
     msg = f"distill ({result.mode}): {done} timestep(s) distilled, {len(result.skipped)} already done"
     if done:
@@ -257,12 +270,20 @@ def run_language(args: argparse.Namespace) -> int:
     scene = resolve_bundle(args)
     progress = not args.no_progress
     t0 = time.perf_counter()
-    rep = extract_features(scene, _encoder(args, scene), ExtractConfig(frame_scale=args.frame_scale),
-                           overwrite=args.overwrite, progress=progress)
+    if args.ray is not None:
+        from ..cluster import cli_extract
+        rep = cli_extract(args, scene, functools.partial(_encoder, args), ExtractConfig(frame_scale=args.frame_scale))
+    else:
+        rep = extract_features(scene, _encoder(args, scene), ExtractConfig(frame_scale=args.frame_scale),
+                               overwrite=args.overwrite, progress=progress)
     t1 = time.perf_counter()
     ae = train_autoencoder(scene, _ae_config(args), overwrite=args.overwrite, progress=progress)
     t2 = time.perf_counter()
-    result = distill_scene(scene, config=_distill_config(args), overwrite=args.overwrite, progress=progress)
+    if args.ray is not None:
+        from ..cluster import cli_distill
+        result = cli_distill(args, scene, _distill_config(args))
+    else:
+        result = distill_scene(scene, config=_distill_config(args), overwrite=args.overwrite, progress=progress)
     t3 = time.perf_counter()
     print(f"language: extract {t1 - t0:.1f} s ({len(rep.timesteps_done)} new), train-ae {t2 - t1:.1f} s "
           f"(held-out cosine {ae.get('heldout_cosine')}), distill {t3 - t2:.1f} s; latents: {result.latents}")

@@ -18,18 +18,16 @@ import numpy as np
 from bpy.props import BoolProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import compositor, importer, keyframes, planning, plots, querying, render_engine, video
+from . import compositor, importer, keyframes, planning, plots, querying, render_engine, torch_install, video
 
 ALL_NEEDS = {"temporal", "best_view", "action_centre"}
 
 
 def _err(exc: BaseException) -> str:
     """One line for the user (no traceback)."""
-    if isinstance(exc, ModuleNotFoundError) and exc.name in ("torch", "scipy", "tqdm"):
-        import sys
-
-        return (f"{exc.name} is not installed in Blender's Python; install it with: "
-                f"\"{sys.executable}\" -m pip install {exc.name}")
+    if isinstance(exc, ModuleNotFoundError) and exc.name in torch_install.REQUIREMENTS:
+        return (f"{torch_install.missing_message([exc.name])}; install it in Edit > Preferences > Add-ons > "
+                "4-LEGS Highlights")
     return str(exc) if isinstance(exc, (ValueError, FileExistsError, RuntimeError)) else f"{type(exc).__name__}: {exc}"
 
 

@@ -3,13 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import importer, plots, render_engine
-
-
-def _torch_available() -> bool:
-    import importlib.util
-
-    return importlib.util.find_spec("torch") is not None
+from . import importer, plots, preferences, render_engine
 
 
 class FOURLEGS_PT_main(bpy.types.Panel):
@@ -22,11 +16,11 @@ class FOURLEGS_PT_main(bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         props = context.scene.fourlegs
-        if not _torch_available():
+        missing = preferences.missing_line()
+        if missing:
             box = layout.box()
-            box.label(text="PyTorch is not installed in Blender's Python", icon="ERROR")
-            box.label(text="Install it with Blender's Python:")
-            box.label(text="python -m pip install torch")
+            box.label(text=missing, icon="ERROR")
+            box.operator("preferences.addon_show", text="Open Add-on Preferences").module = preferences.PACKAGE
         obj = props.splat_object
         if obj is None or not importer.source_key(obj):
             layout.operator("fourlegs.import_scene", icon="IMPORT")

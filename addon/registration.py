@@ -3,9 +3,10 @@ from __future__ import annotations
 
 import bpy
 
-from . import importer, operators, panels, properties, render_engine
+from . import importer, operators, panels, preferences, properties, render_engine
 
 classes = (
+    *preferences.classes,
     *properties.classes,
     *operators.classes,
     *panels.classes,
@@ -14,6 +15,7 @@ classes = (
 
 
 def register() -> None:
+    preferences.register()
     for cls in classes:
         bpy.utils.register_class(cls)
     properties.register()
@@ -23,6 +25,7 @@ def register() -> None:
 
 def unregister() -> None:
     operators.cancel_all()
+    preferences.unregister()
     importer.unregister()
     render_engine.unregister()
     properties.unregister()

@@ -12,14 +12,47 @@ into the engine's internals, so the engine can reorganize without breaking them:
 """
 from __future__ import annotations
 
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from .errors import FourlegsError, InputError, OutputExistsError
-from .fileio import atomic_path, write_json_atomic
-from .highlights import available_presets, load_preset, plan_highlight, plan_needs
-from .pipeline import (EncoderConfig, QueryOptions, ensure_language_field, has_language_field, open_query_engine,
-                       open_scene, text_encoder)
-from .render import rasterize
-from .scene import Camera, Scene, load_scene
-from .threads import torch_threads
+
+# name -> engine module it lives in. They are imported on first use, so a front end that only opens and
+# shows a scene (the Blender add-on's import and timeline playback) runs without PyTorch installed.
+_LAZY = {
+    "atomic_path": "fileio", "write_json_atomic": "fileio",
+    "available_presets": "highlights", "load_preset": "highlights", "plan_highlight": "highlights",
+    "plan_needs": "highlights",
+    "EncoderConfig": "pipeline", "QueryOptions": "pipeline", "ensure_language_field": "pipeline",
+    "has_language_field": "pipeline", "open_query_engine": "pipeline", "open_scene": "pipeline",
+    "text_encoder": "pipeline",
+    "rasterize": "render",
+    "Camera": "scene", "Scene": "scene", "load_scene": "scene",
+    "torch_threads": "threads",
+}
+
+if TYPE_CHECKING:
+    from .fileio import atomic_path, write_json_atomic
+    from .highlights import available_presets, load_preset, plan_highlight, plan_needs
+    from .pipeline import (EncoderConfig, QueryOptions, ensure_language_field, has_language_field,
+                           open_query_engine, open_scene, text_encoder)
+    from .render import rasterize
+    from .scene import Camera, Scene, load_scene
+    from .threads import torch_threads
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__package__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
 
 __all__ = ["Camera", "EncoderConfig", "FourlegsError", "InputError", "OutputExistsError", "QueryOptions", "Scene",
            "atomic_path", "available_presets", "ensure_language_field", "has_language_field", "load_preset",

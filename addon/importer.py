@@ -68,6 +68,13 @@ def engine_scene_for(obj: bpy.types.Object):
     return scene
 
 
+def adopt_scene(obj: bpy.types.Object, scene: Any, source: str) -> None:
+    """Point ``obj`` at ``scene`` loaded from ``source`` (e.g. the bundle its PLY was converted into)."""
+    key = str(Path(source).resolve())
+    _SCENES[key] = scene
+    obj[SOURCE_KEY] = key
+
+
 def splat_objects(scene: bpy.types.Scene) -> list[bpy.types.Object]:
     return [o for o in scene.objects if o.type == "MESH" and source_key(o)]
 

@@ -18,7 +18,8 @@ import numpy as np
 from bpy.props import BoolProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import compositor, importer, keyframes, planning, plots, querying, render_engine, torch_install, video
+from . import (compositor, importer, keyframes, planning, plots, prepare, querying, render_engine, torch_install,
+               video)
 
 ALL_NEEDS = {"temporal", "best_view", "action_centre"}
 
@@ -216,6 +217,7 @@ class FOURLEGS_OT_cancel_query(bpy.types.Operator):
 
     def execute(self, context):
         cancel_all()
+        prepare.cancel_all()
         context.scene.fourlegs.running = False
         return {"FINISHED"}
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import importer, plots, preferences, render_engine
+from . import importer, plots, preferences, prepare, render_engine
 
 
 class FOURLEGS_PT_main(bpy.types.Panel):
@@ -47,6 +47,11 @@ class FOURLEGS_PT_query(_SidebarSubPanel, bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         props = context.scene.fourlegs
+        obj = props.splat_object
+        if obj is not None and not props.running and not prepare.has_field(obj):
+            box = layout.box()
+            box.label(text="No language field yet (needed to query)", icon="INFO")
+            box.operator("fourlegs.prepare_field", icon="PLAY")
         layout.prop(props, "query", text="")
         if props.running:
             row = layout.row(align=True)

@@ -3,12 +3,13 @@ from __future__ import annotations
 
 import bpy
 
-from . import importer, operators, panels, preferences, properties, render_engine
+from . import importer, operators, panels, preferences, prepare, properties, render_engine
 
 classes = (
     *preferences.classes,
     *properties.classes,
     *operators.classes,
+    *prepare.classes,
     *panels.classes,
     *render_engine.classes,
 )
@@ -25,6 +26,7 @@ def register() -> None:
 
 def unregister() -> None:
     operators.cancel_all()
+    prepare.cancel_all()
     preferences.unregister()
     importer.unregister()
     render_engine.unregister()

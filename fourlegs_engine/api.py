@@ -23,7 +23,8 @@ _LAZY = {
     "atomic_path": "fileio", "write_json_atomic": "fileio",
     "available_presets": "highlights", "load_preset": "highlights", "plan_highlight": "highlights",
     "plan_needs": "highlights",
-    "EncoderConfig": "pipeline", "QueryOptions": "pipeline", "ensure_language_field": "pipeline",
+    "EncoderConfig": "pipeline", "FieldStep": "pipeline", "QueryOptions": "pipeline",
+    "language_field_steps": "pipeline", "ensure_language_field": "pipeline",
     "has_language_field": "pipeline", "open_query_engine": "pipeline", "open_scene": "pipeline",
     "text_encoder": "pipeline",
     "rasterize": "render",
@@ -34,8 +35,8 @@ _LAZY = {
 if TYPE_CHECKING:
     from .fileio import atomic_path, write_json_atomic
     from .highlights import available_presets, load_preset, plan_highlight, plan_needs
-    from .pipeline import (EncoderConfig, QueryOptions, ensure_language_field, has_language_field,
-                           open_query_engine, open_scene, text_encoder)
+    from .pipeline import (EncoderConfig, FieldStep, QueryOptions, ensure_language_field, has_language_field,
+                           language_field_steps, open_query_engine, open_scene, text_encoder)
     from .render import rasterize
     from .scene import Camera, Scene, load_scene
     from .threads import torch_threads
@@ -54,7 +55,7 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(_LAZY))
 
 
-__all__ = ["Camera", "EncoderConfig", "FourlegsError", "InputError", "OutputExistsError", "QueryOptions", "Scene",
-           "atomic_path", "available_presets", "ensure_language_field", "has_language_field", "load_preset",
+__all__ = ["Camera", "EncoderConfig", "FieldStep", "FourlegsError", "InputError", "OutputExistsError", "QueryOptions", "Scene",
+           "atomic_path", "available_presets", "ensure_language_field", "has_language_field", "language_field_steps", "load_preset",
            "load_scene", "open_query_engine", "open_scene", "plan_highlight", "plan_needs", "rasterize",
            "text_encoder", "torch_threads", "write_json_atomic"]

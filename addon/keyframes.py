@@ -28,6 +28,7 @@ CAMERA_ACTION_NAME = "4-LEGS Highlight Camera"
 LENS_ACTION_NAME = "4-LEGS Highlight Lens"
 SCENE_ACTION_NAME = "4-LEGS Scene Time"
 TIMESTEP_PATH = "fourlegs.timestep"
+MARKERS_KEY = "fourlegs_markers"  # scene property: names of the timeline markers Generate made
 ORBIT_EFFECTS = ("bullet_time",)  # planner effects whose camera circles the action centre
 
 
@@ -195,7 +196,13 @@ def key_lens_mm(key: dict[str, Any], width: int) -> float:
 
 # ----------------------------------------------------------------------------- generation
 def remove_generated(scene: bpy.types.Scene) -> None:
-    """Delete what a previous Generate Highlight created (tagged datablocks and the timestep F-curve)."""
+    """Delete what a previous Generate Highlight created (tagged datablocks, shot markers and the
+    timestep F-curve)."""
+    made = set(scene.get(MARKERS_KEY, []))
+    for marker in [m for m in scene.timeline_markers if m.name in made]:
+        scene.timeline_markers.remove(marker)
+    if MARKERS_KEY in scene:
+        del scene[MARKERS_KEY]
     for obj in [o for o in bpy.data.objects if o.get(GENERATED_KEY)]:
         bpy.data.objects.remove(obj, do_unlink=True)
     for cam in [c for c in bpy.data.cameras if c.get(GENERATED_KEY) and c.users == 0]:
@@ -213,6 +220,24 @@ def remove_generated(scene: bpy.types.Scene) -> None:
         bpy.data.actions.remove(action)
 
 
+def shot_marker_name(index: int, shot: dict[str, Any]) -> str:
+    return f"{index + 1} {shot.get('name') or shot.get('effect') or 'shot'}"
+
+
+def add_shot_markers(scene: bpy.types.Scene, plan: dict[str, Any]) -> list[bpy.types.TimelineMarker]:
+    """One timeline marker at the first frame of each shot, named "<n> <shot name>"."""
+    shots = sorted(plan["shots"], key=lambda s: int(s["frame_start"]))
+    markers = [scene.timeline_markers.new(shot_marker_name(i, shot), frame=int(shot["frame_start"]))
+               for i, shot in enumerate(shots)]
+    scene[MARKERS_KEY] = [m.name for m in markers]
+    return markers
+
+
+def has_generated(scene: bpy.types.Scene) -> bool:
+    """Whether a previous Generate Highlight left data here (which a new one would replace)."""
+    return any(o.get(GENERATED_KEY) for o in bpy.data.objects) or bool(scene.get(MARKERS_KEY))
+
+
 def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object:
     """Create the highlight camera and keys from ``plan``; returns the camera object.
 
@@ -220,6 +245,7 @@ def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object
     """
     check_plan(plan)
     remove_generated(scene)
+    add_shot_markers(scene, plan)
     width, height = (int(v) for v in plan["resolution"])
     render = scene.render
     render.resolution_x, render.resolution_y, render.resolution_percentage = width, height, 100

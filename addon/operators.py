@@ -283,6 +283,14 @@ class FOURLEGS_OT_generate_highlight(bpy.types.Operator):
     def poll(cls, context):
         return _splat_object(context) is not None and not context.scene.fourlegs.running
 
+    def invoke(self, context, event):
+        if keyframes.has_generated(context.scene):  # edits to the generated camera/keys would be lost
+            return context.window_manager.invoke_confirm(
+                self, event, title="Replace the highlight?",
+                message="Generate again replaces the highlight camera, its keys, the shot markers and the "
+                        "compositor setup, with any edits made to them.", confirm_text="Replace")
+        return self.execute(context)
+
     def execute(self, context):
         props = context.scene.fourlegs
         try:
@@ -317,6 +325,9 @@ class FOURLEGS_OT_render_video(bpy.types.Operator):
 
     def execute(self, context):
         props = context.scene.fourlegs
+        if render_engine.plan_of(context.scene) is None:
+            self.report({"ERROR"}, "4-LEGS Render Video: no highlight in this scene; run Generate Highlight first")
+            return {"CANCELLED"}
         wm = context.window_manager
         total = context.scene.frame_end - context.scene.frame_start + 1
         wm.progress_begin(0, total)

@@ -25,6 +25,9 @@ class FOURLEGS_PT_main(bpy.types.Panel):
         if obj is None or not importer.source_key(obj):
             layout.operator("fourlegs.import_scene", icon="IMPORT")
             return
+        problem = importer.missing_message(obj)
+        if problem:
+            layout.label(text=problem, icon="ERROR")
         col = layout.column(align=True)
         col.label(text=f"{obj.name}: {len(obj.data.vertices):,} Gaussians", icon="POINTCLOUD_DATA")
         col.prop(props, "timestep")

@@ -189,6 +189,46 @@ class FOURLEGS_OT_run_query(bpy.types.Operator):
         return {"FINISHED"}
 
 
+def fill_segments(props, segments, scores, chosen) -> None:
+    """List every segment (start, end, peak s_t) in the panel; the chosen one is selected."""
+    scores = np.nan_to_num(np.asarray(scores, np.float64))
+    props.segments.clear()
+    index = -1
+    for i, (a, b) in enumerate(segments):
+        item = props.segments.add()
+        item.start, item.end = int(a), int(b)
+        item.peak_score = float(scores[int(a):int(b) + 1].max()) if len(scores) > int(b) else 0.0
+        if chosen is not None and (int(a), int(b)) == (int(chosen[0]), int(chosen[1])):
+            index = i
+    props["segment_index"] = index  # no update callback: the chosen segment is already shown
+
+
+def fill_from_plan(bl_scene, plan: dict[str, Any], output: Optional[str] = None, fmt: Optional[str] = None) -> None:
+    """The panel of a scene made from a plan (the headless job's .blend): query, found, segments, peak,
+    best view, the s_t plot, and the output the video was written to."""
+    props = bl_scene.fourlegs
+    loc = plan.get("localization") or {}
+    props.query = str(plan.get("query") or "")
+    props.found = bool(loc.get("found"))
+    seg = loc.get("segment") if props.found else None
+    props.segment_start, props.segment_end = (int(seg[0]), int(seg[1])) if seg else (-1, -1)
+    props.peak = int(loc["peak"]) if props.found and loc.get("peak") is not None else -1
+    props.best_view = str(loc.get("best_view") or "")
+    scores = loc.get("scores") or []
+    fill_segments(props, loc.get("segments") or ([seg] if seg else []), scores, seg)
+    if scores:
+        positive = np.zeros(len(scores), bool)
+        for a, b in loc.get("segments") or []:
+            positive[int(a):int(b) + 1] = True
+        plots.scores_image(np.asarray(scores, np.float64), positive, seg, props.peak if props.found else None)
+    if output is not None:
+        props.output_path = str(output)
+        bl_scene.render.filepath = str(output)
+    if fmt is not None:
+        props.output_format = fmt
+        video.configure_output(bl_scene, fmt)
+
+
 def store_results(bl_scene, obj, engine: Any, query: str, localization: Any,
                   peak_relevancy: Optional[np.ndarray]) -> None:
     """Copy a localization into the scene properties, the s_t image and the viewport relevancy colours."""
@@ -199,6 +239,8 @@ def store_results(bl_scene, obj, engine: Any, query: str, localization: Any,
     props.segment_start, props.segment_end = (int(seg[0]), int(seg[1])) if seg else (-1, -1)
     props.peak = int(temporal.peak) if props.found and temporal.peak is not None else -1
     props.best_view = localization.best_view or ""
+    fill_segments(props, temporal.segments if temporal is not None else [],
+                  temporal.scores if temporal is not None else [], seg)
     if temporal is not None:
         plots.scores_image(np.asarray(temporal.scores, np.float64), np.asarray(temporal.positive, bool),
                            seg, props.peak if props.found else None)

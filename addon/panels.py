@@ -35,6 +35,12 @@ class FOURLEGS_PT_main(bpy.types.Panel):
         layout.operator("fourlegs.import_scene", text="Import Another", icon="IMPORT")
 
 
+class FOURLEGS_UL_segments(bpy.types.UIList):
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index=0):
+        layout.label(text=f"timesteps {item.start}-{item.end}", icon="TIME")
+        layout.label(text=f"peak s_t {item.peak_score:.3f}")
+
+
 class _SidebarSubPanel:
     """Placement shared by the sub-panels of the 4-LEGS sidebar tab."""
     bl_space_type = "VIEW_3D"
@@ -64,6 +70,9 @@ class FOURLEGS_PT_query(_SidebarSubPanel, bpy.types.Panel):
             layout.operator("fourlegs.run_query", icon="VIEWZOOM")
             if props.status:
                 layout.label(text=props.status)
+        if len(props.segments) > 1:
+            layout.label(text=f"{len(props.segments)} segments (pick one to look at it):")
+            layout.template_list("FOURLEGS_UL_segments", "", props, "segments", props, "segment_index", rows=3)
         if props.segment_start >= 0:
             col = layout.column(align=True)
             col.label(text=f"Segment: timesteps {props.segment_start}-{props.segment_end}")
@@ -112,4 +121,5 @@ class FOURLEGS_PT_render(_SidebarSubPanel, bpy.types.Panel):
         layout.operator("fourlegs.render_video", icon="RENDER_ANIMATION")
 
 
+ui_lists = (FOURLEGS_UL_segments,)
 classes = (FOURLEGS_PT_main, FOURLEGS_PT_query, FOURLEGS_PT_highlight, FOURLEGS_PT_render)

@@ -10,6 +10,7 @@ classes = (
     *properties.classes,
     *operators.classes,
     *prepare.classes,
+    *panels.ui_lists,
     *panels.classes,
     *render_engine.classes,
 )

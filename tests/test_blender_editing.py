@@ -105,3 +105,29 @@ def test_render_video_refuses_a_scene_without_a_highlight(bl, tmp_path):
     with pytest.raises(RuntimeError, match="no highlight in this scene"):
         bl.ops.fourlegs.render_video()
     assert not (tmp_path / "clip.mp4").exists()
+
+
+def test_a_saved_highlight_reopens_with_the_panel_filled_and_output_set_to_its_video(bl, tmp_path):
+    """What the headless job does before saving its .blend (``operators.fill_from_plan``)."""
+    from fourlegs_addon import operators, plots
+
+    plan = hand_plan(desaturate=True)
+    plan["localization"]["segments"] = [[0, 0], [1, 3]]
+    plan["localization"]["scores"] = [0.2, 0.3, 0.4, 0.2]
+    _generate(bl, plan)
+    video = tmp_path / "highlight.mp4"
+    operators.fill_from_plan(bl.context.scene, plan, output=str(video), fmt="MP4")
+    bl.ops.wm.save_as_mainfile(filepath=str(tmp_path / "job.blend"))
+    bl.ops.wm.read_factory_settings(use_empty=True)
+    bl.ops.wm.open_mainfile(filepath=str(tmp_path / "job.blend"))
+    scene = bl.context.scene
+    props = scene.fourlegs
+    assert props.query == "the cube" and props.found
+    assert (props.segment_start, props.segment_end, props.peak, props.best_view) == (1, 3, 2, "cam00")
+    assert [(s.start, s.end) for s in props.segments] == [(0, 0), (1, 3)] and props.segment_index == 1
+    assert props.segments[1].peak_score == pytest.approx(0.4) and props.segments[0].peak_score == pytest.approx(0.2)
+    assert props.output_path == str(video) and scene.render.filepath == str(video)
+    assert scene.render.image_settings.file_format == "FFMPEG"
+    assert bl.data.images[plots.IMAGE_NAME].packed_file is not None
+    props.segment_index = 0  # the editor picks the other segment: it is shown
+    assert (props.segment_start, props.segment_end) == (0, 0) and props.timestep == 0.0

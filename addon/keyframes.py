@@ -245,7 +245,7 @@ def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object
     """
     check_plan(plan)
     remove_generated(scene)
-    add_shot_markers(scene, plan)
+    markers = add_shot_markers(scene, plan)
     width, height = (int(v) for v in plan["resolution"])
     render = scene.render
     render.resolution_x, render.resolution_y, render.resolution_percentage = width, height, 100
@@ -312,8 +312,27 @@ def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object
         scene_action = ensure_action(scene, SCENE_ACTION_NAME)
         write_fcurve(scene, scene_action, TIMESTEP_PATH, 0, time_frames, time_values,
                      ["LINEAR"] * len(time_frames))
+    _rig_orbits(scene, plan, cam, [m.name for m in markers], width, sensor)
     scene.frame_set(scene.frame_start)
     return cam
+
+
+def _rig_orbits(scene: bpy.types.Scene, plan: dict[str, Any], cam: bpy.types.Object, marker_names: list[str],
+                width: int, sensor: float) -> None:
+    """Give each planner orbit its rig (``rig.py``) and bind the shot markers to their cameras."""
+    from . import rig
+
+    centre = (plan.get("localization") or {}).get("action_centre")
+    shots = sorted(plan["shots"], key=lambda s: int(s["frame_start"]))
+    cameras = []
+    for shot in shots:
+        if rig.can_rig(shot, centre):
+            first = min(shot["camera_keys"], key=lambda k: int(k["frame"]))
+            cameras.append(rig.build_orbit_rig(scene, shot, centre, key_lens_mm(first, width), sensor, GENERATED_KEY))
+        else:
+            cameras.append(cam)
+    if any(c is not cam for c in cameras):
+        rig.bind_markers(scene, marker_names, cameras)
 
 
 def camera_pose_at(cam: bpy.types.Object, scene: bpy.types.Scene, frame: int) -> tuple[np.ndarray, float]:

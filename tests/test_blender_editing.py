@@ -131,3 +131,61 @@ def test_a_saved_highlight_reopens_with_the_panel_filled_and_output_set_to_its_v
     assert bl.data.images[plots.IMAGE_NAME].packed_file is not None
     props.segment_index = 0  # the editor picks the other segment: it is shown
     assert (props.segment_start, props.segment_end) == (0, 0) and props.timestep == 0.0
+
+
+def _orbit_plan(arc_deg: float = 90.0):
+    import math
+
+    from _blender_helpers import orbit_key
+
+    plan = hand_plan(desaturate=False)
+    f0, f1 = 7, 15
+    angles = [math.radians(arc_deg) * (0.5 - 0.5 * math.cos(math.pi * (f - f0) / (f1 - f0))) for f in range(f0, f1 + 1)]
+    plan["shots"][1] = {"name": "bullet", "effect": "bullet_time", "frame_start": f0, "frame_end": f1,
+                        "camera_keys": [orbit_key(f, a) for f, a in zip(range(f0, f1 + 1), angles)],
+                        "time_keys": [{"frame": f0, "timestep": 2.0}, {"frame": f1, "timestep": 2.0}],
+                        "interpolation": "linear",
+                        "params": {"arc_deg": arc_deg, "easing": "ease_in_out_sine", "radius_scale": 1.0,
+                                   "height_scale": 1.0}}
+    plan["frame_end"] = f1
+    return plan
+
+
+def test_orbit_is_a_rig_that_reproduces_the_plan_and_obeys_radius_and_speed(bl):
+    import math
+
+    from fourlegs_addon import convert, rig
+
+    plan = _orbit_plan()
+    main = _generate(bl, plan)
+    scene = bl.context.scene
+    pivot, cam = bl.data.objects[rig.PIVOT_NAME], bl.data.objects[rig.CAMERA_NAME]
+    assert cam.parent == pivot and tuple(pivot.location) == pytest.approx((0, 0, 0))
+    assert pivot["radius"] == pytest.approx(4.0) and pivot["speed"] == 1.0 and pivot["arc_deg"] == 90.0
+    markers = {m.name: m for m in scene.timeline_markers}
+    assert markers["2 bullet"].camera == cam and markers["1 context"].camera.name == "4-LEGS Highlight Camera"
+    for key in plan["shots"][1]["camera_keys"]:
+        scene.frame_set(key["frame"])
+        assert scene.camera == cam
+        c2w = convert.blender_to_opencv_c2w(np.array(cam.matrix_world))
+        np.testing.assert_allclose(c2w, np.asarray(key["c2w"]), atol=1e-4)
+    scene.frame_set(3)
+    assert scene.camera.name == "4-LEGS Highlight Camera"
+    pivot["radius"] = 6.0
+    pivot["speed"] = 2.0
+    pivot.update_tag()  # what editing the property in the sidebar does
+    scene.frame_set(11)  # half-way through the shot: at speed 2 the 90 degree arc is done
+    x, y, z = cam.matrix_world.translation
+    assert math.hypot(x, y) == pytest.approx(6.0, abs=1e-4) and z == pytest.approx(1.0, abs=1e-4)
+    assert math.degrees(math.atan2(y, x)) == pytest.approx(90.0, abs=1e-3)
+    del main
+
+
+def test_orbits_the_rig_cannot_reproduce_keep_their_keys(bl):
+    from fourlegs_addon import rig
+
+    plan = _orbit_plan()
+    plan["shots"][1]["params"]["radius_scale"] = 1.5
+    _generate(bl, plan)
+    assert rig.PIVOT_NAME not in bl.data.objects
+    assert all(m.camera is None for m in bl.context.scene.timeline_markers)

@@ -6,10 +6,12 @@ and resolution. Everything it creates is tagged ``fourlegs_generated`` so runnin
 exactly that and never touches the user's own objects or keys.
 
 Keys are written straight into F-curves (``keyframe_points.add`` + ``foreach_set``), one per plan key.
-Dense camera keys (one per frame, as the planner writes them) use LINEAR interpolation, so orbits
-follow the planned arc; sparse keys on an orbit are first densified along the arc around the action
-centre so interpolation cannot cut a chord; sparse keys elsewhere use Bezier (ease in/out). The last
-key of a shot is CONSTANT: shots are joined by cuts, never by a one-frame swoop.
+Dense camera keys of a shot that is not an orbit (one per frame, as the planner writes them) are then
+thinned: eased Bezier keys (auto-clamped handles) are kept only where the curve would otherwise leave
+the planned path by more than :data:`THIN_TOLERANCE`, so an editor gets a few keys to move. Orbits keep
+LINEAR keys along the arc (sparse ones densified around the action centre, so interpolation cannot cut
+a chord; planner orbits also get a rig, ``rig.py``); sparse keys elsewhere use Bezier (ease in/out).
+The last key of a shot is CONSTANT: shots are joined by cuts, never by a one-frame swoop.
 """
 from __future__ import annotations
 
@@ -29,7 +31,9 @@ LENS_ACTION_NAME = "4-LEGS Highlight Lens"
 SCENE_ACTION_NAME = "4-LEGS Scene Time"
 TIMESTEP_PATH = "fourlegs.timestep"
 MARKERS_KEY = "fourlegs_markers"  # scene property: names of the timeline markers Generate made
-ORBIT_EFFECTS = ("bullet_time",)  # planner effects whose camera circles the action centre
+ORBIT_EFFECTS = ("bullet_time",)
+#: largest deviation from the planned path that thinning dense keys may introduce, per channel
+THIN_TOLERANCE = {"location": 1e-3, "rotation_euler": 1e-3, "lens": 1e-2}  # planner effects whose camera circles the action centre
 
 
 class PlanError(ValueError):
@@ -134,6 +138,37 @@ def write_fcurve(id_data: bpy.types.ID, action: bpy.types.Action, data_path: str
         kp.handle_left_type = kp.handle_right_type = "AUTO_CLAMPED"
     fc.update()
     return fc
+
+
+def thin_fcurve(fc: bpy.types.FCurve, removable: set[int], tolerance: float) -> int:
+    """Remove the keys at ``removable`` frames that the remaining eased curve does not need: a key goes
+    when, without it, the curve stays within ``tolerance`` of every original key value nearby. Returns
+    how many keys were removed."""
+    target = {int(round(kp.co[0])): float(kp.co[1]) for kp in fc.keyframe_points}
+    removed = 0
+    for frame in sorted(removable):
+        points = fc.keyframe_points
+        keyed = [int(round(kp.co[0])) for kp in points]
+        if frame not in keyed:
+            continue
+        i = keyed.index(frame)
+        kp = points[i]
+        if kp.interpolation == "CONSTANT":
+            continue
+        value = float(kp.co[1])
+        points.remove(kp, fast=True)
+        fc.update()
+        lo = keyed[max(i - 2, 0)]
+        hi = keyed[min(i + 2, len(keyed) - 1)]
+        error = max(abs(fc.evaluate(f) - target[f]) for f in target if lo <= f <= hi)
+        if error > tolerance:
+            back = points.insert(frame, value, options={"FAST"})
+            back.interpolation = "BEZIER"
+            back.handle_left_type = back.handle_right_type = "AUTO_CLAMPED"
+            fc.update()
+        else:
+            removed += 1
+    return removed
 
 
 # ----------------------------------------------------------------------------- pose maths
@@ -268,6 +303,7 @@ def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object
     eulers: list[Sequence[float]] = []
     lenses: list[float] = []
     interp: list[str] = []
+    thinnable: set[int] = set()  # interior frames of dense non-orbit shots
     sensor = convert.DEFAULT_SENSOR_WIDTH_MM
     prev_euler = None
     for shot in sorted(plan["shots"], key=lambda s: int(s["frame_start"])):
@@ -281,6 +317,9 @@ def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object
             keys = densify_orbit(keys, centre)
             sparse = False
         mode = "BEZIER" if sparse and str(shot.get("interpolation", "bezier")).lower() == "bezier" else "LINEAR"
+        if not sparse and not is_orbit and len(keys) > 2:
+            mode = "BEZIER"
+            thinnable.update(int(k["frame"]) for k in keys[1:-1])
         for i, key in enumerate(keys):
             m = Matrix(convert.opencv_to_blender_c2w(np.asarray(key["c2w"], np.float64)).tolist())
             euler = m.to_euler("XYZ", prev_euler) if prev_euler is not None else m.to_euler("XYZ")
@@ -297,11 +336,14 @@ def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object
     action = bpy.data.actions.new(CAMERA_ACTION_NAME)
     action[GENERATED_KEY] = True
     for index in range(3):
-        write_fcurve(cam, action, "location", index, frames, [p[index] for p in locs], interp)
-        write_fcurve(cam, action, "rotation_euler", index, frames, [e[index] for e in eulers], interp)
+        fc = write_fcurve(cam, action, "location", index, frames, [p[index] for p in locs], interp)
+        thin_fcurve(fc, thinnable, THIN_TOLERANCE["location"])
+        fc = write_fcurve(cam, action, "rotation_euler", index, frames, [e[index] for e in eulers], interp)
+        thin_fcurve(fc, thinnable, THIN_TOLERANCE["rotation_euler"])
     lens_action = bpy.data.actions.new(LENS_ACTION_NAME)
     lens_action[GENERATED_KEY] = True
-    write_fcurve(cam_data, lens_action, "lens", 0, frames, lenses, interp)
+    fc = write_fcurve(cam_data, lens_action, "lens", 0, frames, lenses, interp)
+    thin_fcurve(fc, thinnable, THIN_TOLERANCE["lens"])
 
     time_frames, time_values = [], []
     for shot in sorted(plan["shots"], key=lambda s: int(s["frame_start"])):

@@ -92,7 +92,7 @@ def build_orbit_rig(scene: bpy.types.Scene, shot: dict[str, Any], centre, lens_m
             ("arc_deg", "speed"))
     if radius > 1e-9:
         for axis in (0, 1):
-            _driver(cam, "location", axis, f"radius * {offset[axis] / radius!r}", pivot, ("radius",))
+            _driver(cam, "location", axis, f"radius * {float(offset[axis] / radius)!r}", pivot, ("radius",))
     return cam
 
 

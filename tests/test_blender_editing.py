@@ -189,3 +189,33 @@ def test_orbits_the_rig_cannot_reproduce_keep_their_keys(bl):
     _generate(bl, plan)
     assert rig.PIVOT_NAME not in bl.data.objects
     assert all(m.camera is None for m in bl.context.scene.timeline_markers)
+
+
+def test_dense_eased_dolly_becomes_a_few_bezier_keys_on_the_planned_path(bl):
+    """60 per-frame keys of a sine-eased dolly (as the planner writes them) -> a handful of eased keys,
+    every frame within the thinning tolerance of the plan."""
+    import math
+
+    from _blender_helpers import orbit_key
+    from fourlegs_addon import convert, keyframes
+
+    plan = hand_plan(desaturate=False)
+    n = 60
+    radii = [6.0 - 3.0 * (0.5 - 0.5 * math.cos(math.pi * i / (n - 1))) for i in range(n)]
+    plan["shots"] = [{"name": "dolly", "effect": "zoom_in", "frame_start": 1, "frame_end": n,
+                      "camera_keys": [orbit_key(i + 1, 0.3, radius=r) for i, r in enumerate(radii)],
+                      "time_keys": [], "interpolation": "linear", "params": {}}]
+    plan["frame_end"] = n
+    cam = _generate(bl, plan) and bl.context.scene.camera
+    keyed = keyframes.keyed_frames(cam, "location", 0)
+    assert keyed[0] == 1 and keyed[-1] == n and len(keyed) <= 12, keyed
+    fc = keyframes.find_fcurve(cam, "location", 0)
+    assert {kp.interpolation for kp in fc.keyframe_points[:-1]} == {"BEZIER"}
+    assert {kp.handle_left_type for kp in fc.keyframe_points} == {"AUTO_CLAMPED"}
+    scene = bl.context.scene
+    worst = 0.0
+    for key in plan["shots"][0]["camera_keys"]:
+        scene.frame_set(key["frame"])
+        position = convert.blender_to_opencv_c2w(np.array(cam.matrix_world))[:3, 3]
+        worst = max(worst, float(np.abs(position - np.asarray(key["c2w"])[:3, 3]).max()))
+    assert worst <= 1.5e-3

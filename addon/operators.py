@@ -32,6 +32,11 @@ def _err(exc: BaseException) -> str:
     return str(exc) if isinstance(exc, (ValueError, FileExistsError, RuntimeError)) else f"{type(exc).__name__}: {exc}"
 
 
+def interactive() -> bool:
+    """Whether Blender runs with a UI (operators must not block it); False for ``blender -b`` and bpy."""
+    return not bpy.app.background
+
+
 def _splat_object(context) -> Optional[bpy.types.Object]:
     obj = context.scene.fourlegs.splat_object
     return obj if obj is not None and importer.source_key(obj) else None
@@ -343,6 +348,15 @@ class FOURLEGS_OT_generate_highlight(bpy.types.Operator):
                 scene = importer.engine_scene_for(obj)
                 localizer = _LOCALIZERS.get(importer.source_key(obj))
                 query = props.query.strip()
+                if (localizer is None or localizer.query != query) and interactive():
+                    # localizing takes tens of seconds: run it in the background instead of freezing the UI
+                    if query and bpy.ops.fourlegs.run_query.poll():
+                        bpy.ops.fourlegs.run_query("INVOKE_DEFAULT")
+                        self.report({"INFO"}, "4-LEGS: running the query first (in the background); press "
+                                              "Generate Highlight again when it is done")
+                    else:
+                        self.report({"WARNING"}, "4-LEGS: type a query and Run Query first")
+                    return {"CANCELLED"}
                 if localizer is None or localizer.query != query:
                     localizer = planning.CachedLocalizer(
                         querying.open_query_engine(scene, encoder=querying.encoder_config(props)), query)

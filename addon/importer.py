@@ -65,6 +65,22 @@ def stored_path(path: str | Path) -> str:
     return path
 
 
+def relative_sources(blend_dir: str | Path) -> None:
+    """Store every splat object's scene path relative to ``blend_dir`` (``//...``), for a .blend about to
+    be saved there (a file that is not saved yet has no ``//``)."""
+    for obj in bpy.data.objects:
+        key = source_key(obj)
+        if not key or key.startswith(("memory:", "//")):
+            continue
+        try:
+            rel = bpy.path.relpath(key, start=str(blend_dir))
+        except ValueError:  # another drive (Windows)
+            continue
+        if key in _SCENES:
+            _SCENES[rel] = _SCENES[key]
+        obj[SOURCE_KEY] = rel
+
+
 def missing_message(obj: bpy.types.Object) -> str:
     """Why the object's scene could not be opened (empty when it could)."""
     return _MISSING.get(source_key(obj) or "", "")

@@ -98,6 +98,7 @@ def test_highlight_end_to_end(tmp_path, request, capsys):
     from fourlegs_addon import importer
 
     obj = bl.data.objects["tiny"]
+    assert importer.source_key(obj) == "//../scene"  # relative to the .blend: the project can move
     mid = (plan["frame_start"] + plan["frame_end"]) // 2
     s.frame_set(mid)
     co = np.empty(len(obj.data.vertices) * 3, np.float32)

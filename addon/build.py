@@ -15,8 +15,8 @@ Dependency choice (Blender 4.2 - 5.0 run Python 3.11 and ship numpy 1.x; Blender
 Python 3.13): wheels for both, per platform; Blender installs the ones matching its Python.
 
 - bundled: ``scipy`` (kNN, morphology in query/highlights; ~35-40 MB per platform and Python; cp311:
-  1.13.1, the newest release whose wheels accept Blender's numpy 1.2x; cp313: 1.14.1, the first with
-  cp313 wheels, built against numpy 2 and accepting numpy >= 1.23.5), ``plyfile`` (PLY scenes; pure
+  1.13.1, the newest release whose wheels accept Blender's numpy 1.2x; cp313: 1.16.3, which accepts
+  numpy 1.25.2 - 2.5, the range of the numpy 2.x that Python 3.13 Blenders ship), ``plyfile`` (PLY scenes; pure
   Python), ``tqdm`` (pure Python) and ``safetensors`` (one abi3 wheel per platform serves both
   Pythons), for windows-x64, linux-x64, macos-arm64 and macos-x64. A wheel whose file name is the same
   for both Pythons (pure-Python or abi3) is shipped once.
@@ -58,13 +58,13 @@ PLATFORM_TAGS = {
     "windows-x64": ["win_amd64"],
     "linux-x64": ["manylinux_2_17_x86_64", "manylinux2014_x86_64"],
     "macos-arm64": ["macosx_12_0_arm64", "macosx_11_0_arm64"],
-    "macos-x64": ["macosx_10_13_x86_64", "macosx_10_12_x86_64", "macosx_10_9_x86_64"],
+    "macos-x64": ["macosx_10_14_x86_64", "macosx_10_13_x86_64", "macosx_10_12_x86_64", "macosx_10_9_x86_64"],
 }
 #: bundled dependencies per Python version (requirement specifiers); everything the add-on imports
 #: inside Blender except numpy (Blender ships it) and torch (installed from the add-on's preferences)
 DEPENDENCIES_BY_PYTHON = {
     "3.11": ("scipy==1.13.1", "plyfile>=1.0", "tqdm>=4.60", "safetensors>=0.4"),
-    "3.13": ("scipy==1.14.1", "plyfile>=1.0", "tqdm>=4.60", "safetensors>=0.4"),
+    "3.13": ("scipy==1.16.3", "plyfile>=1.0", "tqdm>=4.60", "safetensors>=0.4"),
 }
 #: the distribution names, as wheel files spell them
 DEPENDENCIES = tuple(dict.fromkeys(re.split(r"[=<>!~ ]", r)[0].lower().replace("-", "_")

@@ -21,7 +21,7 @@ from fourlegs_addon import build  # noqa: E402
 def test_pip_download_asks_for_each_python_and_platform(tmp_path):
     cmd = build.pip_download_command(tmp_path, "macos-x64", "3.13", build.DEPENDENCIES_BY_PYTHON["3.13"])
     assert cmd[cmd.index("--python-version") + 1] == "3.13" and "--only-binary=:all:" in cmd
-    assert "macosx_10_13_x86_64" in cmd and "scipy==1.14.1" in cmd and "plyfile>=1.0" in cmd
+    assert "macosx_10_14_x86_64" in cmd and "scipy==1.16.3" in cmd and "plyfile>=1.0" in cmd
     assert set(build.PYTHON_VERSIONS) == {"3.11", "3.13"}
     assert {"scipy", "plyfile", "tqdm", "safetensors"} <= set(build.DEPENDENCIES)
 
@@ -31,7 +31,7 @@ def _complete_wheel_set() -> list[str]:
     for plat in ("win_amd64", "manylinux_2_17_x86_64.manylinux2014_x86_64", "macosx_12_0_arm64",
                  "macosx_10_13_x86_64"):
         names.append(f"safetensors-0.8.0-cp310-abi3-{plat}.whl")
-        names.append(f"scipy-1.14.1-cp313-cp313-{plat}.whl")
+        names.append(f"scipy-1.16.3-cp313-cp313-{plat.replace('10_13', '10_14')}.whl")
         names.append(f"scipy-1.13.1-cp311-cp311-{plat.replace('10_13', '10_9')}.whl")
     return names
 
@@ -39,7 +39,7 @@ def _complete_wheel_set() -> list[str]:
 def test_missing_wheels_names_the_platform_and_python():
     names = _complete_wheel_set()
     assert build.missing_wheels([Path(n) for n in names]) == []
-    without = [n for n in names if n != "scipy-1.14.1-cp313-cp313-win_amd64.whl"]
+    without = [n for n in names if n != "scipy-1.16.3-cp313-cp313-win_amd64.whl"]
     assert build.missing_wheels([Path(n) for n in without]) == ["scipy (windows-x64, Python 3.13)"]
     without = [n for n in names if not n.startswith("plyfile")]
     assert len(build.missing_wheels([Path(n) for n in without])) == 8  # 4 platforms x 2 Pythons
@@ -178,6 +178,6 @@ def test_installed_zip_carries_plyfile_and_the_scipy_of_its_python(tmp_path):
     assert out["install"] == ["FINISHED"]
     site = next((tmp_path / "blender-user").glob("extensions/.local/lib/python*/site-packages"))
     installed = {p.name for p in site.iterdir()}
-    scipy_version = {"3.11": "1.13.1", "3.13": "1.14.1"}[out["python"]]
+    scipy_version = {"3.11": "1.13.1", "3.13": "1.16.3"}[out["python"]]
     assert f"scipy-{scipy_version}.dist-info" in installed and "plyfile.py" in installed
     assert len([n for n in installed if n.startswith("scipy-")]) == 1  # only its own Python's scipy

@@ -11,14 +11,19 @@ manifest, the way Blender documents it)::
                                 ``fourlegs_engine/highlights/presets/``; the benchmarks stay out)
     wheels/*.whl               (the engine's dependencies Blender installs on enable)
 
-Dependency choice (Blender 4.2 - 5.0 run Python 3.11 and ship numpy 1.x, so cp311 wheels only):
+Dependency choice (Blender 4.2 - 5.0 run Python 3.11 and ship numpy 1.x; Blender 5.1 and later run
+Python 3.13): wheels for both, per platform; Blender installs the ones matching its Python.
 
-- bundled: ``scipy`` (kNN, morphology in query/highlights; ~35-40 MB per platform, pinned to 1.13.1,
-  the newest release whose wheels accept Blender's numpy 1.2x), ``tqdm`` and ``safetensors`` (small),
-  for windows-x64, linux-x64, macos-arm64 and macos-x64.
+- bundled: ``scipy`` (kNN, morphology in query/highlights; ~35-40 MB per platform and Python; cp311:
+  1.13.1, the newest release whose wheels accept Blender's numpy 1.2x; cp313: 1.16.3, which accepts
+  numpy 1.25.2 - 2.5, the range of the numpy 2.x that Python 3.13 Blenders ship), ``plyfile`` (PLY scenes; pure
+  Python), ``tqdm`` (pure Python) and ``safetensors`` (one abi3 wheel per platform serves both
+  Pythons), for windows-x64, linux-x64, macos-arm64 and macos-x64. A wheel whose file name is the same
+  for both Pythons (pure-Python or abi3) is shipped once.
 - not bundled: ``torch``. A CPU build is 70-250 MB per platform and the PyPI Linux wheel depends on
-  ~15 NVIDIA wheels (> 2 GB) that Blender's wheel installer does not resolve. The add-on checks for
-  torch on use and tells the user the one command that installs it into Blender's Python; a
+  ~15 NVIDIA wheels (> 2 GB) that Blender's wheel installer does not resolve. Importing a scene and
+  playing it on the timeline do not need torch; the add-on's preferences install it (CPU or CUDA
+  build) into the extension's own site-packages (:mod:`fourlegs_addon.torch_install`); a
   platform-specific build can bundle a torch wheel the user provides with ``--extra-wheel``.
 - not bundled: ``numba`` (+ llvmlite, ~40 MB per platform). It only speeds up the CPU splat the lift
   uses (:mod:`fourlegs_engine.render.cpu_kernels`); without it the engine takes the torch path.
@@ -45,17 +50,25 @@ from typing import Iterable, Optional, Sequence
 ADDON_DIR = Path(__file__).resolve().parent
 REPO_ROOT = ADDON_DIR.parent
 MANIFEST_NAME = "blender_manifest.toml"
-PYTHON_VERSION = "3.11"
+#: Blender's Python versions (4.2 - 5.0: 3.11; 5.1 and later: 3.13)
+PYTHON_VERSIONS = ("3.11", "3.13")
 
 #: Blender platform -> pip ``--platform`` tags (newest first; pip takes any matching wheel)
 PLATFORM_TAGS = {
     "windows-x64": ["win_amd64"],
     "linux-x64": ["manylinux_2_17_x86_64", "manylinux2014_x86_64"],
     "macos-arm64": ["macosx_12_0_arm64", "macosx_11_0_arm64"],
-    "macos-x64": ["macosx_10_12_x86_64", "macosx_10_9_x86_64"],
+    "macos-x64": ["macosx_10_14_x86_64", "macosx_10_13_x86_64", "macosx_10_12_x86_64", "macosx_10_9_x86_64"],
 }
-#: bundled dependencies (requirement specifiers)
-DEPENDENCIES = ("scipy==1.13.1", "tqdm>=4.60", "safetensors>=0.4")
+#: bundled dependencies per Python version (requirement specifiers); everything the add-on imports
+#: inside Blender except numpy (Blender ships it) and torch (installed from the add-on's preferences)
+DEPENDENCIES_BY_PYTHON = {
+    "3.11": ("scipy==1.13.1", "plyfile>=1.0", "tqdm>=4.60", "safetensors>=0.4"),
+    "3.13": ("scipy==1.16.3", "plyfile>=1.0", "tqdm>=4.60", "safetensors>=0.4"),
+}
+#: the distribution names, as wheel files spell them
+DEPENDENCIES = tuple(dict.fromkeys(re.split(r"[=<>!~ ]", r)[0].lower().replace("-", "_")
+                                   for reqs in DEPENDENCIES_BY_PYTHON.values() for r in reqs))
 #: add-on modules that run only outside Blender (the build itself, the ``fourlegs`` CLI registration)
 NOT_IN_BLENDER = ("build.py", "commands.py")
 
@@ -93,21 +106,57 @@ def validate(source_dir: str | Path) -> str:
     return run_blender_ext(["validate", str(source_dir)])
 
 
+def pip_download_command(dest: str | Path, platform: str, python_version: str,
+                         requirements: Iterable[str]) -> list[str]:
+    """The ``pip download`` command fetching binary wheels of ``requirements`` for one Blender platform
+    and Python version (no dependency resolution: the list is complete)."""
+    cmd = [sys.executable, "-m", "pip", "download", "--quiet", "--only-binary=:all:", "--no-deps",
+           "--python-version", python_version, "--implementation", "cp", "-d", str(dest)]
+    for tag in PLATFORM_TAGS[platform]:
+        cmd += ["--platform", tag]
+    return cmd + list(requirements)
+
+
 def fetch_wheels(dest: str | Path, platforms: Iterable[str] = tuple(PLATFORM_TAGS),
-                 requirements: Iterable[str] = DEPENDENCIES) -> list[Path]:
-    """Download cp311 binary wheels of ``requirements`` for each Blender platform with pip (PyPI)."""
+                 python_versions: Iterable[str] = PYTHON_VERSIONS) -> list[Path]:
+    """Download the binary wheels of :data:`DEPENDENCIES_BY_PYTHON` for each Blender platform and
+    Python version with pip (PyPI). Wheels named alike for several targets (pure-Python, abi3) are
+    downloaded once."""
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
-    for platform in platforms:
-        tags = PLATFORM_TAGS[platform]
-        cmd = [sys.executable, "-m", "pip", "download", "--quiet", "--only-binary=:all:", "--no-deps",
-               "--python-version", PYTHON_VERSION, "--implementation", "cp", "-d", str(dest)]
-        for tag in tags:
-            cmd += ["--platform", tag]
-        proc = subprocess.run(cmd + list(requirements), capture_output=True, text=True)
-        if proc.returncode != 0:
-            raise BuildError(f"pip could not download wheels for {platform}:\n{proc.stderr.strip()}")
+    for python_version in python_versions:
+        for platform in platforms:
+            cmd = pip_download_command(dest, platform, python_version, DEPENDENCIES_BY_PYTHON[python_version])
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0:
+                raise BuildError(f"pip could not download wheels for {platform}, Python {python_version}:\n"
+                                 f"{proc.stderr.strip()}")
     return sorted(dest.glob("*.whl"))
+
+
+def missing_wheels(wheels: Iterable[Path], platforms: Iterable[str] = tuple(PLATFORM_TAGS),
+                   python_versions: Iterable[str] = PYTHON_VERSIONS) -> list[str]:
+    """``"name (platform, Python x.y)"`` for every dependency without a wheel installable there."""
+    parsed = []
+    for wheel in wheels:
+        parts = Path(wheel).name[:-len(".whl")].split("-")
+        if len(parts) not in (5, 6):
+            continue
+        py, abi, plat = (set(p.split(".")) for p in parts[-3:])
+        parsed.append((parts[0].lower(), {(a, b, c) for a in py for b in abi for c in plat}))
+    out = []
+    for python_version in python_versions:
+        major, minor = python_version.split(".")
+        cp = f"cp{major}{minor}"
+        for platform in platforms:
+            accepted = set()
+            for ptag in PLATFORM_TAGS[platform]:
+                accepted |= {(cp, cp, ptag), ("py3", "none", "any"), (f"py{major}{minor}", "none", "any")}
+                accepted |= {(f"cp3{m}", "abi3", ptag) for m in range(2, int(minor) + 1)}
+            for dep in DEPENDENCIES:
+                if not any(name == dep and tags & accepted for name, tags in parsed):
+                    out.append(f"{dep} ({platform}, Python {python_version})")
+    return out
 
 
 def manifest_with_wheels(text: str, wheel_names: Sequence[str]) -> str:
@@ -207,9 +256,8 @@ def build(output_dir: str | Path, *, wheels_dir: Optional[str | Path] = None, fe
         if fetch:
             fetch_wheels(wdir)
         wheels = sorted(wdir.glob("*.whl")) if wdir.is_dir() else []
-        wanted = [re.split(r"[=<>!~ ]", r)[0].lower().replace("-", "_") for r in DEPENDENCIES]
-        wheels = [w for w in wheels if w.name.split("-")[0].lower() in wanted]
-        missing = [n for n in wanted if not any(w.name.lower().startswith(n + "-") for w in wheels)]
+        wheels = [w for w in wheels if w.name.split("-")[0].lower() in DEPENDENCIES]
+        missing = missing_wheels(wheels)
         if missing:
             raise BuildError(f"dependency wheels missing in {wdir}: {', '.join(missing)} (pass --fetch-wheels "
                              "to download them from PyPI, or --no-wheels to build without them)")

@@ -25,7 +25,8 @@ def register(subparsers) -> None:
     be = subparsers.add_parser("build-extension", help="build the Blender extension zip (add-on + engine + wheels)")
     be.add_argument("-o", "--output", required=True, help="output directory for the zip(s)")
     be.add_argument("--fetch-wheels", action="store_true",
-                    help="download the dependency wheels (scipy, tqdm, safetensors; cp311; 4 platforms) from PyPI")
+                    help="download the dependency wheels (scipy, plyfile, tqdm, safetensors; cp311 + cp313; 4 platforms) "
+                         "from PyPI")
     be.add_argument("--wheels-dir", default=None, help="where dependency wheels are (default <cache>/extension-wheels)")
     be.add_argument("--no-wheels", action="store_true",
                     help="bundle no dependency wheels (Blender's Python must provide torch, scipy, tqdm)")

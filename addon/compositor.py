@@ -85,6 +85,20 @@ def has_desaturation(scene: bpy.types.Scene) -> bool:
     return tree is not None and tree.get(GENERATED_KEY) and WEIGHT_NODE in tree.nodes
 
 
+def desaturation_at(scene: bpy.types.Scene, frame: int) -> float:
+    """The keyed desaturation strength at ``frame`` (0 when there is none): read from the F-curve, so it
+    follows the keys wherever an editor moved them on the timeline."""
+    tree = compositor_tree(scene)
+    if tree is None or not tree.get(GENERATED_KEY) or WEIGHT_NODE not in tree.nodes:
+        return 0.0
+    from .keyframes import find_fcurve
+
+    fc = find_fcurve(tree, f'nodes["{WEIGHT_NODE}"].outputs[0].default_value', 0)
+    if fc is None:
+        return float(tree.nodes[WEIGHT_NODE].outputs[0].default_value)
+    return float(fc.evaluate(frame))
+
+
 def compositor_tree(scene: bpy.types.Scene):
     return scene.compositing_node_group if IS_50 else (scene.node_tree if scene.use_nodes else None)
 

@@ -269,6 +269,8 @@ def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str
     if rel_provider is not None and peak is not None:
         importer.set_relevancy(obj, rel_provider(int(peak)), show=False)
     bl_scene.frame_set(bl_scene.frame_start)
+    operators.fill_from_plan(bl_scene, plan, output=str(out["video"]), fmt=fmt)  # the panel as it was made
+    importer.relative_sources(out["blend"].parent)
     with timer("save .blend"):
         with api.atomic_path(out["blend"]) as tmp:
             tmp.unlink()  # saving over an existing file would leave a .blend1 backup beside it

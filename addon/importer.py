@@ -38,6 +38,8 @@ RADIUS_SIGMAS = 1.5  # instance radius = 1.5 x the geometric-mean standard devia
 # source key -> Scene (engine object, arrays memory-mapped); relevancy per source: (N,) or (T,N)
 _SCENES: dict[str, Any] = {}
 _RELEVANCY: dict[str, np.ndarray] = {}
+# source key -> the one-line message of why it cannot be opened (reported once, shown in the panel)
+_MISSING: dict[str, str] = {}
 # source key -> callable(t: int) -> (N,) relevancy, evaluated lazily per timestep and cached
 _RELEVANCY_PROVIDERS: dict[str, Any] = {}
 _RELEVANCY_CACHE: dict[tuple[str, int], np.ndarray] = {}
@@ -49,6 +51,39 @@ def load_engine_scene(path: str | Path):
     from fourlegs_engine import api
 
     return api.load_scene(Path(bpy.path.abspath(str(path))))
+
+
+def stored_path(path: str | Path) -> str:
+    """How a scene path is stored on the object: relative to the .blend (``//...``) once it is saved, so
+    the project can move; absolute before (a new file has no folder yet)."""
+    path = str(Path(path).resolve())
+    if bpy.data.filepath:
+        try:
+            return bpy.path.relpath(path)
+        except ValueError:  # another drive (Windows)
+            return path
+    return path
+
+
+def relative_sources(blend_dir: str | Path) -> None:
+    """Store every splat object's scene path relative to ``blend_dir`` (``//...``), for a .blend about to
+    be saved there (a file that is not saved yet has no ``//``)."""
+    for obj in bpy.data.objects:
+        key = source_key(obj)
+        if not key or key.startswith(("memory:", "//")):
+            continue
+        try:
+            rel = bpy.path.relpath(key, start=str(blend_dir))
+        except ValueError:  # another drive (Windows)
+            continue
+        if key in _SCENES:
+            _SCENES[rel] = _SCENES[key]
+        obj[SOURCE_KEY] = rel
+
+
+def missing_message(obj: bpy.types.Object) -> str:
+    """Why the object's scene could not be opened (empty when it could)."""
+    return _MISSING.get(source_key(obj) or "", "")
 
 
 def source_key(obj: bpy.types.Object) -> Optional[str]:
@@ -66,6 +101,14 @@ def engine_scene_for(obj: bpy.types.Object):
         scene = load_engine_scene(key)
         _SCENES[key] = scene
     return scene
+
+
+def adopt_scene(obj: bpy.types.Object, scene: Any, source: str) -> None:
+    """Point ``obj`` at ``scene`` loaded from ``source`` (e.g. the bundle its PLY was converted into)."""
+    key = stored_path(source)
+    _SCENES[key] = scene
+    _MISSING.pop(key, None)
+    obj[SOURCE_KEY] = key
 
 
 def splat_objects(scene: bpy.types.Scene) -> list[bpy.types.Object]:
@@ -88,7 +131,7 @@ def import_scene(context_scene: bpy.types.Scene, scene: Any, *, source: str | No
     """
     g = scene.gaussians
     name = name or scene.name or "4-LEGS scene"
-    key = str(Path(source).resolve()) if source else f"memory:{name}:{id(scene)}"
+    key = stored_path(source) if source else f"memory:{name}:{id(scene)}"
     _SCENES[key] = scene
 
     collection = bpy.data.collections.new(f"4-LEGS {name}")
@@ -270,11 +313,20 @@ def update_object(obj: bpy.types.Object, t: float) -> bool:
 
 
 def update_scene_objects(scene: bpy.types.Scene) -> None:
+    """Show the scene time on every splat object; a scene that cannot be opened is reported once (console
+    line, panel) and skipped on later frames."""
     props = getattr(scene, "fourlegs", None)
     if props is None:
         return
     for obj in splat_objects(scene):
-        update_object(obj, float(props.timestep))
+        key = source_key(obj)
+        if key in _MISSING:
+            continue
+        try:
+            update_object(obj, float(props.timestep))
+        except Exception as exc:  # the handler runs on every frame: one line, once
+            _MISSING[key] = f"{obj.name}: scene {key} cannot be opened: {exc}"
+            print(f"4-LEGS: {_MISSING[key]}")
 
 
 @persistent

@@ -6,10 +6,12 @@ and resolution. Everything it creates is tagged ``fourlegs_generated`` so runnin
 exactly that and never touches the user's own objects or keys.
 
 Keys are written straight into F-curves (``keyframe_points.add`` + ``foreach_set``), one per plan key.
-Dense camera keys (one per frame, as the planner writes them) use LINEAR interpolation, so orbits
-follow the planned arc; sparse keys on an orbit are first densified along the arc around the action
-centre so interpolation cannot cut a chord; sparse keys elsewhere use Bezier (ease in/out). The last
-key of a shot is CONSTANT: shots are joined by cuts, never by a one-frame swoop.
+Dense camera keys of a shot that is not an orbit (one per frame, as the planner writes them) are then
+thinned: eased Bezier keys (auto-clamped handles) are kept only where the curve would otherwise leave
+the planned path by more than :data:`THIN_TOLERANCE`, so an editor gets a few keys to move. Orbits keep
+LINEAR keys along the arc (sparse ones densified around the action centre, so interpolation cannot cut
+a chord; planner orbits also get a rig, ``rig.py``); sparse keys elsewhere use Bezier (ease in/out).
+The last key of a shot is CONSTANT: shots are joined by cuts, never by a one-frame swoop.
 """
 from __future__ import annotations
 
@@ -28,7 +30,10 @@ CAMERA_ACTION_NAME = "4-LEGS Highlight Camera"
 LENS_ACTION_NAME = "4-LEGS Highlight Lens"
 SCENE_ACTION_NAME = "4-LEGS Scene Time"
 TIMESTEP_PATH = "fourlegs.timestep"
-ORBIT_EFFECTS = ("bullet_time",)  # planner effects whose camera circles the action centre
+MARKERS_KEY = "fourlegs_markers"  # scene property: names of the timeline markers Generate made
+ORBIT_EFFECTS = ("bullet_time",)
+#: largest deviation from the planned path that thinning dense keys may introduce, per channel
+THIN_TOLERANCE = {"location": 1e-3, "rotation_euler": 1e-3, "lens": 1e-2}  # planner effects whose camera circles the action centre
 
 
 class PlanError(ValueError):
@@ -135,6 +140,37 @@ def write_fcurve(id_data: bpy.types.ID, action: bpy.types.Action, data_path: str
     return fc
 
 
+def thin_fcurve(fc: bpy.types.FCurve, removable: set[int], tolerance: float) -> int:
+    """Remove the keys at ``removable`` frames that the remaining eased curve does not need: a key goes
+    when, without it, the curve stays within ``tolerance`` of every original key value nearby. Returns
+    how many keys were removed."""
+    target = {int(round(kp.co[0])): float(kp.co[1]) for kp in fc.keyframe_points}
+    removed = 0
+    for frame in sorted(removable):
+        points = fc.keyframe_points
+        keyed = [int(round(kp.co[0])) for kp in points]
+        if frame not in keyed:
+            continue
+        i = keyed.index(frame)
+        kp = points[i]
+        if kp.interpolation == "CONSTANT":
+            continue
+        value = float(kp.co[1])
+        points.remove(kp, fast=True)
+        fc.update()
+        lo = keyed[max(i - 2, 0)]
+        hi = keyed[min(i + 2, len(keyed) - 1)]
+        error = max(abs(fc.evaluate(f) - target[f]) for f in target if lo <= f <= hi)
+        if error > tolerance:
+            back = points.insert(frame, value, options={"FAST"})
+            back.interpolation = "BEZIER"
+            back.handle_left_type = back.handle_right_type = "AUTO_CLAMPED"
+            fc.update()
+        else:
+            removed += 1
+    return removed
+
+
 # ----------------------------------------------------------------------------- pose maths
 def _slerp(q0: np.ndarray, q1: np.ndarray, w: float) -> np.ndarray:
     if np.dot(q0, q1) < 0:
@@ -195,7 +231,13 @@ def key_lens_mm(key: dict[str, Any], width: int) -> float:
 
 # ----------------------------------------------------------------------------- generation
 def remove_generated(scene: bpy.types.Scene) -> None:
-    """Delete what a previous Generate Highlight created (tagged datablocks and the timestep F-curve)."""
+    """Delete what a previous Generate Highlight created (tagged datablocks, shot markers and the
+    timestep F-curve)."""
+    made = set(scene.get(MARKERS_KEY, []))
+    for marker in [m for m in scene.timeline_markers if m.name in made]:
+        scene.timeline_markers.remove(marker)
+    if MARKERS_KEY in scene:
+        del scene[MARKERS_KEY]
     for obj in [o for o in bpy.data.objects if o.get(GENERATED_KEY)]:
         bpy.data.objects.remove(obj, do_unlink=True)
     for cam in [c for c in bpy.data.cameras if c.get(GENERATED_KEY) and c.users == 0]:
@@ -213,6 +255,24 @@ def remove_generated(scene: bpy.types.Scene) -> None:
         bpy.data.actions.remove(action)
 
 
+def shot_marker_name(index: int, shot: dict[str, Any]) -> str:
+    return f"{index + 1} {shot.get('name') or shot.get('effect') or 'shot'}"
+
+
+def add_shot_markers(scene: bpy.types.Scene, plan: dict[str, Any]) -> list[bpy.types.TimelineMarker]:
+    """One timeline marker at the first frame of each shot, named "<n> <shot name>"."""
+    shots = sorted(plan["shots"], key=lambda s: int(s["frame_start"]))
+    markers = [scene.timeline_markers.new(shot_marker_name(i, shot), frame=int(shot["frame_start"]))
+               for i, shot in enumerate(shots)]
+    scene[MARKERS_KEY] = [m.name for m in markers]
+    return markers
+
+
+def has_generated(scene: bpy.types.Scene) -> bool:
+    """Whether a previous Generate Highlight left data here (which a new one would replace)."""
+    return any(o.get(GENERATED_KEY) for o in bpy.data.objects) or bool(scene.get(MARKERS_KEY))
+
+
 def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object:
     """Create the highlight camera and keys from ``plan``; returns the camera object.
 
@@ -220,6 +280,7 @@ def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object
     """
     check_plan(plan)
     remove_generated(scene)
+    markers = add_shot_markers(scene, plan)
     width, height = (int(v) for v in plan["resolution"])
     render = scene.render
     render.resolution_x, render.resolution_y, render.resolution_percentage = width, height, 100
@@ -242,6 +303,7 @@ def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object
     eulers: list[Sequence[float]] = []
     lenses: list[float] = []
     interp: list[str] = []
+    thinnable: set[int] = set()  # interior frames of dense non-orbit shots
     sensor = convert.DEFAULT_SENSOR_WIDTH_MM
     prev_euler = None
     for shot in sorted(plan["shots"], key=lambda s: int(s["frame_start"])):
@@ -255,6 +317,9 @@ def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object
             keys = densify_orbit(keys, centre)
             sparse = False
         mode = "BEZIER" if sparse and str(shot.get("interpolation", "bezier")).lower() == "bezier" else "LINEAR"
+        if not sparse and not is_orbit and len(keys) > 2:
+            mode = "BEZIER"
+            thinnable.update(int(k["frame"]) for k in keys[1:-1])
         for i, key in enumerate(keys):
             m = Matrix(convert.opencv_to_blender_c2w(np.asarray(key["c2w"], np.float64)).tolist())
             euler = m.to_euler("XYZ", prev_euler) if prev_euler is not None else m.to_euler("XYZ")
@@ -271,11 +336,14 @@ def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object
     action = bpy.data.actions.new(CAMERA_ACTION_NAME)
     action[GENERATED_KEY] = True
     for index in range(3):
-        write_fcurve(cam, action, "location", index, frames, [p[index] for p in locs], interp)
-        write_fcurve(cam, action, "rotation_euler", index, frames, [e[index] for e in eulers], interp)
+        fc = write_fcurve(cam, action, "location", index, frames, [p[index] for p in locs], interp)
+        thin_fcurve(fc, thinnable, THIN_TOLERANCE["location"])
+        fc = write_fcurve(cam, action, "rotation_euler", index, frames, [e[index] for e in eulers], interp)
+        thin_fcurve(fc, thinnable, THIN_TOLERANCE["rotation_euler"])
     lens_action = bpy.data.actions.new(LENS_ACTION_NAME)
     lens_action[GENERATED_KEY] = True
-    write_fcurve(cam_data, lens_action, "lens", 0, frames, lenses, interp)
+    fc = write_fcurve(cam_data, lens_action, "lens", 0, frames, lenses, interp)
+    thin_fcurve(fc, thinnable, THIN_TOLERANCE["lens"])
 
     time_frames, time_values = [], []
     for shot in sorted(plan["shots"], key=lambda s: int(s["frame_start"])):
@@ -286,8 +354,27 @@ def apply_plan(scene: bpy.types.Scene, plan: dict[str, Any]) -> bpy.types.Object
         scene_action = ensure_action(scene, SCENE_ACTION_NAME)
         write_fcurve(scene, scene_action, TIMESTEP_PATH, 0, time_frames, time_values,
                      ["LINEAR"] * len(time_frames))
+    _rig_orbits(scene, plan, cam, [m.name for m in markers], width, sensor)
     scene.frame_set(scene.frame_start)
     return cam
+
+
+def _rig_orbits(scene: bpy.types.Scene, plan: dict[str, Any], cam: bpy.types.Object, marker_names: list[str],
+                width: int, sensor: float) -> None:
+    """Give each planner orbit its rig (``rig.py``) and bind the shot markers to their cameras."""
+    from . import rig
+
+    centre = (plan.get("localization") or {}).get("action_centre")
+    shots = sorted(plan["shots"], key=lambda s: int(s["frame_start"]))
+    cameras = []
+    for shot in shots:
+        if rig.can_rig(shot, centre):
+            first = min(shot["camera_keys"], key=lambda k: int(k["frame"]))
+            cameras.append(rig.build_orbit_rig(scene, shot, centre, key_lens_mm(first, width), sensor, GENERATED_KEY))
+        else:
+            cameras.append(cam)
+    if any(c is not cam for c in cameras):
+        rig.bind_markers(scene, marker_names, cameras)
 
 
 def camera_pose_at(cam: bpy.types.Object, scene: bpy.types.Scene, frame: int) -> tuple[np.ndarray, float]:

@@ -18,19 +18,23 @@ import numpy as np
 from bpy.props import BoolProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from . import compositor, importer, keyframes, planning, plots, querying, render_engine, video
+from . import (compositor, importer, keyframes, planning, plots, prepare, querying, render_engine, torch_install,
+               video)
 
 ALL_NEEDS = {"temporal", "best_view", "action_centre"}
 
 
 def _err(exc: BaseException) -> str:
     """One line for the user (no traceback)."""
-    if isinstance(exc, ModuleNotFoundError) and exc.name in ("torch", "scipy", "tqdm"):
-        import sys
-
-        return (f"{exc.name} is not installed in Blender's Python; install it with: "
-                f"\"{sys.executable}\" -m pip install {exc.name}")
+    if isinstance(exc, ModuleNotFoundError) and exc.name in torch_install.REQUIREMENTS:
+        return (f"{torch_install.missing_message([exc.name])}; install it in Edit > Preferences > Add-ons > "
+                "4-LEGS Highlights")
     return str(exc) if isinstance(exc, (ValueError, FileExistsError, RuntimeError)) else f"{type(exc).__name__}: {exc}"
+
+
+def interactive() -> bool:
+    """Whether Blender runs with a UI (operators must not block it); False for ``blender -b`` and bpy."""
+    return not bpy.app.background
 
 
 def _splat_object(context) -> Optional[bpy.types.Object]:
@@ -190,6 +194,46 @@ class FOURLEGS_OT_run_query(bpy.types.Operator):
         return {"FINISHED"}
 
 
+def fill_segments(props, segments, scores, chosen) -> None:
+    """List every segment (start, end, peak s_t) in the panel; the chosen one is selected."""
+    scores = np.nan_to_num(np.asarray(scores, np.float64))
+    props.segments.clear()
+    index = -1
+    for i, (a, b) in enumerate(segments):
+        item = props.segments.add()
+        item.start, item.end = int(a), int(b)
+        item.peak_score = float(scores[int(a):int(b) + 1].max()) if len(scores) > int(b) else 0.0
+        if chosen is not None and (int(a), int(b)) == (int(chosen[0]), int(chosen[1])):
+            index = i
+    props["segment_index"] = index  # no update callback: the chosen segment is already shown
+
+
+def fill_from_plan(bl_scene, plan: dict[str, Any], output: Optional[str] = None, fmt: Optional[str] = None) -> None:
+    """The panel of a scene made from a plan (the headless job's .blend): query, found, segments, peak,
+    best view, the s_t plot, and the output the video was written to."""
+    props = bl_scene.fourlegs
+    loc = plan.get("localization") or {}
+    props.query = str(plan.get("query") or "")
+    props.found = bool(loc.get("found"))
+    seg = loc.get("segment") if props.found else None
+    props.segment_start, props.segment_end = (int(seg[0]), int(seg[1])) if seg else (-1, -1)
+    props.peak = int(loc["peak"]) if props.found and loc.get("peak") is not None else -1
+    props.best_view = str(loc.get("best_view") or "")
+    scores = loc.get("scores") or []
+    fill_segments(props, loc.get("segments") or ([seg] if seg else []), scores, seg)
+    if scores:
+        positive = np.zeros(len(scores), bool)
+        for a, b in loc.get("segments") or []:
+            positive[int(a):int(b) + 1] = True
+        plots.scores_image(np.asarray(scores, np.float64), positive, seg, props.peak if props.found else None)
+    if output is not None:
+        props.output_path = str(output)
+        bl_scene.render.filepath = str(output)
+    if fmt is not None:
+        props.output_format = fmt
+        video.configure_output(bl_scene, fmt)
+
+
 def store_results(bl_scene, obj, engine: Any, query: str, localization: Any,
                   peak_relevancy: Optional[np.ndarray]) -> None:
     """Copy a localization into the scene properties, the s_t image and the viewport relevancy colours."""
@@ -200,6 +244,8 @@ def store_results(bl_scene, obj, engine: Any, query: str, localization: Any,
     props.segment_start, props.segment_end = (int(seg[0]), int(seg[1])) if seg else (-1, -1)
     props.peak = int(temporal.peak) if props.found and temporal.peak is not None else -1
     props.best_view = localization.best_view or ""
+    fill_segments(props, temporal.segments if temporal is not None else [],
+                  temporal.scores if temporal is not None else [], seg)
     if temporal is not None:
         plots.scores_image(np.asarray(temporal.scores, np.float64), np.asarray(temporal.positive, bool),
                            seg, props.peak if props.found else None)
@@ -218,6 +264,7 @@ class FOURLEGS_OT_cancel_query(bpy.types.Operator):
 
     def execute(self, context):
         cancel_all()
+        prepare.cancel_all()
         context.scene.fourlegs.running = False
         return {"FINISHED"}
 
@@ -283,6 +330,14 @@ class FOURLEGS_OT_generate_highlight(bpy.types.Operator):
     def poll(cls, context):
         return _splat_object(context) is not None and not context.scene.fourlegs.running
 
+    def invoke(self, context, event):
+        if keyframes.has_generated(context.scene):  # edits to the generated camera/keys would be lost
+            return context.window_manager.invoke_confirm(
+                self, event, title="Replace the highlight?",
+                message="Generate again replaces the highlight camera, its keys, the shot markers and the "
+                        "compositor setup, with any edits made to them.", confirm_text="Replace")
+        return self.execute(context)
+
     def execute(self, context):
         props = context.scene.fourlegs
         try:
@@ -293,6 +348,15 @@ class FOURLEGS_OT_generate_highlight(bpy.types.Operator):
                 scene = importer.engine_scene_for(obj)
                 localizer = _LOCALIZERS.get(importer.source_key(obj))
                 query = props.query.strip()
+                if (localizer is None or localizer.query != query) and interactive():
+                    # localizing takes tens of seconds: run it in the background instead of freezing the UI
+                    if query and bpy.ops.fourlegs.run_query.poll():
+                        bpy.ops.fourlegs.run_query("INVOKE_DEFAULT")
+                        self.report({"INFO"}, "4-LEGS: running the query first (in the background); press "
+                                              "Generate Highlight again when it is done")
+                    else:
+                        self.report({"WARNING"}, "4-LEGS: type a query and Run Query first")
+                    return {"CANCELLED"}
                 if localizer is None or localizer.query != query:
                     localizer = planning.CachedLocalizer(
                         querying.open_query_engine(scene, encoder=querying.encoder_config(props)), query)
@@ -317,6 +381,9 @@ class FOURLEGS_OT_render_video(bpy.types.Operator):
 
     def execute(self, context):
         props = context.scene.fourlegs
+        if render_engine.plan_of(context.scene) is None:
+            self.report({"ERROR"}, "4-LEGS Render Video: no highlight in this scene; run Generate Highlight first")
+            return {"CANCELLED"}
         wm = context.window_manager
         total = context.scene.frame_end - context.scene.frame_start + 1
         wm.progress_begin(0, total)

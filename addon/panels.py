@@ -3,13 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import importer, plots, render_engine
-
-
-def _torch_available() -> bool:
-    import importlib.util
-
-    return importlib.util.find_spec("torch") is not None
+from . import importer, plots, preferences, prepare, render_engine
 
 
 class FOURLEGS_PT_main(bpy.types.Panel):
@@ -22,20 +16,29 @@ class FOURLEGS_PT_main(bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         props = context.scene.fourlegs
-        if not _torch_available():
+        missing = preferences.missing_line()
+        if missing:
             box = layout.box()
-            box.label(text="PyTorch is not installed in Blender's Python", icon="ERROR")
-            box.label(text="Install it with Blender's Python:")
-            box.label(text="python -m pip install torch")
+            box.label(text=missing, icon="ERROR")
+            box.operator("preferences.addon_show", text="Open Add-on Preferences").module = preferences.PACKAGE
         obj = props.splat_object
         if obj is None or not importer.source_key(obj):
             layout.operator("fourlegs.import_scene", icon="IMPORT")
             return
+        problem = importer.missing_message(obj)
+        if problem:
+            layout.label(text=problem, icon="ERROR")
         col = layout.column(align=True)
         col.label(text=f"{obj.name}: {len(obj.data.vertices):,} Gaussians", icon="POINTCLOUD_DATA")
         col.prop(props, "timestep")
         col.label(text=f"{props.num_timesteps} timesteps")
         layout.operator("fourlegs.import_scene", text="Import Another", icon="IMPORT")
+
+
+class FOURLEGS_UL_segments(bpy.types.UIList):
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index=0):
+        layout.label(text=f"timesteps {item.start}-{item.end}", icon="TIME")
+        layout.label(text=f"peak s_t {item.peak_score:.3f}")
 
 
 class _SidebarSubPanel:
@@ -53,6 +56,11 @@ class FOURLEGS_PT_query(_SidebarSubPanel, bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         props = context.scene.fourlegs
+        obj = props.splat_object
+        if obj is not None and not props.running and not prepare.has_field(obj):
+            box = layout.box()
+            box.label(text="No language field yet (needed to query)", icon="INFO")
+            box.operator("fourlegs.prepare_field", icon="PLAY")
         layout.prop(props, "query", text="")
         if props.running:
             row = layout.row(align=True)
@@ -62,6 +70,9 @@ class FOURLEGS_PT_query(_SidebarSubPanel, bpy.types.Panel):
             layout.operator("fourlegs.run_query", icon="VIEWZOOM")
             if props.status:
                 layout.label(text=props.status)
+        if len(props.segments) > 1:
+            layout.label(text=f"{len(props.segments)} segments (pick one to look at it):")
+            layout.template_list("FOURLEGS_UL_segments", "", props, "segments", props, "segment_index", rows=3)
         if props.segment_start >= 0:
             col = layout.column(align=True)
             col.label(text=f"Segment: timesteps {props.segment_start}-{props.segment_end}")
@@ -110,4 +121,5 @@ class FOURLEGS_PT_render(_SidebarSubPanel, bpy.types.Panel):
         layout.operator("fourlegs.render_video", icon="RENDER_ANIMATION")
 
 
+ui_lists = (FOURLEGS_UL_segments,)
 classes = (FOURLEGS_PT_main, FOURLEGS_PT_query, FOURLEGS_PT_highlight, FOURLEGS_PT_render)

@@ -49,5 +49,7 @@ def scores_image(scores, positive, segment, peak, width: int = 256, height: int 
     pixels = scores_pixels(scores, positive, segment, peak, width, height)[::-1]  # Blender rows go up
     img.pixels.foreach_set(np.ascontiguousarray(pixels).ravel())
     img.update()
+    img.pack()  # saved inside the .blend (a generated image is otherwise lost on save) ...
+    img.use_fake_user = True  # ... and kept although no material or editor uses it
     img.preview_ensure() if hasattr(img, "preview_ensure") else None
     return img

@@ -7,7 +7,7 @@ timeline gives slow motion. A frame-change handler (``importer.on_frame_change``
 from __future__ import annotations
 
 import bpy
-from bpy.props import (BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
+from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
                        StringProperty)
 
 
@@ -25,6 +25,22 @@ def _preset_items(self, context):
 def _timestep_changed(self, context):
     from . import importer
     importer.update_scene_objects(context.scene)
+
+
+def _segment_picked(self, context):
+    """Selecting a segment in the list shows its first timestep and makes it the one the panel reports."""
+    if not 0 <= self.segment_index < len(self.segments):
+        return
+    seg = self.segments[self.segment_index]
+    self.segment_start, self.segment_end = seg.start, seg.end
+    self.timestep = float(seg.start)
+
+
+class FourlegsSegment(bpy.types.PropertyGroup):
+    """One positive run of s_t: timesteps ``start``-``end`` (inclusive) with its peak score."""
+    start: IntProperty(name="Start", default=0)
+    end: IntProperty(name="End", default=0)
+    peak_score: FloatProperty(name="Peak s_t", default=0.0)
 
 
 class FourlegsSceneProps(bpy.types.PropertyGroup):
@@ -48,6 +64,9 @@ class FourlegsSceneProps(bpy.types.PropertyGroup):
     segment_end: IntProperty(name="Segment End", default=-1)
     peak: IntProperty(name="Peak", default=-1)
     best_view: StringProperty(name="Best View", default="")
+    segments: CollectionProperty(type=FourlegsSegment, name="Segments",
+                                 description="Every segment where the query was found")
+    segment_index: IntProperty(name="Segment", default=-1, update=_segment_picked)
     # --- encoder of fields distilled with ViCLIP (what `--checkpoint` / `--vocab` give the commands)
     encoder_checkpoint: StringProperty(name="ViCLIP Weights", subtype="FILE_PATH", default="",
                                        description="ViClip-InternVid-10M-FLT.pth, a .safetensors file or a "
@@ -68,7 +87,7 @@ class FourlegsSceneProps(bpy.types.PropertyGroup):
     overwrite: BoolProperty(name="Overwrite", default=False, description="Replace an existing output")
 
 
-classes = (FourlegsSceneProps,)
+classes = (FourlegsSegment, FourlegsSceneProps)
 
 
 def register() -> None:

@@ -27,8 +27,16 @@ def encoder_config(props: Any = None) -> Any:
     return api.EncoderConfig(checkpoint=path(props.encoder_checkpoint), vocab=path(props.encoder_vocab))
 
 
+def default_options() -> Any:
+    """The query options the ``fourlegs highlight`` command (and the headless job) uses by default: fast
+    (1-channel) spatial maps, the rest the engine's defaults."""
+    from fourlegs_engine import api
+
+    return api.QueryOptions(spatial="fast")
+
+
 def open_query_engine(scene: Any, options: Optional[Any] = None, encoder: Optional[Any] = None) -> Any:
-    """A ``QueryEngine`` for ``scene`` with ``options`` (QueryOptions; None: the engine's defaults) and the
+    """A ``QueryEngine`` for ``scene`` with ``options`` (QueryOptions; None: :func:`default_options`) and the
     text encoder ``encoder`` (EncoderConfig) names; cached per scene object when ``options`` is None.
     InputError if the scene has no language field."""
     from fourlegs_engine import api
@@ -36,7 +44,8 @@ def open_query_engine(scene: Any, options: Optional[Any] = None, encoder: Option
     key = id(scene)
     if options is None and key in _ENGINES:
         return _ENGINES[key]
-    engine = api.open_query_engine(scene, options=options, encoder_config=encoder or api.EncoderConfig())
+    engine = api.open_query_engine(scene, options=options if options is not None else default_options(),
+                                   encoder_config=encoder or api.EncoderConfig())
     if options is None:
         _ENGINES[key] = engine
     return engine

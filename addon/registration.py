@@ -3,17 +3,21 @@ from __future__ import annotations
 
 import bpy
 
-from . import importer, operators, panels, properties, render_engine
+from . import importer, operators, panels, preferences, prepare, properties, render_engine
 
 classes = (
+    *preferences.classes,
     *properties.classes,
     *operators.classes,
+    *prepare.classes,
+    *panels.ui_lists,
     *panels.classes,
     *render_engine.classes,
 )
 
 
 def register() -> None:
+    preferences.register()
     for cls in classes:
         bpy.utils.register_class(cls)
     properties.register()
@@ -23,6 +27,8 @@ def register() -> None:
 
 def unregister() -> None:
     operators.cancel_all()
+    prepare.cancel_all()
+    preferences.unregister()
     importer.unregister()
     render_engine.unregister()
     properties.unregister()

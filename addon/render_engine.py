@@ -27,7 +27,7 @@ from typing import Any, Optional
 import bpy
 import numpy as np
 
-from . import convert, importer
+from . import compositor, convert, importer
 from .keyframes import frames_in_ranges
 
 ENGINE_ID = "FOURLEGS_SPLATS"
@@ -176,14 +176,16 @@ def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *,
     """Rasterize the current state: returns top-down (H,W,·) float32 arrays rgba, depth, [relevancy].
 
     ``depth=False`` skips the depth output (the pass is filled with "nothing hit"); relevancy is
-    computed only when ``relevancy_pass`` and ``frame`` is in the plan's relevancy ranges.
+    computed only when ``relevancy_pass`` and ``frame`` is in the plan's relevancy ranges or the keyed
+    desaturation is on there (an editor may have moved the desaturated shot).
     ``plan``: the scene's plan when the caller already has it (default: read it).
     """
     import torch
 
     plan = plan_of(scene) if plan is ... else plan
     t = float(scene.fourlegs.timestep)
-    compute_rel = relevancy_pass and frames_in_ranges(relevancy_frames(scene, plan), frame)
+    compute_rel = relevancy_pass and (frames_in_ranges(relevancy_frames(scene, plan), frame)
+                                      or compositor.desaturation_at(scene, frame) > 0.0)
     camera = scene_camera(scene, depsgraph, width, height)
     data = gather_gaussians(scene, t, compute_rel, plan)
     out: dict[str, np.ndarray] = {}

@@ -12,20 +12,56 @@ into the engine's internals, so the engine can reorganize without breaking them:
 """
 from __future__ import annotations
 
-from .errors import FourlegsError, InputError, OutputExistsError, describe_environment_error, print_error
-from .fileio import (OUTPUTS_MARKER, atomic_path, claim_outputs, image_file_problem, incomplete_write_error,
-                     write_json_atomic)
-from .highlights import available_presets, load_preset, plan_highlight, plan_needs
-from .pipeline import (EncoderConfig, QueryOptions, ensure_language_field, has_language_field, open_query_engine,
-                       open_scene, text_encoder)
-from .render import rasterize
-from .scene import Camera, Scene, load_scene
-from .threads import torch_threads
-from .validate import check_text
+import importlib
+from typing import TYPE_CHECKING, Any
 
-__all__ = ["Camera", "EncoderConfig", "FourlegsError", "InputError", "OUTPUTS_MARKER", "OutputExistsError",
-           "QueryOptions", "Scene", "atomic_path", "available_presets", "check_text", "claim_outputs",
-           "describe_environment_error", "ensure_language_field", "has_language_field", "image_file_problem",
-           "incomplete_write_error", "load_preset", "load_scene", "open_query_engine", "open_scene",
-           "plan_highlight", "plan_needs", "print_error", "rasterize", "text_encoder", "torch_threads",
-           "write_json_atomic"]
+from .errors import FourlegsError, InputError, OutputExistsError, describe_environment_error, print_error
+
+# name -> engine module it lives in. They are imported on first use, so a front end that only opens and
+# shows a scene (the Blender add-on's import and timeline playback) runs without PyTorch installed.
+_LAZY = {
+    "atomic_path": "fileio", "write_json_atomic": "fileio", "OUTPUTS_MARKER": "fileio", "claim_outputs": "fileio",
+    "image_file_problem": "fileio", "incomplete_write_error": "fileio",
+    "check_text": "validate",
+    "available_presets": "highlights", "load_preset": "highlights", "plan_highlight": "highlights",
+    "plan_needs": "highlights",
+    "EncoderConfig": "pipeline", "FieldStep": "pipeline", "QueryOptions": "pipeline",
+    "language_field_steps": "pipeline", "ensure_language_field": "pipeline",
+    "has_language_field": "pipeline", "open_query_engine": "pipeline", "open_scene": "pipeline",
+    "text_encoder": "pipeline",
+    "rasterize": "render",
+    "Camera": "scene", "Scene": "scene", "load_scene": "scene",
+    "torch_threads": "threads",
+}
+
+if TYPE_CHECKING:
+    from .fileio import (OUTPUTS_MARKER, atomic_path, claim_outputs, image_file_problem, incomplete_write_error,
+                         write_json_atomic)
+    from .highlights import available_presets, load_preset, plan_highlight, plan_needs
+    from .pipeline import (EncoderConfig, FieldStep, QueryOptions, ensure_language_field, has_language_field,
+                           language_field_steps, open_query_engine, open_scene, text_encoder)
+    from .render import rasterize
+    from .scene import Camera, Scene, load_scene
+    from .threads import torch_threads
+    from .validate import check_text
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__package__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
+
+__all__ = ["Camera", "EncoderConfig", "FieldStep", "FourlegsError", "InputError", "OUTPUTS_MARKER",
+           "OutputExistsError", "QueryOptions", "Scene", "atomic_path", "available_presets", "check_text",
+           "claim_outputs", "describe_environment_error", "ensure_language_field", "has_language_field",
+           "image_file_problem", "incomplete_write_error", "language_field_steps", "load_preset", "load_scene",
+           "open_query_engine", "open_scene", "plan_highlight", "plan_needs", "print_error", "rasterize",
+           "text_encoder", "torch_threads", "write_json_atomic"]

@@ -21,7 +21,7 @@ import sys
 from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, ContextManager, Optional
+from typing import TYPE_CHECKING, Any, Callable, ContextManager, Iterator, Optional
 
 from .errors import InputError
 from .query.options import QueryOptions
@@ -31,7 +31,8 @@ if TYPE_CHECKING:
     from .query.engine import QueryEngine
     from .scene.scene import Scene
 
-__all__ = ["EncoderConfig", "QueryOptions", "ensure_language_field", "has_language_field", "open_query_engine",
+__all__ = ["EncoderConfig", "FieldStep", "QueryOptions", "ensure_language_field", "has_language_field",
+           "language_field_steps", "open_query_engine",
            "open_scene", "text_encoder"]
 
 #: a stage reporter: ``stage("extract features")`` returns a context manager around that stage
@@ -174,3 +175,46 @@ def open_query_engine(scene: "Scene", encoder: Any = None, *, options: Optional[
                          "the language stages: extract, train-ae, distill)", file=scene.root, field="language")
     encoder = encoder if encoder is not None else text_encoder(scene, encoder_config)
     return QueryEngine(scene, LanguageField.open(scene.root), encoder, options, **engine_kwargs)
+
+
+@dataclass(frozen=True)
+class FieldStep:
+    """One finished unit of work while building a language field: ``done`` of ``total`` units of ``stage``
+    (``"extract features"``: timesteps, ``"train autoencoder"``: epochs, ``"distil (lift)"``: timesteps)."""
+    stage: str
+    done: int
+    total: int
+
+
+def language_field_steps(scene: "Scene", encoder: Any = None, *, encoder_config: EncoderConfig = EncoderConfig(),
+                         mode: str = "lift") -> Iterator[FieldStep]:
+    """Build ``scene``'s language field one unit at a time, yielding a :class:`FieldStep` after each.
+
+    The same stages as :func:`ensure_language_field`, each unit persisted before it is reported, so a
+    caller may stop iterating between any two steps (cancel) and a later call resumes where it stopped.
+    The first step of each stage reports the units already finished (``done`` may start above 0).
+    Reopen the scene (:func:`open_scene`) afterwards to see the field.
+    """
+    from .language.autoencoder import AETrainConfig, train_autoencoder
+    from .language.distill import distill_scene
+    from .language.extract import extract_features
+
+    if scene.root is None:
+        raise InputError("the scene must be a bundle on disk to hold its language field", field="scene")
+    if has_language_field(scene):
+        return
+    encoder = encoder if encoder is not None else text_encoder(scene, encoder_config)
+    T = scene.num_timesteps
+    for t in range(T):
+        report = extract_features(scene, encoder, timesteps=[t])
+        yield FieldStep("extract features", t + 1, T)
+    epochs = AETrainConfig().epochs
+    for epoch in range(epochs):
+        report = train_autoencoder(scene, stop_after_epoch=epoch + 1)
+        if "stopped_after_epoch" not in report:  # trained (or found trained): the last epoch is done
+            yield FieldStep("train autoencoder", epochs, epochs)
+            break
+        yield FieldStep("train autoencoder", int(report["stopped_after_epoch"]), epochs)
+    for t in range(T):
+        distill_scene(scene, mode=mode, timesteps=[t])
+        yield FieldStep(f"distil ({mode})", t + 1, T)

@@ -84,12 +84,21 @@ def test_highlight_end_to_end(tmp_path, request, capsys):
     assert tree is not None and compositor.has_desaturation(s)
     assert tree.name == "4-LEGS Compositor" or not compositor.IS_50
     assert "fourlegs_plan.json" in bl.data.texts
+    # the panel as the job left it: query, segments, peak, the s_t plot; the output is the video it made
+    props = s.fourlegs
+    assert props.query == QUERY and props.found
+    assert [props.segment_start, props.segment_end] == plan["localization"]["segment"]
+    assert props.peak == plan["localization"]["peak"]
+    assert [[g.start, g.end] for g in props.segments] == plan["localization"]["segments"]
+    assert props.output_path == str(out / "highlight.mp4") and s.render.image_settings.file_format == "FFMPEG"
+    assert bl.data.images["fourlegs_scores"].packed_file is not None
     # the saved file re-opens its scene from disk: the timeline drives the point cloud again
     import numpy as np
 
     from fourlegs_addon import importer
 
     obj = bl.data.objects["tiny"]
+    assert importer.source_key(obj) == "//../scene"  # relative to the .blend: the project can move
     mid = (plan["frame_start"] + plan["frame_end"]) // 2
     s.frame_set(mid)
     co = np.empty(len(obj.data.vertices) * 3, np.float32)

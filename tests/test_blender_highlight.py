@@ -30,16 +30,17 @@ def test_camera_keys_reproduce_the_plan_at_every_frame(bl):
     assert (scene.frame_start, scene.frame_end, scene.render.fps) == (1, 12, 12)
     assert (scene.render.resolution_x, scene.render.resolution_y) == (32, 24)
     assert scene.camera == cam
-    assert keyframes.keyed_frames(cam, "location", 0) == list(range(1, 13))
+    # the static 'context' shot is thinned to its two ends; the orbit keeps a key per frame on its arc
+    assert keyframes.keyed_frames(cam, "location", 0) == [1, 6, 7, 8, 9, 10, 11, 12]
     for shot in plan["shots"]:
         for key in shot["camera_keys"]:
             c2w, lens = keyframes.camera_pose_at(cam, scene, key["frame"])
-            np.testing.assert_allclose(c2w, np.asarray(key["c2w"]), atol=1e-4)
-            assert lens == pytest.approx(key["lens_mm"], rel=1e-5)
-    # shots are joined by cuts: the last key of a shot holds (CONSTANT), dense keys are LINEAR
+            np.testing.assert_allclose(c2w, np.asarray(key["c2w"]), atol=2e-3)
+            assert lens == pytest.approx(key["lens_mm"], rel=1e-3)
+    # shots are joined by cuts: the last key of a shot holds (CONSTANT); thinned keys ease, orbit keys are LINEAR
     fc = keyframes.find_fcurve(cam, "location", 0)
     interp = {int(kp.co[0]): kp.interpolation for kp in fc.keyframe_points}
-    assert interp[6] == "CONSTANT" and interp[12] == "CONSTANT" and interp[3] == "LINEAR"
+    assert interp[1] == "BEZIER" and interp[6] == "CONSTANT" and interp[12] == "CONSTANT" and interp[9] == "LINEAR"
 
 
 def test_scene_time_keys_hold_for_bullet_time(bl):

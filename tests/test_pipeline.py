@@ -76,3 +76,48 @@ def test_language_field_stages_run_once_in_order_with_the_chosen_encoder(tmp_pat
     assert stages == ["extract features", "train autoencoder", "distil (lift)"]
     assert built is not scene and pipeline.has_language_field(built)  # the bundle re-read with its field
     assert pipeline.ensure_language_field(built, stage=stage) is built and len(calls) == 3  # nothing rerun
+
+
+def test_language_field_steps_report_each_unit_and_resume_after_a_stop(tmp_path, monkeypatch):
+    """One step per timestep / epoch, each after its unit is done; stopping between steps and calling
+    again redoes nothing finished (the stages' own resumption is tested in test_language_distill.py)."""
+    from fourlegs_engine.language import autoencoder, distill, extract
+    from fourlegs_engine.scene.bundle import update_bundle_meta
+
+    scene = load_bundle(micro_bundle(tmp_path / "micro", T=3))
+    done = {"extract": set(), "epochs": 0, "distill": set()}
+    calls: list[tuple] = []
+
+    def fake_extract(sc, enc, timesteps=None):
+        calls.append(("extract", tuple(timesteps)))
+        done["extract"].update(timesteps)
+
+    def fake_train(sc, stop_after_epoch=None):
+        if done["epochs"] == 4:
+            return {"config_hash": "x"}
+        done["epochs"] += 1
+        calls.append(("train", done["epochs"]))
+        return {"config_hash": "x"} if done["epochs"] == 4 else {"stopped_after_epoch": done["epochs"]}
+
+    def fake_distill(sc, mode="lift", timesteps=None):
+        calls.append(("distill", tuple(timesteps)))
+        done["distill"].update(timesteps)
+        if done["distill"] == {0, 1, 2}:
+            np.save(sc.root / "latents.npy", np.zeros((3, sc.num_gaussians, 4), np.float32))
+            update_bundle_meta(sc.root, language={"encoder": "simulated", "latents": "latents.npy"})
+
+    monkeypatch.setattr(extract, "extract_features", fake_extract)
+    monkeypatch.setattr(autoencoder, "train_autoencoder", fake_train)
+    monkeypatch.setattr(distill, "distill_scene", fake_distill)
+    steps = pipeline.language_field_steps(scene)
+    first = [next(steps) for _ in range(5)]  # 3 extract + 2 epochs, then stop (cancel)
+    steps.close()
+    assert [(s.stage, s.done, s.total) for s in first] == [
+        ("extract features", 1, 3), ("extract features", 2, 3), ("extract features", 3, 3),
+        ("train autoencoder", 1, 4), ("train autoencoder", 2, 4)]
+    rest = list(pipeline.language_field_steps(scene))
+    assert [(s.stage, s.done) for s in rest][-5:] == [("train autoencoder", 3), ("train autoencoder", 4),
+                                                       ("distil (lift)", 1), ("distil (lift)", 2), ("distil (lift)", 3)]
+    assert [c for c in calls if c[0] == "train"] == [("train", e) for e in (1, 2, 3, 4)]  # no epoch twice
+    assert pipeline.has_language_field(load_bundle(scene.root))
+    assert list(pipeline.language_field_steps(load_bundle(scene.root))) == []  # a built field: nothing to do

@@ -8,15 +8,17 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 import numpy as np
-import torch
 
 from ..errors import InputError
 
 SH_C0 = 0.28209479177387814
 QUAT_ZERO_TOL = 1e-12
+
+if TYPE_CHECKING:  # torch is imported where tensors are made: opening and viewing a scene does not need it
+    import torch
 
 
 def sh_dc_to_rgb(f_dc: np.ndarray) -> np.ndarray:
@@ -49,6 +51,8 @@ def normalize_quaternions(q: np.ndarray, *, file: str | None = None, field: str 
 
 def quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
     """(…,4) quaternions w,x,y,z (any norm > 0) -> (…,3,3) rotation matrices."""
+    import torch
+
     q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     w, x, y, z = q.unbind(-1)
     return torch.stack([
@@ -188,9 +192,13 @@ class GaussianSequence:
         return int(t)
 
     # ---------------------------------------------------------------- access
-    def at(self, t: int, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32,
+    def at(self, t: int, device: str | torch.device = "cpu", dtype: Optional[torch.dtype] = None,
            *, with_latents: bool = False) -> GaussianFrame:
-        """One timestep's tensors. Latents (memory-mapped) are read only if ``with_latents``."""
+        """One timestep's tensors (``dtype`` default float32). Latents (memory-mapped) are read only if
+        ``with_latents``."""
+        import torch
+
+        dtype = torch.float32 if dtype is None else dtype
         t = self.check_timestep(t)
 
         def tens(a: Any) -> Optional[torch.Tensor]:

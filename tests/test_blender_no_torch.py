@@ -1,0 +1,183 @@
+"""The extension without PyTorch: bundled wheels for both Blender Pythons, a scene imported and played
+on the timeline with torch unimportable, the preferences' installer running pip in the background."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from _blender_helpers import REPO, child_env, tiny_scene
+
+pytestmark = pytest.mark.blender
+pytest.importorskip("bpy")
+
+from fourlegs_addon import build  # noqa: E402
+
+
+def test_pip_download_asks_for_each_python_and_platform(tmp_path):
+    cmd = build.pip_download_command(tmp_path, "macos-x64", "3.13", build.DEPENDENCIES_BY_PYTHON["3.13"])
+    assert cmd[cmd.index("--python-version") + 1] == "3.13" and "--only-binary=:all:" in cmd
+    assert "macosx_10_14_x86_64" in cmd and "scipy==1.16.3" in cmd and "plyfile>=1.0" in cmd
+    assert set(build.PYTHON_VERSIONS) == {"3.11", "3.13"}
+    assert {"scipy", "plyfile", "tqdm", "safetensors"} <= set(build.DEPENDENCIES)
+
+
+def _complete_wheel_set() -> list[str]:
+    names = ["plyfile-1.1.5-py3-none-any.whl", "tqdm-4.70.1-py3-none-any.whl"]
+    for plat in ("win_amd64", "manylinux_2_17_x86_64.manylinux2014_x86_64", "macosx_12_0_arm64",
+                 "macosx_10_13_x86_64"):
+        names.append(f"safetensors-0.8.0-cp310-abi3-{plat}.whl")
+        names.append(f"scipy-1.16.3-cp313-cp313-{plat.replace('10_13', '10_14')}.whl")
+        names.append(f"scipy-1.13.1-cp311-cp311-{plat.replace('10_13', '10_9')}.whl")
+    return names
+
+
+def test_missing_wheels_names_the_platform_and_python():
+    names = _complete_wheel_set()
+    assert build.missing_wheels([Path(n) for n in names]) == []
+    without = [n for n in names if n != "scipy-1.16.3-cp313-cp313-win_amd64.whl"]
+    assert build.missing_wheels([Path(n) for n in without]) == ["scipy (windows-x64, Python 3.13)"]
+    without = [n for n in names if not n.startswith("plyfile")]
+    assert len(build.missing_wheels([Path(n) for n in without])) == 8  # 4 platforms x 2 Pythons
+    # a cp311 wheel does not serve Python 3.13
+    cp311_only = [n for n in names if "cp313" not in n]
+    assert "scipy (linux-x64, Python 3.13)" in build.missing_wheels([Path(n) for n in cp311_only])
+
+
+@pytest.fixture(scope="module")
+def probe_wheel_dir(tmp_path_factory) -> Path:
+    """A local index (find-links folder) holding one tiny wheel, for the installer to install offline."""
+    import base64
+    import hashlib
+    import zipfile
+
+    folder = tmp_path_factory.mktemp("index")
+    path = folder / "fourlegs_install_probe-1.0-py3-none-any.whl"
+    files = {"fourlegs_install_probe/__init__.py": b"ANSWER = 7\n",
+             "fourlegs_install_probe-1.0.dist-info/METADATA": b"Metadata-Version: 2.1\nName: fourlegs-install-probe\nVersion: 1.0\n",
+             "fourlegs_install_probe-1.0.dist-info/WHEEL": b"Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\nTag: py3-none-any\n"}
+    record = []
+    for name, data in files.items():
+        digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=").decode()
+        record.append(f"{name},sha256={digest},{len(data)}")
+    record.append("fourlegs_install_probe-1.0.dist-info/RECORD,,")
+    with zipfile.ZipFile(path, "w") as zf:
+        for name, data in files.items():
+            zf.writestr(name, data)
+        zf.writestr("fourlegs_install_probe-1.0.dist-info/RECORD", "\n".join(record) + "\n")
+    return folder
+
+
+def test_import_and_playback_without_torch(tmp_path, probe_wheel_dir):
+    """torch made unimportable (sys.modules['torch'] = None before Blender starts): the extension installs
+    and enables, a PLY scene imports and moves on the timeline, the panel names what is missing, and the
+    preferences' installer puts a package into the extension's own site-packages in the background."""
+    from fourlegs_engine.scene.ply import write_ply_scene
+
+    scene = tiny_scene(T=3, N=64)
+    write_ply_scene(scene, tmp_path / "ply")
+    zips = build.build(tmp_path / "ext", with_wheels=False)
+    shim = tmp_path / "shim"
+    shim.mkdir()
+    (shim / "sitecustomize.py").write_text("import sys\nsys.modules['torch'] = None\n")
+    script = textwrap.dedent(f"""
+        import json, sys, time
+        import bpy
+        out = {{}}
+        try:
+            import torch
+            out["torch_importable"] = True
+        except ImportError:
+            out["torch_importable"] = False
+        res = bpy.ops.extensions.package_install_files(filepath={str(zips[0])!r}, repo="user_default",
+                                                        enable_on_install=True)
+        pkg = "bl_ext.user_default.fourlegs_highlights"
+        out["install"] = sorted(res)
+        mod = sys.modules[pkg]
+        r = bpy.ops.fourlegs.import_scene(filepath={str(tmp_path / "ply")!r})
+        out["import"] = sorted(r)
+        obj = bpy.context.scene.fourlegs.splat_object
+        co = lambda: [tuple(v.co) for v in obj.data.vertices]
+        first = co()
+        bpy.context.scene.fourlegs.timestep = 2.0
+        bpy.context.scene.frame_set(2)
+        out["moved"] = max(abs(a[0] - b[0]) for a, b in zip(first, co()))
+        out["points"] = len(first)
+        out["missing_line"] = mod.preferences.missing_line()
+        out["torch_loaded"] = sys.modules.get("torch") is not None
+        prefs = bpy.context.preferences.addons[pkg].preferences
+        out["prefs_variant"] = prefs.torch_variant
+        target = mod.torch_install.site_packages(pkg)
+        out["target"] = str(target)
+        cmd = mod.torch_install.pip_install_command(target, "CPU", "fourlegs-install-probe",
+                                                    ["--no-index", "--find-links", {str(probe_wheel_dir)!r}])
+        cmd = [c for c in cmd if c not in ("--index-url", "https://download.pytorch.org/whl/cpu")]
+        job = mod.torch_install.InstallJob(cmd, target).start()
+        seen = set()
+        t0 = time.time()
+        while not job.done and time.time() - t0 < 120:
+            seen.add(job.stage)
+            time.sleep(0.05)
+        out["job"] = [job.ok, job.progress, job.message]
+        mod.torch_install.add_to_sys_path(target)
+        import fourlegs_install_probe
+        out["probe"] = fourlegs_install_probe.ANSWER
+        bad = mod.torch_install.InstallJob(mod.torch_install.pip_install_command(
+            target, "CPU", "fourlegs-no-such-package", ["--no-index"]), target).start()
+        bad.wait(120)
+        out["bad"] = [bad.ok, bad.message]
+        print("RESULT" + json.dumps(out))
+    """)
+    env = child_env(BLENDER_USER_RESOURCES=str(tmp_path / "blender-user"), PYTHONPATH=str(shim))
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300,
+                          cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    out = json.loads([l for l in proc.stdout.splitlines() if l.startswith("RESULT")][-1][len("RESULT"):])
+    assert out["torch_importable"] is False
+    assert out["install"] == ["FINISHED"] and out["import"] == ["FINISHED"] and out["points"] == 64
+    assert out["moved"] == pytest.approx(0.2, abs=1e-4)  # tiny_scene moves +0.1 in x per timestep
+    assert out["torch_loaded"] is False
+    assert out["missing_line"].startswith("torch is missing (querying") and "Preferences" in out["missing_line"]
+    assert out["prefs_variant"] == "CPU"
+    assert out["target"].startswith(str(tmp_path / "blender-user")) and out["target"].endswith("site-packages")
+    assert out["job"][0] is True and out["job"][1] == 1.0 and out["job"][2].startswith("installed into")
+    assert out["probe"] == 7
+    assert out["bad"][0] is False and out["bad"][1].startswith("pip failed: ERROR")
+
+
+def test_installed_zip_carries_plyfile_and_the_scipy_of_its_python(tmp_path):
+    """With the real dependency wheels (``fourlegs build-extension --fetch-wheels`` leaves them in the
+    cache): the linux zip installs offline and Blender installs the wheels of its own Python."""
+    from fourlegs_engine.paths import cache_dir
+
+    wheels = sorted((cache_dir() / "extension-wheels").glob("*.whl"))
+    if build.missing_wheels(wheels):
+        pytest.skip("dependency wheels not downloaded (run: fourlegs build-extension --fetch-wheels)")
+    zips = build.build(tmp_path / "ext", split_platforms=True)
+    linux = [z for z in zips if "linux" in z.name][0]
+    import zipfile
+    names = zipfile.ZipFile(linux).namelist()
+    assert any(n.startswith("wheels/plyfile-") for n in names)
+    assert any("cp311-cp311-manylinux" in n for n in names) and any("cp313-cp313-manylinux" in n for n in names)
+    script = textwrap.dedent(f"""
+        import json, sys, bpy
+        res = bpy.ops.extensions.package_install_files(filepath={str(linux)!r}, repo="user_default",
+                                                        enable_on_install=True)
+        site = bpy.utils.extension_path_user("bl_ext.user_default.fourlegs_highlights")
+        print("RESULT" + json.dumps({{"install": sorted(res), "python": "%d.%d" % sys.version_info[:2]}}))
+    """)
+    env = child_env(BLENDER_USER_RESOURCES=str(tmp_path / "blender-user"))
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300,
+                          cwd=tmp_path)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    out = json.loads([l for l in proc.stdout.splitlines() if l.startswith("RESULT")][-1][len("RESULT"):])
+    assert out["install"] == ["FINISHED"]
+    site = next((tmp_path / "blender-user").glob("extensions/.local/lib/python*/site-packages"))
+    installed = {p.name for p in site.iterdir()}
+    scipy_version = {"3.11": "1.13.1", "3.13": "1.16.3"}[out["python"]]
+    assert f"scipy-{scipy_version}.dist-info" in installed and "plyfile.py" in installed
+    assert len([n for n in installed if n.startswith("scipy-")]) == 1  # only its own Python's scipy

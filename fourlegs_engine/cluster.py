@@ -576,7 +576,8 @@ def extract_on_ray(scene: "Scene", encoder_factory: Callable[["Scene"], Any], co
     if not 0 < config.frame_scale <= 1:
         raise InputError(f"must be in (0, 1], got {config.frame_scale}", field="frame_scale")
     if scene.root is None:
-        raise InputError("the scene must be a bundle on disk (write it with `fourlegs convert` first)", field="scene")
+        raise InputError("the scene must be a bundle on disk (write it with "
+                         "fourlegs_engine.scene.write_bundle(scene, PATH) first)", field="scene")
     steps = select_timesteps(scene.num_timesteps, timesteps, shard)
     ray = connect(options)
     gpus = _gpus_for(options, ray, device)

@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "fourlegs_engine.query.commands",
     "fourlegs_engine.highlights.commands",
     "fourlegs_addon.commands",
+    "benchmarks.main_job",
 )
 
 

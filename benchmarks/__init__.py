@@ -1,0 +1,1 @@
+"""Benchmarks: speed and accuracy measurements (`fourlegs bench ...`), kept out of the engine."""

@@ -180,7 +180,9 @@ def epoch_sweep(bundle: Path, epochs: Sequence[int], query: str, work: Path) -> 
                      "train_ae_s": round(trained - start, 3), "lift_s": round(lifted - trained, 3),
                      "localize_s": round(done - lifted, 3),
                      "segment": list(tr.segment) if tr is not None and tr.segment is not None else None,
-                     "peak": tr.peak if tr is not None else None, "best_view": loc.best_view,
+                     "peak": tr.peak if tr is not None else None, "found": bool(tr is not None and tr.found),
+                     "messages": ([tr.message] if tr is not None and tr.message else []) + list(loc.messages),
+                     "best_view": loc.best_view,
                      "action_centre": None if loc.action_centre is None else [float(v) for v in loc.action_centre],
                      "scores": None if tr is None else [float(v) for v in tr.scores]})
         shutil.rmtree(root, ignore_errors=True)
@@ -229,15 +231,16 @@ def markdown(result: dict[str, Any]) -> str:
         ref = result["answer"]
         lines += ["", "Autoencoder epochs against the answer (same features; retrained, lifted and localized again; "
                       "tIoU and centre shift against the job's answer):", "",
-                  "| epochs | held-out cosine | train-ae s | lift s | localize s | segment | peak | tIoU | best view | "
-                  "action centre shift (m) |", "|---:|---:|---:|---:|---:|---|---:|---:|---|---:|"]
+                  "| epochs | held-out cosine | train-ae s | lift s | localize s | found | segment | peak | tIoU | "
+                  "best view | action centre shift (m) |", "|---:|---:|---:|---:|---:|---|---|---:|---:|---|---:|"]
         for r in result["ae_sweep"]:
             shift = None
             if r["action_centre"] is not None and ref.get("action_centre") is not None:
                 shift = sum((x - y) ** 2 for x, y in zip(r["action_centre"], ref["action_centre"])) ** 0.5
             iou = segment_iou(r["segment"], ref.get("segment"))
             lines.append(f"| {r['epochs']} | {_fmt(r['heldout_cosine'], 4)} | {_fmt(r['train_ae_s'])} | "
-                         f"{_fmt(r['lift_s'])} | {_fmt(r['localize_s'])} | {r['segment']} | {r['peak']} | "
+                         f"{_fmt(r['lift_s'])} | {_fmt(r['localize_s'])} | {'yes' if r.get('found') else 'no'} | "
+                         f"{r['segment']} | {r['peak']} | "
                          f"{_fmt(iou, 2)} | {r['best_view']} | {_fmt(shift, 3)} |")
     lines += ["", f"Machine: {result['machine']}"]
     return "\n".join(lines) + "\n"
@@ -257,11 +260,12 @@ def epoch_plot(path: Path, rows: list[dict[str, Any]]) -> None:
     fig, ax = plt.subplots(figsize=(5, 3.2), dpi=100)
     ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", color="tab:blue")
     for x, y, e in pts:
-        ax.annotate(f"epoch {e}", (x, y), textcoords="offset points", xytext=(4, -12), fontsize=8)
+        ax.annotate(f"epoch {e}", (x, y), textcoords="offset points", xytext=(5, 4), fontsize=8)
     ax.set_xlabel("autoencoder training time (s, cumulative)")
     ax.set_ylabel("held-out reconstruction cosine")
     ax.set_title("what autoencoder epochs buy")
     ax.grid(alpha=0.3)
+    ax.margins(x=0.15, y=0.15)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")

@@ -73,3 +73,17 @@ def test_main_job_from_scratch_on_the_tiny_scene(tmp_path):
     # a second run refuses to overwrite the result, and refuses a cache that is not empty
     again = subprocess.run(cmd, capture_output=True, text=True, env=child_env(), timeout=120)
     assert again.returncode == 2 and "exists" in again.stderr
+
+
+def test_epoch_sweep_table_says_when_the_query_is_lost():
+    base = {"command": "c", "bench_command": "b", "job": {"wall_seconds": 1.0, "cpu_seconds": 1.0, "peak_rss_mb": 1.0},
+            "report_total_seconds": 1.0, "stages": [], "frames": 242, "resolution": [640, 360], "render_threads": "1",
+            "ae_epochs": [], "machine": "m",
+            "answer": {"segment": [28, 38], "peak": 33, "best_view": "cam05", "action_centre": [0.0, 0.0, 0.0]}}
+    rows = [{"epochs": 2, "heldout_cosine": 0.872, "train_ae_s": 16.3, "lift_s": 55.5, "localize_s": 38.3,
+             "found": False, "segment": None, "peak": None, "best_view": None, "action_centre": None},
+            {"epochs": 4, "heldout_cosine": 0.857, "train_ae_s": 30.0, "lift_s": 55.0, "localize_s": 38.0,
+             "found": True, "segment": [28, 37], "peak": 33, "best_view": "cam05", "action_centre": [0.0, 0.3, 0.4]}]
+    text = main_job.markdown({**base, "ae_sweep": rows})
+    assert "| 2 | 0.8720 | 16.3 | 55.5 | 38.3 | no | None | None | – | None | – |" in text
+    assert "| 4 | 0.8570 | 30.0 | 55.0 | 38.0 | yes | [28, 37] | 33 | 0.91 | cam05 | 0.500 |" in text

@@ -246,7 +246,7 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
     # calls): they run on parallel streams with one torch thread each, which keeps every core busy
     # where intra-op threads would mostly wait on each other; each camera's rows are its own, so the
     # features do not depend on the number of streams
-    streams = extract_streams(encoder) if coverage else 1
+    streams = extract_streams() if coverage else 1
     pool = ThreadPoolExecutor(streams) if streams > 1 else None
     bar = _progress(todo, progress, "extract")
     try:
@@ -295,7 +295,7 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
                          crops_per_t)
 
 
-def extract_streams(encoder: Any) -> int:
+def extract_streams() -> int:
     """Cameras encoded concurrently: one per torch thread (torch's default is the core count)."""
     return max(1, min(torch.get_num_threads(), 8))
 

@@ -91,17 +91,21 @@ def parse_resolution(text: Optional[str], demo: bool) -> Optional[tuple[int, int
 class Timer:
     def __init__(self) -> None:
         self.timings: dict[str, float] = {}
+        #: CPU seconds of this process (all threads) per stage: on a shared machine a steadier
+        #: measure of a stage's work than its wall time
+        self.cpu_timings: dict[str, float] = {}
 
     def __call__(self, name: str):
         timer = self
 
         class _Stage:
             def __enter__(self):
-                self.t0 = time.perf_counter()
+                self.t0, self.c0 = time.perf_counter(), time.process_time()
                 print(f"[fourlegs] {name} ...", flush=True)
 
             def __exit__(self, *exc):
                 timer.timings[name] = round(time.perf_counter() - self.t0, 3)
+                timer.cpu_timings[name] = round(time.process_time() - self.c0, 3)
                 if exc[0] is None:
                     print(f"[fourlegs] {name}: {timer.timings[name]:.1f} s", flush=True)
 
@@ -180,6 +184,20 @@ def torch_threads(n: Optional[int]):
     return api.torch_threads(n)
 
 
+def kernel_threads(n: Optional[int]):
+    """The engine's scoped worker count of the fused blending kernel (None or < 1: leave it)."""
+    from fourlegs_engine import api
+
+    return api.kernel_threads(n)
+
+
+def render_kernel_threads() -> int:
+    """Workers of the per-frame blending kernel: every core this process may run on. They block when
+    idle (no barrier spinning), so unlike extra torch threads they help on a quiet machine and cost
+    nothing on a busy one."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 #: glibc ``mallopt`` parameters and their defaults
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 _DEFAULT_TRIM, _DEFAULT_MMAP = 128 * 1024, 128 * 1024
@@ -247,7 +265,7 @@ def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str
     cpu_start = time.process_time()
     with timer("render"):
         with tqdm(total=total, desc="render", unit="frame") as bar, blender_log_silenced(), \
-                torch_threads(render_threads), heap_kept():
+                torch_threads(render_threads), kernel_threads(render_kernel_threads()), heap_kept():
             progress = lambda done, n: bar.update(done - bar.n)  # noqa: E731
             if fmt == "EXR":
                 video.render_animation(bl_scene, out["video"], fmt=fmt, overwrite=True, on_frame=progress)
@@ -283,7 +301,7 @@ def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str
             # CPU time of this process (all threads): on a busy machine closer to quiet wall time
             "render_cpu_seconds": round(cpu_render, 3),
             "cpu_seconds_per_frame": round((cpu_frames if fmt == "MP4" else cpu_render) / max(stats["frames"], 1), 3),
-            "render_threads": render_threads}
+            "render_threads": render_threads, "render_kernel_threads": render_kernel_threads()}
 
 
 # ----------------------------------------------------------------------------- main
@@ -345,7 +363,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "localization": loc, "passes": plan.get("passes"), "messages": plan.get("messages", []),
         "query_paths": {"temporal": args.query_path, "spatial": getattr(args, "spatial", DEFAULT_SPATIAL)},
         "query_stats": dict(engine.stats) if engine is not None else {},
-        "render": render_info, "timings_s": timer.timings,
+        "render": render_info, "timings_s": timer.timings, "cpu_timings_s": timer.cpu_timings,
         "total_seconds": round(time.perf_counter() - started, 3),
         "outputs": {k: str(v) for k, v in out.items() if v.exists() or k == "report"},
         "versions": versions(),

@@ -31,7 +31,7 @@ _LAZY = {
     "text_encoder": "pipeline",
     "rasterize": "render",
     "Camera": "scene", "Scene": "scene", "load_scene": "scene",
-    "torch_threads": "threads",
+    "torch_threads": "threads", "kernel_threads": "threads",
 }
 
 if TYPE_CHECKING:
@@ -42,7 +42,7 @@ if TYPE_CHECKING:
                            language_field_steps, open_query_engine, open_scene, text_encoder)
     from .render import rasterize
     from .scene import Camera, Scene, load_scene
-    from .threads import torch_threads
+    from .threads import kernel_threads, torch_threads
     from .validate import check_text
 
 
@@ -62,6 +62,6 @@ def __dir__() -> list[str]:
 __all__ = ["Camera", "EncoderConfig", "FieldStep", "FourlegsError", "InputError", "OUTPUTS_MARKER",
            "OutputExistsError", "QueryOptions", "Scene", "atomic_path", "available_presets", "check_text",
            "claim_outputs", "describe_environment_error", "ensure_language_field", "has_language_field",
-           "image_file_problem", "incomplete_write_error", "language_field_steps", "load_preset", "load_scene",
-           "open_query_engine", "open_scene", "plan_highlight", "plan_needs", "print_error", "rasterize",
-           "text_encoder", "torch_threads", "write_json_atomic"]
+           "image_file_problem", "incomplete_write_error", "kernel_threads", "language_field_steps", "load_preset",
+           "load_scene", "open_query_engine", "open_scene", "plan_highlight", "plan_needs", "print_error",
+           "rasterize", "text_encoder", "torch_threads", "write_json_atomic"]

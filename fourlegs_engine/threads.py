@@ -1,10 +1,13 @@
-"""Scoped torch thread counts."""
+"""Scoped thread counts: torch's intra-op threads and the fused CPU kernels' worker threads."""
 from __future__ import annotations
 
 from contextlib import contextmanager
 from typing import Iterator, Optional
 
 import torch
+
+#: workers of the fused CPU kernels (:mod:`fourlegs_engine.render.cpu_kernels`); None: torch's thread count
+_kernel_threads: Optional[int] = None
 
 
 @contextmanager
@@ -18,3 +21,28 @@ def torch_threads(count: Optional[int]) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
+
+
+def kernel_thread_count() -> int:
+    """Worker threads the fused CPU kernels may use: the :func:`kernel_threads` setting, else torch's
+    intra-op thread count."""
+    return _kernel_threads if _kernel_threads is not None else torch.get_num_threads()
+
+
+@contextmanager
+def kernel_threads(count: Optional[int]) -> Iterator[None]:
+    """Run the block with ``count`` worker threads for the fused CPU kernels (None or < 1: leave the
+    setting), independently of torch's intra-op threads, then restore the previous setting.
+
+    The kernels' workers are Python threads that block while idle (the kernels release the GIL),
+    so unlike OpenMP threads that spin at barriers between thousands of small tensor ops, they cost
+    nothing when another process needs the core.
+    """
+    global _kernel_threads
+    before = _kernel_threads
+    if count is not None and count >= 1:
+        _kernel_threads = int(count)
+    try:
+        yield
+    finally:
+        _kernel_threads = before

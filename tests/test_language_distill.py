@@ -243,6 +243,10 @@ def test_autoencoder_resumes_from_its_checkpoint(prepared, tmp_path):
     assert resumed["loss_history"] == full["loss_history"]
     assert resumed["heldout_cosine"] == full["heldout_cosine"]
     assert full["heldout_camera"] == 2 and 0.0 < full["heldout_cosine"] <= 1.0
+    # per epoch: what it bought (held-out cosine; the last one is the report's) and what it cost
+    assert resumed["cosine_history"] == full["cosine_history"] and len(full["cosine_history"]) == 2
+    assert full["cosine_history"][-1] == pytest.approx(full["heldout_cosine"], abs=1e-6)
+    assert len(resumed["epoch_seconds"]) == 2 and all(s > 0 for s in resumed["epoch_seconds"])
 
 
 def test_resume_after_a_real_kill_gives_the_uninterrupted_result(prepared, tmp_path):

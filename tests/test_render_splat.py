@@ -129,3 +129,34 @@ def test_fused_kernels_agree_with_the_torch_path_on_random_scenes(n, seed, log_s
     values = torch.randn(cam.height, cam.width, 2, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
     torch.testing.assert_close(splat(*geom, cam, values, options=fused), splat(*geom, cam, values, options=torch_path),
                                rtol=1e-9, atol=1e-9)
+
+
+@needs_numba
+def test_blending_kernel_workers_follow_kernel_threads_not_torch_threads(monkeypatch):
+    """kernel_threads sets the fused blend's workers independently of torch's threads; the image does
+    not depend on the worker count (tiles own disjoint pixels)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fourlegs_engine.threads import kernel_thread_count, kernel_threads, torch_threads
+
+    scene = random_scene(3000, seed=5, dtype=torch.float32)
+    cam = view_cameras(160, 120)[0]
+    pools = []
+    real_pool = ThreadPoolExecutor
+
+    def recording_pool(n, *a, **k):
+        pools.append(n)
+        return real_pool(n, *a, **k)
+
+    monkeypatch.setattr(cpu_kernels, "ThreadPoolExecutor", recording_pool)
+    render = lambda: rasterize(*(scene[k] for k in GEOM), cam, colors=scene["colors"], outputs=("rgb", "alpha"))  # noqa: E731
+    with torch_threads(1):
+        single = render()
+        assert pools == [] and kernel_thread_count() == 1
+        with kernel_threads(2):
+            assert kernel_thread_count() == 2 and torch.get_num_threads() == 1
+            double = render()
+        assert kernel_thread_count() == 1
+    assert pools == [2]
+    torch.testing.assert_close(double["rgb"], single["rgb"], rtol=0, atol=0)
+    torch.testing.assert_close(double["alpha"], single["alpha"], rtol=0, atol=0)

@@ -166,3 +166,33 @@ def test_label_coverage_is_a_partition_of_alpha_and_matches_labels():
     assert shown <= present and {0, 1} <= shown                          # floor and wall are seen
     tube = label_coverage_tube([cov] * 3, 0)
     assert tube.shape == (8,) + tuple(cov.shape)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**64 - 1), st.integers(1, 40), st.integers(1, 120), st.integers(0, 5000))
+def test_hash_kernels_are_bit_identical_to_the_numpy_reference(head, batch, width, first_counter):
+    from fourlegs_engine.language import simulated, simulated_kernels
+
+    if not simulated_kernels.available():
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(head % 1000)
+    values = rng.integers(0, 4097, (batch, width)).astype(np.uint64)
+    reference = np.full(batch, head, dtype=np.uint64)
+    for col in values.T:
+        reference = simulated._splitmix64(reference ^ col)
+    keys = simulated_kernels.fold_keys(head, values)
+    np.testing.assert_array_equal(keys, reference)
+    counters = np.arange(width) + first_counter
+    np.testing.assert_array_equal(simulated_kernels.uniforms(keys, first_counter, width),
+                                  simulated._uniform(keys, counters))
+
+
+def test_encoder_features_do_not_depend_on_the_hash_kernels(monkeypatch):
+    """The numba path and the numpy fallback give the same bits (the fallback serves where numba is missing)."""
+    from fourlegs_engine.language import simulated_kernels
+
+    enc = SimulatedVideoEncoder(LABELS, background_labels=BACKGROUND, camera="cam01")
+    cov = torch.rand(37, 8, len(LABELS), dtype=torch.float64) / len(LABELS)
+    fast = enc.encode_coverage(cov)
+    monkeypatch.setattr(simulated_kernels, "available", lambda: False)
+    torch.testing.assert_close(enc.encode_coverage(cov), fast, rtol=0, atol=0)

@@ -159,7 +159,8 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
 
     Writes ``language/encoder.pt`` and ``language/decoder.pt`` (state dicts) and
     ``language/autoencoder.json`` (config hash, reconstruction cosine on held-out and training views,
-    loss history). Returns that report. ``stop_after_epoch`` stops early (tests of resumption);
+    loss history, and per epoch the held-out reconstruction cosine and the training seconds: what each
+    epoch buys and costs). Returns that report. ``stop_after_epoch`` stops early (tests of resumption);
     ``timesteps`` restricts the training data to those timesteps (benchmarks on a few timesteps).
     """
     from ..errors import ConfigMismatchError, InputError
@@ -214,6 +215,9 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
     model = FeatureAutoencoder(int(store.config["dim"]), config.latent_dim, config.hidden)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     history: list[float] = []
+    # per epoch: held-out reconstruction cosine (what the epochs buy) and training seconds (what they cost)
+    cosine_history: list[float] = []
+    epoch_seconds: list[float] = []
     first_epoch = 0
     if ckpt_path.is_file():
         ckpt = _read_checkpoint(ckpt_path)
@@ -221,12 +225,16 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
         opt.load_state_dict(ckpt["optimizer"])
         first_epoch = int(ckpt["epoch"])
         history = [float(v) for v in ckpt["history"]]
+        cosine_history = [float(v) for v in ckpt.get("cosine_history", [])]
+        epoch_seconds = [float(v) for v in ckpt.get("epoch_seconds", [])]
     epochs = range(first_epoch, config.epochs)
     if progress:
         from tqdm import tqdm
         epochs = tqdm(epochs, desc="train-ae", unit="epoch", initial=first_epoch, total=config.epochs)
     n = x_train.shape[0]
+    x_monitor = x_held if x_held.shape[0] else x_train[:config.heldout_samples]
     for epoch in epochs:
+        epoch_start = time.perf_counter()
         model.train()
         gen = torch.Generator().manual_seed(config.seed * 100003 + epoch)
         order = torch.randperm(n, generator=gen)
@@ -244,14 +252,19 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
             total += float(loss.detach()) * idx.numel()
             count += idx.numel()
         history.append(total / max(count, 1))
+        epoch_seconds.append(time.perf_counter() - epoch_start)
+        cosine_history.append(reconstruction_cosine(model, x_monitor))
         with atomic_path(ckpt_path) as tmp:
             torch.save({"config_hash": chash, "epoch": epoch + 1, "model": model.state_dict(),
-                        "optimizer": opt.state_dict(), "history": history}, tmp)
+                        "optimizer": opt.state_dict(), "history": history, "cosine_history": cosine_history,
+                        "epoch_seconds": epoch_seconds}, tmp)
         if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch and epoch + 1 < config.epochs:
             return {"stopped_after_epoch": epoch + 1}
 
     model.eval()
     report = {"config_hash": chash, "config": cfg, "epochs": config.epochs, "loss_history": history,
+              "cosine_history": cosine_history, "cosine_history_set": "heldout" if x_held.shape[0] else "train",
+              "epoch_seconds": epoch_seconds,
               "train_samples": int(n), "heldout_camera": holdout, "heldout_samples": int(x_held.shape[0]),
               "train_cosine": reconstruction_cosine(model, x_train[:config.heldout_samples]),
               "heldout_cosine": reconstruction_cosine(model, x_held) if x_held.shape[0] else None,

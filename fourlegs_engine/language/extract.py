@@ -15,8 +15,11 @@ labels rendered as feature channels, i.e. channel l of pixel p = Σ_i α_i T_i [
 """
 from __future__ import annotations
 
+import threading
 import time
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -27,6 +30,7 @@ import torch.nn.functional as F
 
 from ..errors import InputError
 from ..scene.scene import Scene
+from ..threads import torch_threads
 from .pyramid import (TUBE_OFFSETS, PyramidLayout, crop_layout, pyramid_ratios, resize_crops, scale_crops,
                       tube_indices)
 from .store import StepStore, format_ranges, select_timesteps
@@ -122,6 +126,7 @@ class FrameSource:
         self.cache: OrderedDict[tuple, torch.Tensor] = OrderedDict()
         self.cache_frames = cache_frames
         self.render_seconds = 0.0
+        self._lock = threading.Lock()  # cameras may be rendered from several threads
         if input_kind == "labels":
             g = scene.gaussians
             if g.labels is None:
@@ -152,16 +157,22 @@ class FrameSource:
         return img
 
     def crop_means(self, t: int, cam_index: int, layout: PyramidLayout) -> torch.Tensor:
-        """(num_crops, C) crop means of frame (t, camera), cached like the frames."""
+        """(num_crops, C) crop means of frame (t, camera), cached like the frames (thread-safe)."""
         key = (t, cam_index, "means")
-        hit = self.cache.get(key)
-        if hit is None:
-            start = time.perf_counter()
-            frame = self._render(t, cam_index)      # not cached: only its crop means are kept
-            self.render_seconds += time.perf_counter() - start
-            hit = frame_crop_means(frame, layout)
+        with self._lock:
+            hit = self.cache.get(key)
+            if hit is not None:
+                self.cache.move_to_end(key)
+                return hit
+        start = time.perf_counter()
+        frame = self._render(t, cam_index)      # not cached: only its crop means are kept
+        seconds = time.perf_counter() - start
+        hit = frame_crop_means(frame, layout)
+        with self._lock:
+            self.render_seconds += seconds
             self.cache[key] = hit
-        self.cache.move_to_end(key)
+            while len(self.cache) > 2 * self.cache_frames:
+                self.cache.popitem(last=False)
         return hit
 
     def tube(self, t: int, cam_index: int) -> torch.Tensor:
@@ -230,38 +241,63 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
     start = time.perf_counter()
     encode_seconds = 0.0
     crops_per_t = 0
+    coverage = crop_size == COVERAGE_MEANS
+    # label-coverage cameras are independent small jobs (a rasterization, crop means, a few encoder
+    # calls): they run on parallel streams with one torch thread each, which keeps every core busy
+    # where intra-op threads would mostly wait on each other; each camera's rows are its own, so the
+    # features do not depend on the number of streams
+    streams = extract_streams() if coverage else 1
+    pool = ThreadPoolExecutor(streams) if streams > 1 else None
     bar = _progress(todo, progress, "extract")
-    for t in bar:
-        layouts, offsets = camera_layouts(scene, t, config.ratios, config.split)
-        crops_per_t = sum(l.num_crops for l in layouts)
-        out = np.empty((crops_per_t, int(encoder.dim)), dtype=np.float16)
-        cameras = scene.cameras.cameras(t, config.split)
-        for c, layout in enumerate(layouts):
-            # one camera per batch: encoders may depend on the camera (the simulated one's bias)
-            cam_encoder = encoder.bind_camera(cameras[c].name) if hasattr(encoder, "bind_camera") else encoder
-            batch = config.batch_size or (32 if encoder.input_kind == "rgb" else 256)
-            batcher = _Batcher(cam_encoder, out, batch, coverage=crop_size == COVERAGE_MEANS)
-            if crop_size == COVERAGE_MEANS:
-                # crop means depend on one frame only: computed once per frame, shared by 8 tubes
-                means = torch.stack([source.crop_means(k, c, layout)
-                                     for k in tube_indices(t, scene.num_timesteps)], 1)   # (n, 8, C)
-                batcher.add(means, offsets[c] + np.arange(layout.num_crops))
-            else:
-                tube = source.tube(t, c)
-                for grid in layout.scales:
-                    rows = offsets[c] + grid.offset + np.arange(grid.num_crops)
-                    # raw crops are small; resizing to 224 happens per batch (a 224 px tube is 4.8 MB)
-                    batcher.add(scale_crops(tube, grid), rows,
-                                transform=lambda x: resize_crops(x, crop_size, clip_normalize=clip_norm))
-            batcher.flush()
-            encode_seconds += batcher.seconds
-        if not np.all(np.isfinite(out)):
-            raise InputError(f"the encoder produced NaN/Inf features at timestep {t}", field="encoder")
-        store.save(t, out)
-        if on_timestep is not None:
-            on_timestep(t)
+    try:
+        with torch_threads(1) if pool is not None else nullcontext():
+            for t in bar:
+                layouts, offsets = camera_layouts(scene, t, config.ratios, config.split)
+                crops_per_t = sum(l.num_crops for l in layouts)
+                out = np.empty((crops_per_t, int(encoder.dim)), dtype=np.float16)
+                cameras = scene.cameras.cameras(t, config.split)
+
+                def encode_camera(c: int) -> float:
+                    """Encode camera c's crops of timestep t into its rows of ``out``; returns encoder seconds."""
+                    layout = layouts[c]
+                    # one camera per batch: encoders may depend on the camera (the simulated one's bias)
+                    cam_encoder = (encoder.bind_camera(cameras[c].name) if hasattr(encoder, "bind_camera")
+                                   else encoder)
+                    batch = config.batch_size or (32 if encoder.input_kind == "rgb" else 256)
+                    batcher = _Batcher(cam_encoder, out, batch, coverage=coverage)
+                    if coverage:
+                        # crop means depend on one frame only: computed once per frame, shared by 8 tubes
+                        means = torch.stack([source.crop_means(k, c, layout)
+                                             for k in tube_indices(t, scene.num_timesteps)], 1)   # (n, 8, C)
+                        batcher.add(means, offsets[c] + np.arange(layout.num_crops))
+                    else:
+                        tube = source.tube(t, c)
+                        for grid in layout.scales:
+                            rows = offsets[c] + grid.offset + np.arange(grid.num_crops)
+                            # raw crops are small; resizing to 224 happens per batch (a 224 px tube is 4.8 MB)
+                            batcher.add(scale_crops(tube, grid), rows,
+                                        transform=lambda x: resize_crops(x, crop_size, clip_normalize=clip_norm))
+                    batcher.flush()
+                    return batcher.seconds
+
+                cams = range(len(layouts))
+                encode_seconds += sum(pool.map(encode_camera, cams) if pool is not None
+                                      else map(encode_camera, cams))
+                if not np.all(np.isfinite(out)):
+                    raise InputError(f"the encoder produced NaN/Inf features at timestep {t}", field="encoder")
+                store.save(t, out)
+                if on_timestep is not None:
+                    on_timestep(t)
+    finally:
+        if pool is not None:
+            pool.shutdown()
     return ExtractReport(todo, skipped, time.perf_counter() - start, source.render_seconds, encode_seconds,
                          crops_per_t)
+
+
+def extract_streams() -> int:
+    """Cameras encoded concurrently: one per torch thread (torch's default is the core count)."""
+    return max(1, min(torch.get_num_threads(), 8))
 
 
 def crop_means(tube: torch.Tensor, grid: Any) -> torch.Tensor:

@@ -53,6 +53,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from . import simulated_kernels
 from .phrases import CANONICAL_PHRASES
 
 EMBED_DIM = 768
@@ -323,6 +324,8 @@ class SimulatedVideoEncoder:
         """(B,) uint64 per-clip keys from (seed, camera, the clip's quantized per-frame coverage)."""
         q = np.round(cov.numpy().reshape(cov.shape[0], -1) * 4096).astype(np.uint64)     # (B, F*C)
         head = hashlib.blake2b(f"{self.seed}|{camera}".encode(), digest_size=8).digest()
+        if simulated_kernels.available():
+            return simulated_kernels.fold_keys(int.from_bytes(head, "little"), q)
         keys = np.full(q.shape[0], int.from_bytes(head, "little"), dtype=np.uint64)
         for col in q.T:                                                   # fold every value in
             keys = _splitmix64(keys ^ col)
@@ -349,8 +352,12 @@ def _uniform(keys: np.ndarray, counters: np.ndarray) -> np.ndarray:
 def _normal(keys: np.ndarray, dim: int) -> np.ndarray:
     """(B,) keys -> (B, dim) standard normal samples (Box-Muller on counter-based uniforms)."""
     half = (dim + 1) // 2
-    u1 = _uniform(keys, np.arange(half))
-    u2 = _uniform(keys, np.arange(half) + half)
+    if simulated_kernels.available():
+        u1 = simulated_kernels.uniforms(keys, 0, half)
+        u2 = simulated_kernels.uniforms(keys, half, half)
+    else:
+        u1 = _uniform(keys, np.arange(half))
+        u2 = _uniform(keys, np.arange(half) + half)
     r = np.sqrt(-2.0 * np.log(u1))
     z = np.concatenate([r * np.cos(2 * np.pi * u2), r * np.sin(2 * np.pi * u2)], axis=1)
     return z[:, :dim]

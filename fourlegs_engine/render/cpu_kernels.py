@@ -23,6 +23,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..threads import kernel_thread_count
+
 try:  # pragma: no cover - exercised when numba is missing
     import numba
 except ImportError:  # pragma: no cover
@@ -227,7 +229,7 @@ def blend_tiles(geom: torch.Tensor, binning: Any, values: torch.Tensor, options:
                 np.ascontiguousarray(values.detach().to(dtype).numpy()), _below(options.alpha_min, dtype),
                 float(options.alpha_max), float(options.transmittance_min), accum.numpy(), trans.numpy())
         busy = np.flatnonzero(np.diff(offsets) > 0)
-        workers = max(1, min(torch.get_num_threads(), busy.size // 64))
+        workers = max(1, min(kernel_thread_count(), busy.size // 64))
         if workers == 1:
             _blend_tiles(busy, *args)
         else:  # interleaved tiles balance the load; the kernel releases the GIL

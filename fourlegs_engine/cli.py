@@ -23,6 +23,8 @@ COMMAND_MODULES = (
     "fourlegs_engine.query.commands",
     "fourlegs_engine.highlights.commands",
     "fourlegs_addon.commands",
+    "fourlegs_engine.fit.commands",
+    "benchmarks.fit",
 )
 
 

@@ -1,0 +1,1 @@
+"""Benchmarks: heavy measurements behind `fourlegs bench …` (not imported by the engine)."""

@@ -51,9 +51,11 @@ class Binning:
 
 #: tile sides "auto" chooses from
 AUTO_TILE_SIZES = (4, 8, 16)
-#: cost of one tile–Gaussian pair in units of one pixel evaluation (sorting, gathering and the
-#: per-pair coefficients of the tile rasterizer); calibrated with ``fourlegs bench fit --tiles``
+#: cost of one tile–Gaussian pair (sorting, gathering, per-pair coefficients) in units of one
+#: pixel evaluation of a 3-channel blend
 PAIR_COST = 64.0
+#: every this many blended channels add one more pixel-evaluation unit
+CHANNELS_PER_UNIT = 16.0
 
 
 def estimated_pairs(proj: Projected, tile_size: int) -> float:
@@ -68,22 +70,24 @@ def estimated_pairs(proj: Projected, tile_size: int) -> float:
         return float(((w / tile_size + 1) * (h / tile_size + 1)).sum())
 
 
-def choose_tile_size(proj: Projected, candidates: tuple[int, ...] = AUTO_TILE_SIZES) -> int:
-    """The tile side minimizing pairs·(PAIR_COST + s²): the work of binning/sorting the pairs plus the
-    s² pixel evaluations each pair costs. Small splats give 4; large overlapping splats larger tiles."""
-    costs = [estimated_pairs(proj, s) * (PAIR_COST + s * s) for s in candidates]
+def choose_tile_size(proj: Projected, channels: int = 3, candidates: tuple[int, ...] = AUTO_TILE_SIZES) -> int:
+    """The tile side minimizing pairs·(PAIR_COST + s²·(1 + channels/CHANNELS_PER_UNIT)): the work of
+    binning/sorting the pairs plus the s² pixel evaluations each pair costs, each blending ``channels``
+    values. Many channels (latent features) favour small tiles; large overlapping splats large ones."""
+    per_pixel = 1.0 + channels / CHANNELS_PER_UNIT
+    costs = [estimated_pairs(proj, s) * (PAIR_COST + s * s * per_pixel) for s in candidates]
     return candidates[min(range(len(candidates)), key=lambda i: (costs[i], candidates[i]))]
 
 
-def resolve_tile_size(proj: Projected, tile_size: int | str) -> int:
+def resolve_tile_size(proj: Projected, tile_size: int | str, channels: int = 3) -> int:
     """``tile_size`` itself, or :func:`choose_tile_size` for ``"auto"``."""
-    return choose_tile_size(proj) if tile_size == "auto" else int(tile_size)
+    return choose_tile_size(proj, channels) if tile_size == "auto" else int(tile_size)
 
 
-def bin_gaussians(proj: Projected, width: int, height: int, tile_size: int | str) -> Binning:
+def bin_gaussians(proj: Projected, width: int, height: int, tile_size: int | str, channels: int = 3) -> Binning:
     """Pair visible Gaussians with the tiles their pixel bounds overlap, sorted by (tile, depth).
-    ``tile_size`` may be ``"auto"`` (:func:`choose_tile_size`)."""
-    tile_size = resolve_tile_size(proj, tile_size)
+    ``tile_size`` may be ``"auto"`` (:func:`choose_tile_size` for ``channels`` blended values)."""
+    tile_size = resolve_tile_size(proj, tile_size, channels)
     device = proj.depths.device
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size

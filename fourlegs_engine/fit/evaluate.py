@@ -53,13 +53,13 @@ def evaluate_test_views(bundle: str | Path, capture: Capture | str | Path, *, re
     ps = np.zeros((T, len(test_idx)))
     ss = np.zeros((T, len(test_idx)))
     renders, targets = {}, {}
-    log_scales = torch.from_numpy(np.asarray(g.log_scales, np.float32))
-    opac = torch.from_numpy(np.asarray(g.opacity_logits, np.float32))
-    colors = torch.from_numpy(np.asarray(g.colors if g.colors.ndim == 2 else g.colors[0], np.float32))
+    log_scales = torch.from_numpy(np.array(g.log_scales, np.float32))
+    opac = torch.from_numpy(np.array(g.opacity_logits, np.float32))
+    colors = torch.from_numpy(np.array(g.colors if g.colors.ndim == 2 else g.colors[0], np.float32))
     for i in range(T):
         t = first + i
-        means = torch.from_numpy(np.asarray(g.means[i], np.float32))
-        rots = torch.from_numpy(np.asarray(g.rotations[i], np.float32))
+        means = torch.from_numpy(np.array(g.means[i], np.float32))
+        rots = torch.from_numpy(np.array(g.rotations[i], np.float32))
         for j, c in enumerate(test_idx):
             cam = cap.test.cameras[t][c].scaled(resolution_scale)
             target = torch.from_numpy(cap.load_image("test", t, c, (cam.width, cam.height)))

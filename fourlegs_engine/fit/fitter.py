@@ -522,7 +522,7 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
                 "first_timestep": a,
                 "color_correction": {"cam_m": static["cam_m"].tolist(), "cam_c": static["cam_c"].tolist()},
                 "fit": {"options": opts.fingerprint(), "train_psnr": history,
-                        "floor_y": float(static["floor_y"]) if static["floor_y"].size else None}}
+                        "floor_y": float(static["floor_y"][0]) if static["floor_y"].size else None}}
     from ..scene.bundle import write_bundle
 
     write_bundle(Scene(gaussians=g, cameras=rig, name=capture.root.name, fps=30.0, metadata=metadata), output,
@@ -542,7 +542,7 @@ def _run(capture: Capture, steps: range, cams_idx: list[int], cameras: list[Came
         s = _load_npz(static_path)
         z = _load_npz(work / f"t{a:06d}.npz")
         model = _model_from_arrays(z["means"], z["rotations"], s, device)
-        floor_y = float(s["floor_y"]) if s["floor_y"].size else None
+        floor_y = float(s["floor_y"][0]) if s["floor_y"].size else None
         report(FitEvent("timestep", a, train_psnr=history.get(str(a), float("nan")), resumed=True))
     else:
         frames = _Frames(capture, a, cams_idx, size, device)

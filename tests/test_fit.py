@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -232,6 +233,22 @@ def test_cli_fit_writes_a_bundle_that_info_reads(capture_dir, tmp_path, capsys):
     assert "already exists" in capsys.readouterr().err
 
 
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (and gsplat: pip install 'fourlegs[cuda]')")
+def test_fit_on_cuda_through_gsplat_matches_its_images(capture_dir, tmp_path):
+    from fourlegs_engine.render.backends import gsplat_available
+    if not gsplat_available():
+        pytest.skip("gsplat is not installed (pip install 'fourlegs[cuda]')")
+    fit_capture(capture_dir, tmp_path / "gpu", replace(SYNTH_OPTIONS, device="cuda", first_iterations=300,
+                                                       iterations=40), progress=False)
+    scene = load_bundle(tmp_path / "gpu")
+    images = fh.load_images(capture_dir, "train", 2)
+    cams = scene.cameras.cameras(2, "train")
+    scores = [psnr(_render_bundle(scene, 2, cam).double(), torch.from_numpy(images[cam.name])) for cam in cams]
+    assert np.mean(scores) >= 24.0, scores
+
+
+@pytest.mark.slow
 @pytest.mark.skipif(not BASKETBALL.is_dir(), reason=f"the shared Panoptic capture is not at {BASKETBALL}")
 def test_basketball_cameras_at_low_resolution_reach_a_stated_psnr(tmp_path):
     """Six cameras, two timesteps at 80×45: the fitted scene reproduces its training views."""

@@ -125,7 +125,8 @@ class FitOptions:
 
 @dataclass
 class FitEvent:
-    """What a progress callback receives: ``kind`` is "start", "iteration" or "timestep"."""
+    """What a progress callback receives: ``kind`` is "iteration" (one optimization step) or "timestep"
+    (a timestep finished, or ``resumed`` from the work directory)."""
 
     kind: str
     timestep: int

@@ -25,7 +25,7 @@ DEFAULT_DATASET = "../shared/data/panoptic-basketball"
 PRESET_RUNS = {
     "fast": {"first_iterations": 150, "iterations": 10},
     "default": {},
-    "long": {"first_iterations": 1000, "iterations": 60},
+    "long": {"first_iterations": 600, "iterations": 60, "max_gaussians": 120_000, "init_background": 60_000},
 }
 INT_KNOBS = ("first_iterations", "iterations", "max_gaussians", "init_foreground", "init_background",
              "background_stride", "knn", "seed")

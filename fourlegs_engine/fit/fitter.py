@@ -77,11 +77,11 @@ class FitOptions:
     resolution_scale: float = 0.5
     timesteps: tuple[int, int] | None = None
     cameras: tuple[str, ...] | None = None
-    first_iterations: int = 400
+    first_iterations: int = 150
     iterations: int = 30
-    max_gaussians: int = 120_000
+    max_gaussians: int = 60_000
     init_foreground: int = 30_000
-    init_background: int = 60_000
+    init_background: int = 30_000
     voxel: float = 0.02
     background_stride: int = 6
     densify: bool = True

@@ -27,6 +27,7 @@ COMMAND_MODULES = (
     "fourlegs_engine.language.viclip.commands",
     "fourlegs_engine.query.commands",
     "fourlegs_engine.highlights.commands",
+    "fourlegs_engine.fit.commands",
 )
 ENTRY_POINT_GROUP = "fourlegs.commands"
 

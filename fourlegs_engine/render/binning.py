@@ -49,8 +49,45 @@ class Binning:
         return int(self.gaussian_ids.shape[0])
 
 
-def bin_gaussians(proj: Projected, width: int, height: int, tile_size: int) -> Binning:
-    """Pair visible Gaussians with the tiles their pixel bounds overlap, sorted by (tile, depth)."""
+#: tile sides "auto" chooses from
+AUTO_TILE_SIZES = (4, 8, 16)
+#: cost of one tile–Gaussian pair (sorting, gathering, per-pair coefficients) in units of one
+#: pixel evaluation of a 3-channel blend
+PAIR_COST = 64.0
+#: every this many blended channels add one more pixel-evaluation unit
+CHANNELS_PER_UNIT = 16.0
+
+
+def estimated_pairs(proj: Projected, tile_size: int) -> float:
+    """Expected number of tile–Gaussian pairs at ``tile_size`` for the visible Gaussians: a box of
+    w×h pixels at a random offset overlaps ((w−1)/s + 1)·((h−1)/s + 1) tiles of side s on average."""
+    with torch.no_grad():
+        b = proj.bounds[proj.visible].to(torch.float64)
+        if b.shape[0] == 0:
+            return 0.0
+        w = b[:, 1] - b[:, 0]
+        h = b[:, 3] - b[:, 2]
+        return float(((w / tile_size + 1) * (h / tile_size + 1)).sum())
+
+
+def choose_tile_size(proj: Projected, channels: int = 3, candidates: tuple[int, ...] = AUTO_TILE_SIZES) -> int:
+    """The tile side minimizing pairs·(PAIR_COST + s²·(1 + channels/CHANNELS_PER_UNIT)): the work of
+    binning/sorting the pairs plus the s² pixel evaluations each pair costs, each blending ``channels``
+    values. Many channels (latent features) favour small tiles; large overlapping splats large ones."""
+    per_pixel = 1.0 + channels / CHANNELS_PER_UNIT
+    costs = [estimated_pairs(proj, s) * (PAIR_COST + s * s * per_pixel) for s in candidates]
+    return candidates[min(range(len(candidates)), key=lambda i: (costs[i], candidates[i]))]
+
+
+def resolve_tile_size(proj: Projected, tile_size: int | str, channels: int = 3) -> int:
+    """``tile_size`` itself, or :func:`choose_tile_size` for ``"auto"``."""
+    return choose_tile_size(proj, channels) if tile_size == "auto" else int(tile_size)
+
+
+def bin_gaussians(proj: Projected, width: int, height: int, tile_size: int | str, channels: int = 3) -> Binning:
+    """Pair visible Gaussians with the tiles their pixel bounds overlap, sorted by (tile, depth).
+    ``tile_size`` may be ``"auto"`` (:func:`choose_tile_size` for ``channels`` blended values)."""
+    tile_size = resolve_tile_size(proj, tile_size, channels)
     device = proj.depths.device
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size

@@ -25,7 +25,10 @@ class RasterOptions:
 
     Attributes:
         tile_size: side of the square pixel tiles Gaussians are binned into (speed only: every tile
-            size gives the same image up to float rounding).
+            size gives the same image up to float rounding), or ``"auto"``: chosen per view from the
+            projected footprints (:func:`~fourlegs_engine.render.binning.choose_tile_size`), small
+            tiles for small splats, larger ones where large overlapping splats would make the
+            tile–Gaussian pairs explode.
         extent: ``"opacity"`` (default): the footprint is the ellipse where o·G ≥ alpha_min, i.e.
             dᵀΣ⁻¹d ≤ 2 ln(o/alpha_min) (= sqrt(2 ln(255 o)) σ), bounded by its axis-aligned box; no pixel
             that would blend is dropped. ``"3sigma"``: a square of half-side 3·sqrt(λ_max) (the
@@ -48,7 +51,7 @@ class RasterOptions:
             kernels are tested against; it also serves gradients, "depth_median" and "weights").
     """
 
-    tile_size: int = 4
+    tile_size: int | str = "auto"
     extent: str = "opacity"
     eps2d: float = 0.3
     alpha_min: float = 1.0 / 255.0
@@ -61,8 +64,10 @@ class RasterOptions:
     cpu_kernel: bool = True
 
     def check(self) -> "RasterOptions":
-        if not (isinstance(self.tile_size, int) and 1 <= self.tile_size <= 256):
-            raise InputError(f"must be an integer in 1..256, got {self.tile_size!r}", field="options.tile_size")
+        if self.tile_size != "auto" and not (isinstance(self.tile_size, int) and not isinstance(self.tile_size, bool)
+                                             and 1 <= self.tile_size <= 256):
+            raise InputError(f"must be \"auto\" or an integer in 1..256, got {self.tile_size!r}",
+                             field="options.tile_size")
         if self.extent not in EXTENTS:
             raise InputError(f"must be one of {EXTENTS}, got {self.extent!r}", field="options.extent")
         if not self.eps2d >= 0:

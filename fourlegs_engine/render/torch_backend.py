@@ -20,7 +20,8 @@ def rasterize_torch(means: torch.Tensor, rotations: torch.Tensor, log_scales: to
                     outputs: tuple[str, ...], options: RasterOptions, dtype: torch.dtype) -> dict:
     """Inputs already checked by :func:`~fourlegs_engine.render.rasterize`; same outputs."""
     proj = project_gaussians(means, rotations, log_scales, opacity_logits, camera, options, dtype)
-    binning = bin_gaussians(proj, camera.width, camera.height, options.tile_size)
+    channels = (3 if "rgb" in outputs else 0) + (features.shape[1] if "features" in outputs else 0) + 1
+    binning = bin_gaussians(proj, camera.width, camera.height, options.tile_size, channels)
     geom = torch.cat([proj.means2d, proj.conics, proj.opacities[:, None]], dim=-1)
     return composite(geom, proj.depths, binning, colors=colors, features=features, bg_rgb=bg_rgb,
                      bg_feat=bg_feat, outputs=outputs, options=options, dtype=dtype)
@@ -90,7 +91,7 @@ def splat_torch(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.
     from .rasterizer import rasterize_forward
     with torch.no_grad():
         proj = project_gaussians(means, rotations, log_scales, opacity_logits, camera, options, dtype)
-        binning = bin_gaussians(proj, camera.width, camera.height, options.tile_size)
+        binning = bin_gaussians(proj, camera.width, camera.height, options.tile_size, pixel_values.shape[-1])
         geom = torch.cat([proj.means2d, proj.conics, proj.opacities[:, None]], dim=-1)
         if cpu_kernels.usable(options, geom, pixel_values):
             S = pixel_values.shape[-1]

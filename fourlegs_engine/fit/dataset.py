@@ -1,0 +1,230 @@
+"""Reader for calibrated multiview video in the Dynamic 3D Gaussians layout.
+
+Layout::
+
+    DATASET/
+      train_meta.json   {"w", "h", "k"[t][c] 3x3, "w2c"[t][c] 4x4 (OpenCV axes), "fn"[t][c], "cam_id"[t][c]}
+      test_meta.json    the same for the held-out cameras (optional)
+      ims/{cam}/{t:06d}.jpg
+      seg/{cam}/{t:06d}.png   foreground masks (optional; training cameras)
+
+Everything is checked before any fitting starts: a missing frame, a malformed calibration or an image
+whose size differs from the metadata is one :class:`~fourlegs_engine.errors.InputError` naming the file
+and the field.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..errors import InputError
+from ..fileio import read_json
+from ..scene.camera import Camera
+
+META_FILES = {"train": "train_meta.json", "test": "test_meta.json"}
+#: Panoptic rigs render with near 1.0, far 100 (Dynamic 3D Gaussians' setting)
+NEAR, FAR = 1.0, 100.0
+
+
+@dataclass
+class CaptureSplit:
+    """One split (train or test) of a capture.
+
+    Attributes:
+        cameras: cameras[t][c] at the dataset's full resolution.
+        files: files[t][c] image path relative to ``ims/``.
+        cam_ids: cam_ids[t][c] camera ids as strings.
+    """
+
+    cameras: list[list[Camera]]
+    files: list[list[str]]
+    cam_ids: list[list[str]]
+
+
+class Capture:
+    """A calibrated multiview video on disk (see the module docstring for the layout).
+
+    Attributes:
+        root: dataset directory. width, height: full image size. num_timesteps: T.
+        train, test: :class:`CaptureSplit` (``test`` has empty lists when test_meta.json is absent).
+        has_masks: whether ``seg/`` exists.
+    """
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise InputError("is not a directory", file=self.root)
+        train_path = self.root / META_FILES["train"]
+        if not train_path.is_file():
+            raise InputError("missing (a Dynamic 3D Gaussians dataset needs train_meta.json)", file=train_path)
+        self.train, self.width, self.height = _read_split(train_path)
+        self.num_timesteps = len(self.train.cameras)
+        test_path = self.root / META_FILES["test"]
+        if test_path.is_file():
+            self.test, w, h = _read_split(test_path)
+            if (w, h) != (self.width, self.height):
+                raise InputError(f"image size {w}x{h} differs from train_meta.json's {self.width}x{self.height}",
+                                 file=test_path, field="w/h")
+            if len(self.test.cameras) != self.num_timesteps:
+                raise InputError(f"has {len(self.test.cameras)} timesteps, train_meta.json has "
+                                 f"{self.num_timesteps}", file=test_path, field="k")
+        else:
+            self.test = CaptureSplit([[] for _ in range(self.num_timesteps)], [[] for _ in range(self.num_timesteps)],
+                                     [[] for _ in range(self.num_timesteps)])
+        self.has_masks = (self.root / "seg").is_dir()
+
+    # ----------------------------------------------------------------------- selection
+    def timestep_range(self, spec: tuple[int, int] | None) -> range:
+        """``(a, b)`` half-open, ``b`` may be None-like via -1 for the end; checked against T."""
+        if spec is None:
+            return range(self.num_timesteps)
+        a, b = spec
+        b = self.num_timesteps if b is None or b < 0 else b
+        if not 0 <= a < b <= self.num_timesteps:
+            raise InputError(f"{a}:{b} is not a non-empty range inside 0:{self.num_timesteps}", field="timesteps")
+        return range(a, b)
+
+    def camera_indices(self, split: str, ids: Sequence[str] | None, t: int = 0) -> list[int]:
+        """Positions of the cameras called ``ids`` in ``split`` at timestep t (all when None)."""
+        s = self.train if split == "train" else self.test
+        names = s.cam_ids[t]
+        if ids is None:
+            return list(range(len(names)))
+        out = []
+        for cid in ids:
+            if str(cid) not in names:
+                raise InputError(f"no {split} camera {cid!r} (have {', '.join(names)})", field="cameras")
+            out.append(names.index(str(cid)))
+        return out
+
+    def check_frames(self, split: str, timesteps: Sequence[int], cams: Sequence[int], masks: bool) -> None:
+        """Raise for the first missing image (or mask) among the selected frames."""
+        s = self.train if split == "train" else self.test
+        for t in timesteps:
+            for c in cams:
+                path = self.image_path(split, t, c)
+                if not path.is_file():
+                    raise InputError(f"missing frame (timestep {t}, camera {s.cam_ids[t][c]})", file=path)
+                if masks:
+                    mpath = self.mask_path(split, t, c)
+                    if not mpath.is_file():
+                        raise InputError(f"missing mask (timestep {t}, camera {s.cam_ids[t][c]})", file=mpath)
+
+    def image_path(self, split: str, t: int, c: int) -> Path:
+        s = self.train if split == "train" else self.test
+        return self.root / "ims" / s.files[t][c]
+
+    def mask_path(self, split: str, t: int, c: int) -> Path:
+        s = self.train if split == "train" else self.test
+        return (self.root / "seg" / s.files[t][c]).with_suffix(".png")
+
+    # ----------------------------------------------------------------------- loading
+    def load_image(self, split: str, t: int, c: int, size: tuple[int, int]) -> np.ndarray:
+        """(h, w, 3) float32 RGB in [0, 1] resized (area filter) to ``size`` = (w, h)."""
+        from PIL import Image
+
+        path = self.image_path(split, t, c)
+        with _open_image(path) as im:
+            if im.size != (self.width, self.height):
+                raise InputError(f"is {im.size[0]}x{im.size[1]} but the metadata says {self.width}x{self.height}",
+                                 file=path)
+            im = im.convert("RGB")
+            if im.size != tuple(size):
+                im = im.resize(tuple(size), Image.BOX)
+            return np.asarray(im, dtype=np.float32) / 255.0
+
+    def load_mask(self, split: str, t: int, c: int, size: tuple[int, int]) -> np.ndarray:
+        """(h, w) float32 foreground fraction in [0, 1] resized (area filter) to ``size`` = (w, h)."""
+        from PIL import Image
+
+        path = self.mask_path(split, t, c)
+        with _open_image(path) as im:
+            if im.size != (self.width, self.height):
+                raise InputError(f"is {im.size[0]}x{im.size[1]} but the metadata says {self.width}x{self.height}",
+                                 file=path)
+            im = im.convert("L")
+            if im.size != tuple(size):
+                im = im.resize(tuple(size), Image.BOX)
+            return (np.asarray(im, dtype=np.float32) / 255.0).clip(0.0, 1.0)
+
+
+def _open_image(path: Path):
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise InputError("missing frame", file=path)
+    try:
+        im = Image.open(path)
+        im.load()
+    except (UnidentifiedImageError, OSError) as exc:
+        raise InputError(f"is not a readable image ({exc.__class__.__name__})", file=path) from None
+    return im
+
+
+def _read_split(path: Path) -> tuple[CaptureSplit, int, int]:
+    meta: Any = read_json(path)
+    if not isinstance(meta, dict):
+        raise InputError("top level must be a JSON object", file=path)
+    for key in ("w", "h", "k", "w2c", "fn"):
+        if key not in meta:
+            raise InputError("missing key", file=path, field=key)
+    try:
+        width, height = int(meta["w"]), int(meta["h"])
+    except (TypeError, ValueError):
+        raise InputError(f"image size must be integers, got w={meta['w']!r} h={meta['h']!r}", file=path,
+                         field="w/h") from None
+    if width <= 0 or height <= 0:
+        raise InputError(f"image size must be positive, got {width}x{height}", file=path, field="w/h")
+    ks, w2cs, fns = meta["k"], meta["w2c"], meta["fn"]
+    ids = meta.get("cam_id")
+    T = len(ks) if isinstance(ks, list) else -1
+    for key, value in (("k", ks), ("w2c", w2cs), ("fn", fns)) + ((("cam_id", ids),) if ids is not None else ()):
+        if not isinstance(value, list) or not value:
+            raise InputError("must be a non-empty list over timesteps", file=path, field=key)
+        if len(value) != T:
+            raise InputError(f"has {len(value)} timesteps, k has {T}", file=path, field=key)
+    cameras, files, cam_ids = [], [], []
+    for t in range(T):
+        n = len(ks[t]) if isinstance(ks[t], list) else -1
+        for key, value in (("w2c", w2cs[t]), ("fn", fns[t])) + ((("cam_id", ids[t]),) if ids is not None else ()):
+            if not isinstance(value, list) or len(value) != n:
+                raise InputError(f"must list one entry per camera ({n})", file=path, field=f"{key}[{t}]")
+        row, names = [], []
+        for c in range(n):
+            K = _matrix(ks[t][c], (3, 3), path, f"k[{t}][{c}]")
+            w2c = _matrix(w2cs[t][c], (4, 4), path, f"w2c[{t}][{c}]")
+            name = str(ids[t][c]) if ids is not None else str(fns[t][c]).split("/")[0]
+            cam = Camera(K=K, w2c=w2c, width=width, height=height, near=NEAR, far=FAR, name=name)
+            try:
+                cam.validate()
+            except InputError as exc:
+                where = f"w2c[{t}][{c}]" if "w2c" in (exc.field or "") else f"k[{t}][{c}]"
+                raise InputError(f"{exc.problem} (camera {name})", file=path, field=where) from None
+            row.append(cam)
+            names.append(name)
+            if not isinstance(fns[t][c], str) or not fns[t][c] or ".." in Path(fns[t][c]).parts:
+                raise InputError(f"must be a relative file name, got {fns[t][c]!r}", file=path, field=f"fn[{t}][{c}]")
+        if len(set(names)) != len(names):
+            raise InputError("camera ids repeat", file=path, field=f"cam_id[{t}]")
+        if t and names != cam_ids[0]:
+            raise InputError(f"cameras differ from timestep 0 ({names} vs {cam_ids[0]})", file=path,
+                             field=f"cam_id[{t}]")
+        cameras.append(row)
+        files.append([str(f) for f in fns[t]])
+        cam_ids.append(names)
+    return CaptureSplit(cameras, files, cam_ids), width, height
+
+
+def _matrix(value: Any, shape: tuple[int, int], file: Path, field: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"is not a numeric {shape[0]}x{shape[1]} matrix", file=file, field=field) from None
+    if arr.shape != shape:
+        raise InputError(f"has shape {arr.shape}, expected {shape}", file=file, field=field)
+    if not np.isfinite(arr).all():
+        raise InputError("contains NaN or Inf", file=file, field=field)
+    return arr

@@ -1,0 +1,213 @@
+"""Initial Gaussians from the capture itself (no point cloud is shipped with the data).
+
+* Foreground: a visual hull carved on a voxel grid from the foreground masks and the calibration; the
+  surface voxels become Gaussians coloured by the median of the pixels they project to.
+* Background: a depth-less proxy of the studio. The cameras are mounted on a dome, so the walls they
+  see lie near the sphere through the camera centres; the floor is the plane under the lowest hull
+  voxels. Background pixels (outside the masks) on a regular stride are cast onto the nearer of the
+  two surfaces and become Gaussians the size of their pixel footprint.
+Without masks there is no hull: every Gaussian comes from the proxy and counts as foreground.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..scene.camera import Camera
+
+
+@dataclass
+class InitialCloud:
+    """Points to start the fit from.
+
+    Attributes:
+        points: (N,3) world positions. colors: (N,3) RGB in [0,1]. scales: (N,) isotropic std (m).
+        foreground: (N,) bool.
+        floor_y: world y of the floor plane (y points down in Panoptic's world), or None.
+        dome_center: (3,), dome_radius: the sphere fitted through the camera centres.
+    """
+
+    points: np.ndarray
+    colors: np.ndarray
+    scales: np.ndarray
+    foreground: np.ndarray
+    floor_y: float | None
+    dome_center: np.ndarray
+    dome_radius: float
+
+
+def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares sphere through (M,3) points: |p|² = 2 p·c + (r² − |c|²) is linear in c and r²−|c|²."""
+    A = np.concatenate([2 * points, np.ones((points.shape[0], 1))], axis=1)
+    b = (points ** 2).sum(1)
+    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    center = sol[:3]
+    radius = float(np.sqrt(max(sol[3] + center @ center, 1e-12)))
+    return center, radius
+
+
+def look_at_point(cameras: list[Camera]) -> np.ndarray:
+    """(3,) the point closest (least squares) to every camera's optical axis."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for cam in cameras:
+        d = cam.forward / np.linalg.norm(cam.forward)
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ cam.center
+    return np.linalg.solve(A + 1e-9 * np.eye(3), b)
+
+
+def carve_visual_hull(cameras: list[Camera], masks: list[np.ndarray], images: list[np.ndarray], *,
+                      voxel: float, half_extent: float, center: np.ndarray, min_views: int = 4,
+                      max_misses: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Surface voxels of the visual hull.
+
+    Args:
+        cameras: C cameras (at the masks' resolution). masks: C arrays (h,w) in [0,1].
+        images: C arrays (h,w,3) for the colours.
+        voxel: voxel side (m). half_extent: half side of the carved cube (m) around ``center``.
+        min_views: a voxel must project inside at least this many images.
+        max_misses: it may fall outside the mask in at most this many of them (mask errors).
+    Returns:
+        points (M,3) voxel centres on the hull surface, colors (M,3) median pixel colour over views.
+    """
+    coarse_factor = 4
+    n = max(2, int(np.ceil(2 * half_extent / (voxel * coarse_factor)))) * coarse_factor
+    half_extent = n * voxel / 2
+    nc = n // coarse_factor
+    # coarse pass on voxels coarse_factor times larger (a cell is kept when its centre or any
+    # neighbour's survives), then the fine grid only inside the kept cells
+    axis_c = (np.arange(nc) + 0.5) * voxel * coarse_factor - half_extent
+    pts_c = np.stack(np.meshgrid(axis_c, axis_c, axis_c, indexing="ij"), -1).reshape(-1, 3) + center
+    occ_c = _carve(pts_c, cameras, masks, min_views, max_misses + 1).reshape(nc, nc, nc)
+    grown = occ_c.copy()
+    for axis_i in range(3):
+        for shift in (-1, 1):
+            grown |= np.roll(occ_c, shift, axis=axis_i)
+    cells = np.argwhere(grown)
+    sub = np.stack(np.meshgrid(*[np.arange(coarse_factor)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    fine_idx = (cells[:, None, :] * coarse_factor + sub[None]).reshape(-1, 3)
+    occ = np.zeros((n, n, n), bool)
+    if fine_idx.shape[0]:
+        pts = (fine_idx + 0.5) * voxel - half_extent + center
+        keep = _carve(pts, cameras, masks, min_views, max_misses)
+        occ[tuple(fine_idx[keep].T)] = True
+    axis = (np.arange(n) + 0.5) * voxel - half_extent
+    pts = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) + center
+    padded = np.pad(occ, 1)
+    interior = occ.copy()
+    for axis_i in range(3):
+        for shift in (-1, 1):
+            interior &= np.roll(padded, shift, axis=axis_i)[1:-1, 1:-1, 1:-1]
+    surface = (occ & ~interior).reshape(-1)
+    points = pts[surface]
+    colors = np.zeros((points.shape[0], len(cameras), 3), np.float32)
+    valid = np.zeros((points.shape[0], len(cameras)), bool)
+    for i, (cam, image) in enumerate(zip(cameras, images)):
+        uv, z = cam.project(points)
+        px = np.clip(np.floor(uv[:, 0]).astype(np.int64), 0, cam.width - 1)
+        py = np.clip(np.floor(uv[:, 1]).astype(np.int64), 0, cam.height - 1)
+        colors[:, i] = image[py, px]
+        valid[:, i] = (z > cam.near) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    colors = np.where(valid[..., None], colors, np.nan)
+    with np.errstate(all="ignore"):
+        med = np.nanmedian(colors, axis=1) if points.shape[0] else np.zeros((0, 3), np.float32)
+    return points, np.nan_to_num(med, nan=0.5).astype(np.float32)
+
+
+def _carve(pts: np.ndarray, cameras: list[Camera], masks: list[np.ndarray], min_views: int,
+           max_misses: int) -> np.ndarray:
+    """(M,) bool: the points inside at least ``min_views`` images and outside the mask in at most
+    ``max_misses`` of them."""
+    inside = np.zeros(pts.shape[0], np.int16)
+    misses = np.zeros(pts.shape[0], np.int16)
+    for cam, mask in zip(cameras, masks):
+        uv, z = cam.project(pts)
+        px = np.floor(uv[:, 0]).astype(np.int64)
+        py = np.floor(uv[:, 1]).astype(np.int64)
+        ok = (z > cam.near) & (px >= 0) & (px < cam.width) & (py >= 0) & (py < cam.height)
+        hit = np.zeros(pts.shape[0], bool)
+        hit[ok] = mask[py[ok], px[ok]] >= 0.5
+        inside += ok
+        misses += ok & ~hit
+    return (inside >= min_views) & (misses <= max_misses)
+
+
+def background_proxy(cameras: list[Camera], images: list[np.ndarray], masks: list[np.ndarray] | None, *,
+                     stride: int, dome_center: np.ndarray, dome_radius: float, floor_y: float | None
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Background pixels cast onto the dome sphere / floor plane.
+
+    Returns:
+        points (M,3), colors (M,3), scales (M,) (pixel footprint at the hit, metres).
+    """
+    pts_all, col_all, scl_all = [], [], []
+    for i, (cam, image) in enumerate(zip(cameras, images)):
+        ys, xs = np.mgrid[stride // 2:cam.height:stride, stride // 2:cam.width:stride]
+        xs, ys = xs.reshape(-1), ys.reshape(-1)
+        if masks is not None:
+            keep = masks[i][ys, xs] < 0.5
+            xs, ys = xs[keep], ys[keep]
+        uv = np.stack([xs + 0.5, ys + 0.5], 1)
+        origin = cam.center
+        d = cam.unproject(uv, np.ones(len(xs))) - origin
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        # ray–sphere: |o + s d − c|² = r²; o is inside the dome, so take the positive root
+        oc = origin - dome_center
+        bq = d @ oc
+        disc = bq ** 2 - (oc @ oc - dome_radius ** 2)
+        s = -bq + np.sqrt(np.maximum(disc, 0.0))
+        if floor_y is not None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s_floor = (floor_y - origin[1]) / d[:, 1]
+            s = np.where((s_floor > 0) & (s_floor < s), s_floor, s)
+        s = np.maximum(s, 2 * cam.near)
+        pts_all.append(origin + s[:, None] * d)
+        col_all.append(image[ys, xs])
+        z = s * (d @ cam.forward)
+        scl_all.append(0.5 * stride * z / cam.fx)
+    return (np.concatenate(pts_all), np.concatenate(col_all).astype(np.float32),
+            np.concatenate(scl_all))
+
+
+def initial_cloud(cameras: list[Camera], images: list[np.ndarray], masks: list[np.ndarray] | None, *,
+                  voxel: float = 0.02, hull_half_extent: float = 2.5, bg_stride: int = 6,
+                  max_foreground: int | None = None, max_background: int | None = None,
+                  seed: int = 0) -> InitialCloud:
+    """The initial cloud: visual-hull foreground + dome/floor background (see the module docstring)."""
+    rng = np.random.default_rng(seed)
+    centers = np.stack([c.center for c in cameras])
+    dome_center, dome_radius = fit_sphere(centers) if len(cameras) >= 4 else (centers.mean(0), 5.0)
+    floor_y = None
+    if masks is not None:
+        target = look_at_point(cameras)
+        fg_pts, fg_col = carve_visual_hull(cameras, masks, images, voxel=voxel, half_extent=hull_half_extent,
+                                           center=target, min_views=min(4, len(cameras)),
+                                           max_misses=1 if len(cameras) >= 6 else 0)
+        if fg_pts.shape[0]:
+            floor_y = float(np.quantile(fg_pts[:, 1], 0.995)) + voxel
+        fg_pts, fg_col = _cap(rng, max_foreground, fg_pts, fg_col)
+        fg_scale = np.full(fg_pts.shape[0], voxel * 0.6)
+    else:
+        fg_pts, fg_col, fg_scale = np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros(0)
+    bg_pts, bg_col, bg_scale = background_proxy(cameras, images, masks, stride=bg_stride, dome_center=dome_center,
+                                                dome_radius=dome_radius, floor_y=floor_y)
+    bg_pts, bg_col, bg_scale = _cap(rng, max_background, bg_pts, bg_col, bg_scale)
+    points = np.concatenate([fg_pts, bg_pts])
+    colors = np.concatenate([fg_col, bg_col])
+    scales = np.concatenate([fg_scale, bg_scale])
+    fg = np.concatenate([np.ones(len(fg_pts), bool), np.zeros(len(bg_pts), bool)])
+    if masks is None:
+        fg[:] = True
+    return InitialCloud(points=points, colors=colors, scales=scales, foreground=fg, floor_y=floor_y,
+                        dome_center=dome_center, dome_radius=dome_radius)
+
+
+def _cap(rng, limit, *arrays):
+    n = arrays[0].shape[0]
+    if limit is None or n <= limit:
+        return arrays
+    keep = np.sort(rng.choice(n, size=limit, replace=False))
+    return tuple(a[keep] for a in arrays)

@@ -1,0 +1,100 @@
+"""Losses of the Dynamic 3D Gaussians fit: image (L1 + D-SSIM) and the physical priors."""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+#: SSIM window (11 px Gaussian, σ 1.5) and constants for images in [0, 1]
+SSIM_WINDOW, SSIM_SIGMA = 11, 1.5
+SSIM_C1, SSIM_C2 = 0.01 ** 2, 0.03 ** 2
+
+
+def _window(channels: int, dtype: torch.dtype, device) -> torch.Tensor:
+    x = torch.arange(SSIM_WINDOW, dtype=dtype, device=device) - SSIM_WINDOW // 2
+    g = torch.exp(-x * x / (2 * SSIM_SIGMA ** 2))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :]).expand(channels, 1, SSIM_WINDOW, SSIM_WINDOW).contiguous()
+
+
+def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM of two (H,W,C) images (Gaussian window, zero padding as in 3DGS); scalar tensor."""
+    x = a.permute(2, 0, 1)[None]
+    y = b.permute(2, 0, 1)[None]
+    C = x.shape[1]
+    w = _window(C, x.dtype, x.device)
+    pad = SSIM_WINDOW // 2
+    mu_x = F.conv2d(x, w, padding=pad, groups=C)
+    mu_y = F.conv2d(y, w, padding=pad, groups=C)
+    sxx = F.conv2d(x * x, w, padding=pad, groups=C) - mu_x ** 2
+    syy = F.conv2d(y * y, w, padding=pad, groups=C) - mu_y ** 2
+    sxy = F.conv2d(x * y, w, padding=pad, groups=C) - mu_x * mu_y
+    num = (2 * mu_x * mu_y + SSIM_C1) * (2 * sxy + SSIM_C2)
+    den = (mu_x ** 2 + mu_y ** 2 + SSIM_C1) * (sxx + syy + SSIM_C2)
+    return (num / den).mean()
+
+
+def image_loss(render: torch.Tensor, target: torch.Tensor, l1_weight: float = 0.8) -> torch.Tensor:
+    """(1−λ_ssim)·L1 + λ_ssim·(1 − SSIM) with λ_ssim = 1 − ``l1_weight``."""
+    return l1_weight * (render - target).abs().mean() + (1.0 - l1_weight) * (1.0 - ssim(render, target))
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    """PSNR in dB of images in [0, 1] (a is clipped to [0, 1] first)."""
+    mse = float(((a.clamp(0, 1) - b) ** 2).mean())
+    return 100.0 if mse <= 1e-10 else -10.0 * math.log10(mse)
+
+
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product of (...,4) quaternions w,x,y,z."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
+                        aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx,
+                        aw * bz + ax * by - ay * bx + az * bw], dim=-1)
+
+
+def quat_conjugate(q: torch.Tensor) -> torch.Tensor:
+    return q * q.new_tensor([1.0, -1.0, -1.0, -1.0])
+
+
+def _weighted_norm(diff: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Mean over (N,K) of weight·‖diff‖ with a smooth square root (finite gradient at 0)."""
+    return (torch.sqrt((diff * diff).sum(-1) + 1e-20) * weight).mean()
+
+
+class Priors:
+    """Local rigidity, rotation similarity and long-term isometry over kNN neighbours fixed at the
+    first timestep (Luiten et al. §4).
+
+    Args:
+        neighbors: (N,K) int64 neighbour indices among the foreground Gaussians.
+        weights: (N,K) exp(−λ d²) of the first-timestep distances.
+        distances: (N,K) first-timestep distances (for isometry).
+    """
+
+    def __init__(self, neighbors: torch.Tensor, weights: torch.Tensor, distances: torch.Tensor):
+        self.neighbors, self.weights, self.distances = neighbors, weights, distances
+
+    def __call__(self, means: torch.Tensor, rotations: torch.Tensor, prev_means: torch.Tensor,
+                 prev_rotations: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Loss terms for the current (N,3) means, (N,4) unit rotations against the previous timestep's.
+
+        Returns:
+            {"rigid", "rot", "iso"} scalar tensors.
+        """
+        from ..scene.gaussians import quaternion_to_matrix
+
+        rel = quat_multiply(rotations, quat_conjugate(prev_rotations))  # R_t R_{t-1}^{-1}
+        R = quaternion_to_matrix(rel)  # (N,3,3)
+        nb = self.neighbors
+        offset = means[nb] - means[:, None]  # (N,K,3)
+        prev_offset = prev_means[nb] - prev_means[:, None]
+        # the neighbour offsets of t, rotated back by the Gaussian's own rotation change, should equal t−1's
+        back = torch.einsum("nji,nkj->nki", R, offset)
+        rigid = _weighted_norm(back - prev_offset, self.weights)
+        rot = _weighted_norm(rel[nb] - rel[:, None], self.weights)
+        iso = (torch.sqrt((offset * offset).sum(-1) + 1e-20) - self.distances).abs().mul(self.weights).mean()
+        return {"rigid": rigid, "rot": rot, "iso": iso}

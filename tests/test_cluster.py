@@ -177,3 +177,28 @@ def test_list_scheduling_simulation():
     assert many["distill_hours"] * 3600 == pytest.approx(3 * (300.0 + a.feature_mb / a.transfer_mb_per_s))
     assert many["total_hours"] > many["autoencoder_hours"] + many["distill_hours"]
     assert 0 < many["efficiency"] < 1
+
+
+@pytest.mark.cluster
+def test_fit_on_ray_runs_one_task_per_capture_with_the_single_process_bytes(ray_cluster, tmp_path, capsys):
+    import _fit_helpers as fh
+    from fourlegs_engine.fit import FitOptions, fit_capture
+
+    captures = [fh.write_capture(tmp_path / "captures" / name, num_timesteps=2) for name in ("a", "b")]
+    knobs = ["--resolution-scale", "0.5", "--first-iterations", "4", "--iterations", "2",
+             "--init-background", "200", "--no-densify"]
+    assert main(["fit", *map(str, captures), "-o", str(tmp_path / "ray"), *knobs, "--ray"]) == 0
+    options = FitOptions(resolution_scale=0.5, first_iterations=4, iterations=2, init_background=200, densify=False)
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)          # as the one-CPU Ray workers run
+    try:
+        for capture in captures:
+            fit_capture(capture, tmp_path / "single" / capture.name, options, progress=False)
+    finally:
+        torch.set_num_threads(old)
+    for capture in captures:
+        assert "means.npy" in _same_files(tmp_path / "single" / capture.name, tmp_path / "ray" / capture.name, "*.npy")
+    capsys.readouterr()
+    assert main(["fit", str(captures[0]), str(captures[0]), "-o", str(tmp_path / "twice"), "--ray"]) == 2
+    assert "share the folder name a" in capsys.readouterr().err
+    assert not (tmp_path / "twice").exists()

@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import argparse
-from typing import Any
+import functools
+from pathlib import Path
+from typing import Any, Sequence
 
 from ..errors import InputError
 
@@ -31,9 +33,12 @@ def register(subparsers: Any) -> None:
         "fit", help="fit dynamic 3D Gaussians to a calibrated multiview video (Dynamic 3D Gaussians layout)",
         description="Fit dynamic 3D Gaussians (Luiten et al. 3DV 2024) to DATASET (train_meta.json, "
         "test_meta.json, ims/, optional seg/) and write a scene bundle. Finished timesteps are kept beside "
-        "the output; run the same command again after a cancel to resume.")
-    p.add_argument("dataset", help="dataset directory")
-    p.add_argument("-o", "--output", required=True, help="scene bundle directory to write")
+        "the output; run the same command again after a cancel to resume. Several datasets are fitted one "
+        "after the other, or side by side as Ray tasks with --ray (one task per dataset: a fit's timesteps "
+        "depend on each other).")
+    p.add_argument("dataset", nargs="+", help="dataset directory (several: one scene each, in OUTPUT/NAME)")
+    p.add_argument("-o", "--output", required=True,
+                   help="scene bundle directory to write (several datasets: the folder of their bundles)")
     p.add_argument("--timesteps", type=str, default=None, help="half-open range a:b (default: all)")
     p.add_argument("--cameras", type=str, default=None, help="training camera ids, comma separated (default: all)")
     p.add_argument("--resolution-scale", type=float, default=0.5, help="image scale for fitting (default 0.5)")
@@ -46,6 +51,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--overwrite", action="store_true", help="replace SCENE / restart a partial fit with other options")
+    from ..cluster import add_ray_arguments
+
+    add_ray_arguments(p)
     p.set_defaults(func=run_fit)
 
 
@@ -65,9 +73,41 @@ def options_from_args(args: argparse.Namespace):
     return FitOptions(**kw)
 
 
-def run_fit(args: argparse.Namespace) -> int:
+def scene_outputs(datasets: Sequence[str], output: str) -> list[Path]:
+    """Where each dataset's scene goes: OUTPUT itself for one dataset, OUTPUT/<dataset folder name> for several."""
+    if len(datasets) == 1:
+        return [Path(output)]
+    names = [Path(d).resolve().name for d in datasets]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise InputError(f"datasets share the folder name {', '.join(repeated)}: their scenes would collide in "
+                         f"{output}; fit them in separate commands", field="dataset")
+    return [Path(output) / n for n in names]
+
+
+def fit_one(job: tuple[str, str], *, options: Any, overwrite: bool, progress: bool) -> str:
+    """Fit one ``(dataset, output)`` pair; returns the scene path (a Ray task's function)."""
     from .fitter import fit_capture
 
-    out = fit_capture(args.dataset, args.output, options_from_args(args), overwrite=args.overwrite, progress=True)
-    print(f"wrote {out}")
+    dataset, output = job
+    return str(fit_capture(dataset, output, options, overwrite=overwrite, progress=progress))
+
+
+def run_fit(args: argparse.Namespace) -> int:
+    from ..cluster import map_on_ray, options_from_args as ray_options_from_args, uses_ray
+
+    options = options_from_args(args)
+    jobs = [(str(d), str(o)) for d, o in zip(args.dataset, scene_outputs(args.dataset, args.output))]
+    if uses_ray(args):
+        ray_options = ray_options_from_args(args)
+        if not ray_options.shared_fs:
+            raise InputError("fit reads its dataset and writes its scene in place: the datasets and the output "
+                             "must be on a filesystem every node sees", field="--ray-no-shared-fs")
+        gpus = ray_options.num_gpus if ray_options.num_gpus is not None else float(args.device == "cuda")
+        task = functools.partial(fit_one, options=options, overwrite=args.overwrite, progress=False)
+        written = map_on_ray(task, jobs, options=ray_options, stage="fit", num_gpus=gpus)
+    else:
+        written = [fit_one(job, options=options, overwrite=args.overwrite, progress=True) for job in jobs]
+    for path in written:
+        print(f"wrote {path}")
     return 0

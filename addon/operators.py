@@ -80,6 +80,15 @@ class _QueryJob:
         self.engine = self.localization = None
         self.peak_relevancy: Optional[np.ndarray] = None
 
+    def on_progress(self, fraction: float, stage: str) -> None:
+        """The engine's progress callback during localization: 20-90% of the bar; raises
+        :class:`Cancelled` once the user cancelled, which stops the engine between timesteps."""
+        if self.cancelled:
+            raise _cancelled_error()("the query was cancelled")
+        self.progress = 0.2 + 0.7 * fraction
+        if stage:
+            self.stage = f"localizing: {stage}"
+
     def run(self) -> None:
         try:
             self.stage, self.progress = "opening the language field", 0.05
@@ -87,19 +96,25 @@ class _QueryJob:
             if self.cancelled:
                 return
             self.stage, self.progress = "localizing in time and space", 0.2
-            self.localization = self.engine.localize(self.query, set(ALL_NEEDS))
-            if self.cancelled:
-                return
+            self.localization = self.engine.localize(self.query, set(ALL_NEEDS), progress=self.on_progress)
             temporal = self.localization.temporal
             t = temporal.peak if temporal is not None and temporal.found else 0
             self.stage, self.progress = "relevancy of the Gaussians", 0.9
             self.peak_relevancy = np.asarray(self.engine.gaussian_relevancy(self.query, int(t)), np.float32)
             self.progress, self.stage = 1.0, "done"
         except Exception as exc:  # reported on the main thread
+            if self.cancelled:
+                return
             self.error = _err(exc)
             traceback.print_exc()
         finally:
             self.done = True
+
+
+def _cancelled_error():
+    from fourlegs_engine.errors import Cancelled
+
+    return Cancelled
 
 
 _JOBS: list[_QueryJob] = []
@@ -265,6 +280,7 @@ class FOURLEGS_OT_cancel_query(bpy.types.Operator):
     def execute(self, context):
         cancel_all()
         prepare.cancel_all()
+        _RENDERS.clear()  # each running Render Video stops at its next timer tick
         context.scene.fourlegs.running = False
         return {"FINISHED"}
 
@@ -372,29 +388,110 @@ class FOURLEGS_OT_generate_highlight(bpy.types.Operator):
         return {"FINISHED"}
 
 
+_RENDERS: list[video.RenderJob] = []
+
+
 class FOURLEGS_OT_render_video(bpy.types.Operator):
-    """Render the timeline through the 4-LEGS Splats engine and the compositor to a video or image sequence"""
+    """Render the timeline through the 4-LEGS Splats engine and the compositor to a video or image sequence
+    (one frame per timer tick, so the UI stays responsive; Esc or Cancel stops it)"""
 
     bl_idname = "fourlegs.render_video"
     bl_label = "Render Video"
     bl_options = {"REGISTER"}
 
+    _timer = None
+    _job: Optional[video.RenderJob] = None
+    _cancel = False
+
+    @classmethod
+    def poll(cls, context):
+        return not context.scene.fourlegs.running
+
     def execute(self, context):
+        return self.invoke(context, None)
+
+    def invoke(self, context, event):
         props = context.scene.fourlegs
         if render_engine.plan_of(context.scene) is None:
             self.report({"ERROR"}, "4-LEGS Render Video: no highlight in this scene; run Generate Highlight first")
             return {"CANCELLED"}
-        wm = context.window_manager
-        total = context.scene.frame_end - context.scene.frame_start + 1
-        wm.progress_begin(0, total)
         try:
-            out = video.render_animation(context.scene, props.output_path, fmt=props.output_format,
-                                         overwrite=props.overwrite, on_frame=lambda d, n: wm.progress_update(d))
+            self._job = video.RenderJob(context.scene, props.output_path, fmt=props.output_format,
+                                        overwrite=props.overwrite)
         except Exception as exc:
             self.report({"ERROR"}, f"4-LEGS Render Video: {_err(exc)}")
             return {"CANCELLED"}
-        finally:
-            wm.progress_end()
+        _RENDERS.append(self._job)
+        props.running, props.progress, props.status = True, 0.0, f"rendering frame 1/{self._job.total}"
+        if context.window is not None and interactive():
+            wm = context.window_manager
+            wm.progress_begin(0, self._job.total)
+            self._timer = wm.event_timer_add(0.01, window=context.window)
+            wm.modal_handler_add(self)
+            return {"RUNNING_MODAL"}
+        # background mode has no event loop: render every frame here
+        while self._advance(context):
+            pass
+        return self._end(context)
+
+    def _advance(self, context) -> bool:
+        """Render one frame; False when the job is over (done, failed or cancelled)."""
+        props = context.scene.fourlegs
+        job = self._job
+        if job not in _RENDERS:  # the Cancel button
+            self._cancel = True
+            return False
+        try:
+            more = job.step()
+        except BaseException as exc:
+            self._error = "cancelled" if isinstance(exc, KeyboardInterrupt) else _err(exc)
+            return False
+        props.progress = job.done / job.total
+        props.status = f"rendering frame {min(job.done + 1, job.total)}/{job.total}" if more else "encoding"
+        if self._timer is not None:
+            context.window_manager.progress_update(job.done)
+        return more
+
+    def modal(self, context, event):
+        if event.type == "ESC":
+            self._cancel = True
+            return self._end(context)
+        if event.type == "TIMER":
+            if not self._advance(context):
+                return self._end(context)
+            for area in context.screen.areas if context.screen else []:
+                if area.type in ("VIEW_3D", "PROPERTIES"):
+                    area.tag_redraw()
+        return {"PASS_THROUGH"}
+
+    _error: Optional[str] = None
+
+    def _end(self, context):
+        props = context.scene.fourlegs
+        job = self._job
+        if self._timer is not None:
+            context.window_manager.event_timer_remove(self._timer)
+            context.window_manager.progress_end()
+            self._timer = None
+        if job in _RENDERS:
+            _RENDERS.remove(job)
+        props.running = False
+        if self._cancel or self._error == "cancelled":
+            job.cancel()
+            props.status = "render cancelled"
+            self.report({"WARNING"}, f"4-LEGS Render Video cancelled after {job.done} of {job.total} frames")
+            return {"CANCELLED"}
+        if self._error is not None:
+            props.status = f"error: {self._error}"
+            self.report({"ERROR"}, f"4-LEGS Render Video: {self._error}")
+            return {"CANCELLED"}
+        try:
+            out = job.finish()
+        except Exception as exc:
+            props.status = f"error: {_err(exc)}"
+            self.report({"ERROR"}, f"4-LEGS Render Video: {_err(exc)}")
+            return {"CANCELLED"}
+        props.progress, props.status = 1.0, "video written"
         self.report({"INFO"}, f"wrote {out}")
         return {"FINISHED"}
 

@@ -118,7 +118,12 @@ class FOURLEGS_PT_render(_SidebarSubPanel, bpy.types.Panel):
         layout.prop(props, "output_format")
         layout.prop(props, "output_path")
         layout.prop(props, "overwrite")
-        layout.operator("fourlegs.render_video", icon="RENDER_ANIMATION")
+        if props.running and props.status.startswith(("rendering", "encoding")):
+            row = layout.row(align=True)
+            row.progress(factor=props.progress, type="BAR", text=props.status)
+            row.operator("fourlegs.cancel_query", text="", icon="CANCEL")
+        else:
+            layout.operator("fourlegs.render_video", icon="RENDER_ANIMATION")
 
 
 ui_lists = (FOURLEGS_UL_segments,)

@@ -208,3 +208,27 @@ def test_generate_without_a_query_result_starts_the_query_instead_of_blocking(bl
     assert len(opened) == 1
     assert bl.ops.fourlegs.generate_highlight() == {"FINISHED"}
     assert render_engine.plan_of(bl.context.scene) is not None and len(opened) == 1  # no second localization
+
+
+def test_cancel_stops_the_query_inside_the_temporal_pass(bl, monkeypatch):
+    """Cancel pressed while the engine scores timesteps: it stops at the next timestep, no error shown."""
+    from fourlegs_addon import operators
+
+    scene = tiny_scene()
+    engine = _engine_for(scene)
+    monkeypatch.setattr(operators.querying, "open_query_engine", lambda s, **kw: engine)
+    job = operators._QueryJob(scene, "the cube")
+    seen = []
+    real = job.on_progress
+
+    def press_cancel_after_first_timestep(fraction, stage):
+        seen.append((round(job.progress, 3), stage))
+        if len([s for _, s in seen if s == "scoring timesteps"]) == 2:
+            job.cancelled = True  # what the Cancel button / Esc does
+        real(fraction, stage)
+
+    job.on_progress = press_cancel_after_first_timestep
+    job.run()
+    assert job.done and job.localization is None and job.error is None and job.peak_relevancy is None
+    assert engine.stats["decoded_latents"] == scene.num_gaussians  # one timestep of four scored
+    assert 0.2 <= job.progress < 0.9 and job.stage == "localizing: scoring timesteps"

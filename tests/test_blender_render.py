@@ -213,3 +213,62 @@ def test_frame_by_frame_rendering_resumes_and_encodes(highlight, bl, tmp_path):
     assert video.movie_frame_count(movie) == 5
     with pytest.raises(FileExistsError):
         video.encode_mp4(again, tmp_path / "clip.mp4", fps=12)
+
+
+def test_render_job_renders_one_frame_per_step_and_cancel_leaves_nothing(highlight, bl, tmp_path):
+    """What the modal Render Video does on each timer tick: one frame, progress, cancel removes it all."""
+    from fourlegs_addon import video
+
+    scene, _, _ = highlight
+    scene.frame_end = 4
+    scene.frame_set(2)
+    job = video.RenderJob(scene, tmp_path / "clip.mp4")
+    assert (job.total, job.done) == (4, 0)
+    assert job.step() and job.done == 1 and job.written[0].name == "frame_0001.png"
+    assert job.step() and job.done == 2
+    job.cancel()
+    assert list(tmp_path.iterdir()) == []  # no movie, no temporary frames
+    assert scene.frame_current == 2 and scene.render.image_settings.file_format == "FFMPEG"
+
+    job = video.RenderJob(scene, tmp_path / "clip.mp4")
+    steps = 0
+    while job.step():
+        steps += 1
+    assert steps == 3 and job.done == 4
+    out = job.finish()
+    assert video.movie_frame_count(out) == 4
+    assert [p.name for p in tmp_path.iterdir()] == ["clip.mp4"]
+    with pytest.raises(FileExistsError):
+        video.RenderJob(scene, out)
+
+    seq = video.RenderJob(scene, tmp_path / "frames", fmt="PNG")
+    while seq.step():
+        pass
+    frames = seq.finish()
+    assert sorted(p.name for p in frames.iterdir()) == [f"frame_{i:04d}.png" for i in range(1, 5)]
+
+
+def test_render_video_operator_cancel_button_stops_it_between_frames(highlight, bl, tmp_path):
+    from fourlegs_addon import operators, video
+
+    scene, _, _ = highlight
+    scene.frame_end = 5
+    props = scene.fourlegs
+    props.output_path = str(tmp_path / "clip.mp4")
+    rendered = []
+    real_step = video.RenderJob.step
+
+    def step_then_press_cancel(job):
+        more = real_step(job)
+        rendered.append(job.done)
+        if job.done == 2:
+            bl.ops.fourlegs.cancel_query()  # the panel's Cancel button, as a timer tick would see it
+        return more
+
+    video.RenderJob.step = step_then_press_cancel
+    try:
+        assert bl.ops.fourlegs.render_video() == {"CANCELLED"}
+    finally:
+        video.RenderJob.step = real_step
+    assert rendered == [1, 2] and not props.running and props.status == "render cancelled"
+    assert list(tmp_path.iterdir()) == [] and operators._RENDERS == []

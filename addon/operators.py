@@ -80,6 +80,15 @@ class _QueryJob:
         self.engine = self.localization = None
         self.peak_relevancy: Optional[np.ndarray] = None
 
+    def on_progress(self, fraction: float, stage: str) -> None:
+        """The engine's progress callback during localization: 20-90% of the bar; raises
+        :class:`Cancelled` once the user cancelled, which stops the engine between timesteps."""
+        if self.cancelled:
+            raise _cancelled_error()("the query was cancelled")
+        self.progress = 0.2 + 0.7 * fraction
+        if stage:
+            self.stage = f"localizing: {stage}"
+
     def run(self) -> None:
         try:
             self.stage, self.progress = "opening the language field", 0.05
@@ -87,19 +96,25 @@ class _QueryJob:
             if self.cancelled:
                 return
             self.stage, self.progress = "localizing in time and space", 0.2
-            self.localization = self.engine.localize(self.query, set(ALL_NEEDS))
-            if self.cancelled:
-                return
+            self.localization = self.engine.localize(self.query, set(ALL_NEEDS), progress=self.on_progress)
             temporal = self.localization.temporal
             t = temporal.peak if temporal is not None and temporal.found else 0
             self.stage, self.progress = "relevancy of the Gaussians", 0.9
             self.peak_relevancy = np.asarray(self.engine.gaussian_relevancy(self.query, int(t)), np.float32)
             self.progress, self.stage = 1.0, "done"
         except Exception as exc:  # reported on the main thread
+            if self.cancelled:
+                return
             self.error = _err(exc)
             traceback.print_exc()
         finally:
             self.done = True
+
+
+def _cancelled_error():
+    from fourlegs_engine import api
+
+    return api.Cancelled
 
 
 _JOBS: list[_QueryJob] = []
@@ -111,15 +126,45 @@ def cancel_all() -> None:
         job.cancelled = True
 
 
-class FOURLEGS_OT_run_query(bpy.types.Operator):
+class _JobModal:
+    """Timer-driven modal part shared by the operators running a :class:`_QueryJob` in a worker thread."""
+
+    _timer = None
+    _job: Optional[_QueryJob] = None
+
+    def modal(self, context, event):
+        props = context.scene.fourlegs
+        job = self._job
+        if event.type == "ESC" or job.cancelled:
+            job.cancelled = True
+            self._stop(context)
+            props.running, props.status = False, "cancelled"
+            self.report({"WARNING"}, "4-LEGS query cancelled")
+            return {"CANCELLED"}
+        if event.type == "TIMER":
+            props.progress, props.status = job.progress, job.stage
+            for area in context.screen.areas if context.screen else []:
+                if area.type == "VIEW_3D":
+                    area.tag_redraw()
+            if job.done:
+                self._stop(context)
+                return self._finish(context)
+        return {"PASS_THROUGH"}
+
+    def _stop(self, context) -> None:
+        if self._timer is not None:
+            context.window_manager.event_timer_remove(self._timer)
+            self._timer = None
+        if self._job in _JOBS:
+            _JOBS.remove(self._job)
+
+
+class FOURLEGS_OT_run_query(_JobModal, bpy.types.Operator):
     """Find when and where the query happens (runs in the background; Esc cancels)"""
 
     bl_idname = "fourlegs.run_query"
     bl_label = "Run Query"
     bl_options = {"REGISTER"}
-
-    _timer = None
-    _job: Optional[_QueryJob] = None
 
     @classmethod
     def poll(cls, context):
@@ -150,32 +195,6 @@ class FOURLEGS_OT_run_query(bpy.types.Operator):
         while not self._job.done:
             threading.Event().wait(0.05)
         return self._finish(context)
-
-    def modal(self, context, event):
-        props = context.scene.fourlegs
-        job = self._job
-        if event.type == "ESC" or job.cancelled:
-            job.cancelled = True
-            self._stop(context)
-            props.running, props.status = False, "cancelled"
-            self.report({"WARNING"}, "4-LEGS query cancelled")
-            return {"CANCELLED"}
-        if event.type == "TIMER":
-            props.progress, props.status = job.progress, job.stage
-            for area in context.screen.areas if context.screen else []:
-                if area.type == "VIEW_3D":
-                    area.tag_redraw()
-            if job.done:
-                self._stop(context)
-                return self._finish(context)
-        return {"PASS_THROUGH"}
-
-    def _stop(self, context) -> None:
-        if self._timer is not None:
-            context.window_manager.event_timer_remove(self._timer)
-            self._timer = None
-        if self._job in _JOBS:
-            _JOBS.remove(self._job)
 
     def _finish(self, context):
         props = context.scene.fourlegs
@@ -256,6 +275,117 @@ def store_results(bl_scene, obj, engine: Any, query: str, localization: Any,
         importer.set_relevancy(obj, peak_relevancy, show=True)
 
 
+# ----------------------------------------------------------------------------- multi-scene
+RELEVANCE_KEY = "fourlegs_scene_relevance"
+
+
+def imported_splat_objects() -> list[bpy.types.Object]:
+    """Every 4-LEGS point-cloud object in the file (one per imported scene), in name order."""
+    return sorted((o for o in bpy.data.objects if importer.source_key(o)), key=lambda o: o.name)
+
+
+class _RankJob(_QueryJob):
+    """Ranks several scenes by max_t s_t (the engine's multi-scene selection) in the worker thread."""
+
+    def __init__(self, scenes: dict[str, Any], query: str, encoder: Any = None):
+        super().__init__(None, query, encoder)
+        self.scenes = scenes
+        self.ranking = None
+
+    def run(self) -> None:
+        from fourlegs_engine import api
+
+        try:
+            def opener(scene):
+                def open_engine():
+                    if self.cancelled:
+                        raise api.Cancelled("cancelled")
+                    return querying.open_query_engine(scene, encoder=self.encoder)
+                return open_engine
+
+            scored = [0]
+
+            def on_scene(name, relevance):
+                scored[0] += 1
+                self.progress = 0.9 * scored[0] / len(self.scenes)
+                self.stage = f"scored {scored[0]}/{len(self.scenes)} scenes"
+
+            self.stage, self.progress = f"scoring {len(self.scenes)} scenes", 0.02
+            self.ranking = api.rank_scenes_opening({n: opener(s) for n, s in self.scenes.items()}, self.query,
+                                                   on_scene=on_scene)
+            self.progress, self.stage = 1.0, "done"
+        except Exception as exc:
+            if not self.cancelled:
+                self.error = _err(exc)
+                traceback.print_exc()
+        finally:
+            self.done = True
+
+
+class FOURLEGS_OT_find_best_scene(_JobModal, bpy.types.Operator):
+    """Rank the imported 4-LEGS scenes by how strongly the query happens in them (max over time of s_t, on
+    every 10th timestep) and make the best one the panel's scene (runs in the background; Esc cancels)"""
+
+    bl_idname = "fourlegs.find_best_scene"
+    bl_label = "Find Best Scene"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        return self.invoke(context, None)
+
+    @classmethod
+    def poll(cls, context):
+        props = context.scene.fourlegs
+        return len(imported_splat_objects()) > 1 and bool(props.query.strip()) and not props.running
+
+    def invoke(self, context, event):
+        props = context.scene.fourlegs
+        try:
+            scenes = {obj.name: importer.engine_scene_for(obj) for obj in imported_splat_objects()}
+        except Exception as exc:
+            self.report({"ERROR"}, f"4-LEGS Find Best Scene: {_err(exc)}")
+            return {"CANCELLED"}
+        self._job = _RankJob(scenes, props.query.strip(), querying.encoder_config(props))
+        _JOBS.append(self._job)
+        threading.Thread(target=self._job.run, name="fourlegs-rank", daemon=True).start()
+        props.running, props.progress, props.status = True, 0.0, "ranking scenes"
+        wm = context.window_manager
+        if context.window is not None and not bpy.app.background:
+            self._timer = wm.event_timer_add(0.2, window=context.window)
+            wm.modal_handler_add(self)
+            return {"RUNNING_MODAL"}
+        while not self._job.done:
+            threading.Event().wait(0.05)
+        self._stop(context)
+        return self._finish(context)
+
+    def _finish(self, context):
+        props = context.scene.fourlegs
+        job = self._job
+        props.running = False
+        if job.error is not None:
+            props.status = f"error: {job.error}"
+            self.report({"ERROR"}, f"4-LEGS Find Best Scene: {job.error}")
+            return {"CANCELLED"}
+        ranking = job.ranking
+        for name, relevance in ranking.ranking:
+            bpy.data.objects[name][RELEVANCE_KEY] = float(relevance)
+        table = ", ".join(f"{n} {r:.3f}" for n, r in ranking.ranking)
+        if ranking.best is None:
+            props.status = "not found in any scene"
+            self.report({"WARNING"}, f"4-LEGS: {job.query!r} was not found in any scene ({table})")
+            return {"FINISHED"}
+        best = bpy.data.objects[ranking.best]
+        props.splat_object = best
+        props.num_timesteps = int(job.scenes[ranking.best].num_timesteps)
+        for obj in context.view_layer.objects:
+            obj.select_set(obj == best)
+        context.view_layer.objects.active = best
+        props.progress, props.status = 1.0, f"best scene: {best.name}"
+        self.report({"INFO"}, f"4-LEGS: {job.query!r} best in {best.name} (max_t s_t: {table})")
+        return {"FINISHED"}
+
+
 class FOURLEGS_OT_cancel_query(bpy.types.Operator):
     """Stop the running query"""
 
@@ -265,6 +395,7 @@ class FOURLEGS_OT_cancel_query(bpy.types.Operator):
     def execute(self, context):
         cancel_all()
         prepare.cancel_all()
+        _RENDERS.clear()  # each running Render Video stops at its next timer tick
         context.scene.fourlegs.running = False
         return {"FINISHED"}
 
@@ -372,32 +503,114 @@ class FOURLEGS_OT_generate_highlight(bpy.types.Operator):
         return {"FINISHED"}
 
 
+_RENDERS: list[video.RenderJob] = []
+
+
 class FOURLEGS_OT_render_video(bpy.types.Operator):
-    """Render the timeline through the 4-LEGS Splats engine and the compositor to a video or image sequence"""
+    """Render the timeline through the 4-LEGS Splats engine and the compositor to a video or image sequence
+    (one frame per timer tick, so the UI stays responsive; Esc or Cancel stops it)"""
 
     bl_idname = "fourlegs.render_video"
     bl_label = "Render Video"
     bl_options = {"REGISTER"}
 
+    _timer = None
+    _job: Optional[video.RenderJob] = None
+    _cancel = False
+
+    @classmethod
+    def poll(cls, context):
+        return not context.scene.fourlegs.running
+
     def execute(self, context):
+        return self.invoke(context, None)
+
+    def invoke(self, context, event):
         props = context.scene.fourlegs
         if render_engine.plan_of(context.scene) is None:
             self.report({"ERROR"}, "4-LEGS Render Video: no highlight in this scene; run Generate Highlight first")
             return {"CANCELLED"}
-        wm = context.window_manager
-        total = context.scene.frame_end - context.scene.frame_start + 1
-        wm.progress_begin(0, total)
         try:
-            out = video.render_animation(context.scene, props.output_path, fmt=props.output_format,
-                                         overwrite=props.overwrite, on_frame=lambda d, n: wm.progress_update(d))
+            self._job = video.RenderJob(context.scene, props.output_path, fmt=props.output_format,
+                                        overwrite=props.overwrite)
         except Exception as exc:
             self.report({"ERROR"}, f"4-LEGS Render Video: {_err(exc)}")
             return {"CANCELLED"}
-        finally:
-            wm.progress_end()
+        _RENDERS.append(self._job)
+        props.running, props.progress, props.status = True, 0.0, f"rendering frame 1/{self._job.total}"
+        if context.window is not None and interactive():
+            wm = context.window_manager
+            wm.progress_begin(0, self._job.total)
+            self._timer = wm.event_timer_add(0.01, window=context.window)
+            wm.modal_handler_add(self)
+            return {"RUNNING_MODAL"}
+        # background mode has no event loop: render every frame here
+        while self._advance(context):
+            pass
+        return self._end(context)
+
+    def _advance(self, context) -> bool:
+        """Render one frame; False when the job is over (done, failed or cancelled)."""
+        props = context.scene.fourlegs
+        job = self._job
+        if job not in _RENDERS:  # the Cancel button
+            self._cancel = True
+            return False
+        try:
+            more = job.step()
+        except BaseException as exc:
+            self._error = "cancelled" if isinstance(exc, KeyboardInterrupt) else _err(exc)
+            return False
+        props.progress = job.done / job.total
+        props.status = f"rendering frame {min(job.done + 1, job.total)}/{job.total}" if more else "encoding"
+        if self._timer is not None:
+            context.window_manager.progress_update(job.done)
+        return more
+
+    def modal(self, context, event):
+        if event.type == "ESC":
+            self._cancel = True
+            return self._end(context)
+        if event.type == "TIMER":
+            if not self._advance(context):
+                return self._end(context)
+            for area in context.screen.areas if context.screen else []:
+                if area.type in ("VIEW_3D", "PROPERTIES"):
+                    area.tag_redraw()
+        return {"PASS_THROUGH"}
+
+    _error: Optional[str] = None
+
+    def _end(self, context):
+        props = context.scene.fourlegs
+        job = self._job
+        if self._timer is not None:
+            context.window_manager.event_timer_remove(self._timer)
+            context.window_manager.progress_end()
+            self._timer = None
+        if job in _RENDERS:
+            _RENDERS.remove(job)
+        props.running = False
+        if self._cancel or self._error == "cancelled":
+            job.cancel()
+            props.status = "render cancelled"
+            self.report({"WARNING"}, f"4-LEGS Render Video cancelled after {job.done} of {job.total} frames")
+            return {"CANCELLED"}
+        if self._error is not None:
+            props.status = f"error: {self._error}"
+            self.report({"ERROR"}, f"4-LEGS Render Video: {self._error}")
+            return {"CANCELLED"}
+        try:
+            out = job.finish()
+        except Exception as exc:
+            props.status = f"error: {_err(exc)}"
+            self.report({"ERROR"}, f"4-LEGS Render Video: {_err(exc)}")
+            return {"CANCELLED"}
+        props.progress, props.status = 1.0, "video written"
         self.report({"INFO"}, f"wrote {out}")
         return {"FINISHED"}
 
 
-classes = (FOURLEGS_OT_import_scene, FOURLEGS_OT_run_query, FOURLEGS_OT_cancel_query, FOURLEGS_OT_show_relevancy,
+classes = (FOURLEGS_OT_import_scene, FOURLEGS_OT_run_query, FOURLEGS_OT_find_best_scene, FOURLEGS_OT_cancel_query,
+           FOURLEGS_OT_show_relevancy,
            FOURLEGS_OT_generate_highlight, FOURLEGS_OT_render_video)

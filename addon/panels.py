@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import importer, plots, preferences, prepare, render_engine
+from . import importer, operators, plots, preferences, prepare, render_engine
 
 
 class FOURLEGS_PT_main(bpy.types.Panel):
@@ -68,6 +68,8 @@ class FOURLEGS_PT_query(_SidebarSubPanel, bpy.types.Panel):
             row.operator("fourlegs.cancel_query", text="", icon="CANCEL")
         else:
             layout.operator("fourlegs.run_query", icon="VIEWZOOM")
+            if len(operators.imported_splat_objects()) > 1:
+                layout.operator("fourlegs.find_best_scene", icon="SORTSIZE")
             if props.status:
                 layout.label(text=props.status)
         if len(props.segments) > 1:
@@ -118,7 +120,12 @@ class FOURLEGS_PT_render(_SidebarSubPanel, bpy.types.Panel):
         layout.prop(props, "output_format")
         layout.prop(props, "output_path")
         layout.prop(props, "overwrite")
-        layout.operator("fourlegs.render_video", icon="RENDER_ANIMATION")
+        if props.running and props.status.startswith(("rendering", "encoding")):
+            row = layout.row(align=True)
+            row.progress(factor=props.progress, type="BAR", text=props.status)
+            row.operator("fourlegs.cancel_query", text="", icon="CANCEL")
+        else:
+            layout.operator("fourlegs.render_video", icon="RENDER_ANIMATION")
 
 
 ui_lists = (FOURLEGS_UL_segments,)

@@ -172,13 +172,16 @@ def srgb_to_linear_torch(c, out=None):
 
 
 def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *, frame: int,
-                  relevancy_pass: bool, depth: bool = True, plan: Any = ...) -> dict[str, np.ndarray]:
+                  relevancy_pass: bool, depth: bool = True, plan: Any = ..., camera: Any = None,
+                  transparent: Optional[bool] = None) -> dict[str, np.ndarray]:
     """Rasterize the current state: returns top-down (H,W,·) float32 arrays rgba, depth, [relevancy].
 
     ``depth=False`` skips the depth output (the pass is filled with "nothing hit"); relevancy is
     computed only when ``relevancy_pass`` and ``frame`` is in the plan's relevancy ranges or the keyed
     desaturation is on there (an editor may have moved the desaturated shot).
     ``plan``: the scene's plan when the caller already has it (default: read it).
+    ``camera``: an engine ``Camera`` of ``width`` x ``height`` (default: the scene's active camera).
+    ``transparent``: alpha = coverage (default: the scene's ``film_transparent``).
     """
     import torch
 
@@ -186,7 +189,7 @@ def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *,
     t = float(scene.fourlegs.timestep)
     compute_rel = relevancy_pass and (frames_in_ranges(relevancy_frames(scene, plan), frame)
                                       or compositor.desaturation_at(scene, frame) > 0.0)
-    camera = scene_camera(scene, depsgraph, width, height)
+    camera = scene_camera(scene, depsgraph, width, height) if camera is None else camera
     data = gather_gaussians(scene, t, compute_rel, plan)
     out: dict[str, np.ndarray] = {}
     if data is None:
@@ -207,7 +210,7 @@ def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *,
         alpha = res["alpha"].to(torch.float32)
         rgba = torch.empty((height, width, 4), dtype=torch.float32)
         srgb_to_linear_torch(res["rgb"], out=rgba[..., :3])  # Blender's Combined is scene-linear
-        if scene.render.film_transparent:
+        if scene.render.film_transparent if transparent is None else transparent:
             rgba[..., 3:].copy_(alpha)
         else:
             rgba[..., 3].fill_(1.0)
@@ -242,12 +245,92 @@ def write_pass(render_pass, img: np.ndarray) -> None:
         render_pass.rect = rect
 
 
+#: longest side, in pixels, of the viewport image the CPU rasterizer draws (scaled up to the region)
+VIEWPORT_MAX_SIDE = 320
+
+
+def viewport_camera(view_matrix, window_matrix, width: int, height: int, near: float = 0.01, far: float = 1000.0):
+    """An engine ``Camera`` (OpenCV) of ``width`` x ``height`` pixels seeing what a 3D viewport sees.
+
+    Args:
+        view_matrix: (4,4) world -> OpenGL view (``region_data.view_matrix``).
+        window_matrix: (4,4) OpenGL perspective projection (``region_data.window_matrix``).
+    Raises RuntimeError for an orthographic view (the rasterizer is perspective only).
+    """
+    P = np.array(window_matrix, dtype=np.float64)
+    if abs(P[3, 3]) > 1e-9 or abs(P[3, 2] + 1.0) > 1e-6:
+        raise RuntimeError("orthographic view: the splat viewport needs a perspective view (numpad 5)")
+    # OpenGL NDC -> top-down pixels, with OpenCV camera axes (y down, z forward) = GL axes (1, -1, -1)
+    K = np.array([[P[0, 0] * width / 2.0, 0.0, width / 2.0 * (1.0 - P[0, 2])],
+                  [0.0, P[1, 1] * height / 2.0, height / 2.0 * (1.0 + P[1, 2])],
+                  [0.0, 0.0, 1.0]])
+    w2c = np.diag([1.0, -1.0, -1.0, 1.0]) @ np.array(view_matrix, dtype=np.float64)
+    from fourlegs_engine import api
+
+    return api.Camera(K=K, w2c=w2c, width=int(width), height=int(height), near=max(float(near), 1e-4),
+                      far=max(float(far), 2.0 * max(float(near), 1e-4)), name="viewport")
+
+
+def viewport_size(region_width: int, region_height: int, max_side: int = VIEWPORT_MAX_SIDE) -> tuple[int, int]:
+    """(width, height) of the image rasterized for a region: its aspect, the longest side at most ``max_side``."""
+    scale = min(1.0, max_side / max(region_width, region_height, 1))
+    return max(1, round(region_width * scale)), max(1, round(region_height * scale))
+
+
+def viewport_image(scene: bpy.types.Scene, view_matrix, window_matrix, region_width: int, region_height: int, *,
+                   near: float = 0.01, far: float = 1000.0, max_side: int = VIEWPORT_MAX_SIDE) -> np.ndarray:
+    """Top-down (h,w,4) scene-linear RGBA of the splats at the scene timestep seen from the viewport, at
+    :func:`viewport_size` (alpha = coverage, so the viewport's background shows where nothing is)."""
+    width, height = viewport_size(region_width, region_height, max_side)
+    camera = viewport_camera(view_matrix, window_matrix, width, height, near, far)
+    arrays = render_arrays(scene, None, width, height, frame=scene.frame_current, relevancy_pass=False,
+                           depth=False, plan=None, camera=camera, transparent=True)
+    return arrays["rgba"]
+
+
+def _draw_image(engine: "FourlegsRenderEngine", scene, rgba: np.ndarray, region_width: int, region_height: int) -> None:
+    """Draw a top-down (h,w,4) linear image over the whole region through Blender's display transform."""
+    import gpu
+    from gpu_extras.presets import draw_texture_2d
+
+    h, w = rgba.shape[:2]
+    pixels = gpu.types.Buffer("FLOAT", w * h * 4, _to_rect(rgba).ravel())  # buffer protocol: one copy
+    texture = gpu.types.GPUTexture((w, h), format="RGBA16F", data=pixels)
+    gpu.state.blend_set("ALPHA_PREMULT")
+    engine.bind_display_space_shader(scene)
+    draw_texture_2d(texture, (0, 0), region_width, region_height)
+    engine.unbind_display_space_shader()
+    gpu.state.blend_set("NONE")
+
+
 class FourlegsRenderEngine(bpy.types.RenderEngine):
     bl_idname = ENGINE_ID
     bl_label = "4-LEGS Splats"
     bl_use_preview = False
     bl_use_postprocess = True
     bl_use_shading_nodes_custom = False
+
+    def view_update(self, context, depsgraph):
+        self._view_key = None  # the scene changed (timestep, objects): draw again
+
+    def view_draw(self, context, depsgraph):
+        """Viewport (Rendered shading): the splats through the CPU rasterizer at interactive resolution,
+        drawn again only when the view, the timestep or the scene changed."""
+        region, rv3d, space = context.region, context.region_data, context.space_data
+        scene = depsgraph.scene
+        key = (tuple(map(tuple, rv3d.view_matrix)), tuple(map(tuple, rv3d.window_matrix)), region.width,
+               region.height, float(scene.fourlegs.timestep))
+        try:
+            if key != getattr(self, "_view_key", None) or getattr(self, "_view_image", None) is None:
+                self._view_image = viewport_image(scene, rv3d.view_matrix, rv3d.window_matrix, region.width,
+                                                  region.height, near=space.clip_start, far=space.clip_end)
+                self._view_key = key
+            _draw_image(self, scene, self._view_image, region.width, region.height)
+        except Exception as exc:  # an orthographic view, a missing scene: say it once, draw nothing
+            message = f"4-LEGS Splats viewport: {exc}"
+            if getattr(self, "_view_error", None) != message:
+                self._view_error = message
+                print(message)
 
     def update_render_passes(self, scene=None, renderlayer=None):
         self.register_pass(scene, renderlayer, "Combined", 4, "RGBA", "COLOR")

@@ -267,3 +267,97 @@ def encode_mp4(frames: Sequence[Path], output: str | Path, *, fps: int, fps_base
         return render_animation(encoder, output, fmt="MP4", overwrite=overwrite)
     finally:
         bpy.data.scenes.remove(encoder)
+
+
+class RenderJob:
+    """Render the frame range one frame per :meth:`step`, so a modal operator can keep the UI responsive.
+
+    Frames go to a temporary sibling directory of ``output`` (``frame_####.png``/``.exr``, each written
+    under a temporary name and checked complete before it is renamed); :meth:`finish` encodes them to
+    the MP4 (or moves the sequence directory onto ``output``) and :meth:`cancel` removes them, so
+    neither a cancelled nor a failed render leaves anything at ``output``. The scene's output path,
+    compositing switch and current frame are restored by both.
+    """
+
+    def __init__(self, scene: bpy.types.Scene, output: str | Path, *, fmt: str = "MP4", overwrite: bool = False):
+        self.scene, self.fmt, self.overwrite = scene, fmt.upper(), overwrite
+        if self.fmt not in FORMATS:
+            raise ValueError(f"unknown output format {fmt!r} (one of {', '.join(FORMATS)})")
+        self.output = Path(bpy.path.abspath(str(output))).resolve()
+        if self.output.exists() and not overwrite:
+            raise OutputExists(self.output)
+        self.output.parent.mkdir(parents=True, exist_ok=True)
+        self.frames = list(range(scene.frame_start, scene.frame_end + 1))
+        self.written: list[Path] = []
+        self._saved = (scene.render.filepath, scene.render.use_compositing, scene.frame_current)
+        self._composite = compositing_frames(scene)
+        self._size = _output_size(scene)
+        self._ext = ".exr" if self.fmt == "EXR" else ".png"
+        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.output.name}.", suffix=".part", dir=self.output.parent))
+        configure_output(scene, "EXR" if self.fmt == "EXR" else "PNG")
+
+    @property
+    def total(self) -> int:
+        return len(self.frames)
+
+    @property
+    def done(self) -> int:
+        return len(self.written)
+
+    def step(self) -> bool:
+        """Render the next frame; True while frames remain. Raises (after :meth:`cancel`) on failure."""
+        try:
+            if self.done < self.total:
+                self._render(self.frames[self.done])
+            return self.done < self.total
+        except BaseException:
+            self.cancel()
+            raise
+
+    def _render(self, frame: int) -> None:
+        scene = self.scene
+        target = self.tmp / f"frame_{frame:04d}{self._ext}"
+        part = self.tmp / f".frame_{frame:04d}.part{self._ext}"
+        if self._composite is not None:
+            scene.render.use_compositing = frame in self._composite
+        scene.frame_set(frame)
+        scene.render.filepath = str(part)
+        result = bpy.ops.render.render(write_still=True, scene=scene.name)
+        if render_engine.stats.get("cancelled"):
+            raise KeyboardInterrupt
+        if "FINISHED" not in result or not part.is_file():
+            raise RuntimeError(f"rendering frame {frame} stopped ({result})")
+        _check_complete(part, self.output / target.name if self.fmt != "MP4" else self.output,
+                        self._size if self.fmt != "EXR" else None)
+        part.replace(target)
+        self.written.append(target)
+
+    def finish(self) -> Path:
+        """Write the output from the rendered frames (every frame must be done); returns its path."""
+        if self.done < self.total:
+            raise RuntimeError(f"only {self.done} of {self.total} frames rendered")
+        try:
+            self._restore()
+            if self.fmt == "MP4":
+                encode_mp4(self.written, self.output, fps=self.scene.render.fps,
+                           fps_base=self.scene.render.fps_base, overwrite=self.overwrite)
+            else:
+                if self.output.exists():
+                    self.output.unlink() if self.output.is_file() else shutil.rmtree(self.output)
+                self.tmp.replace(self.output)
+            return self.output
+        finally:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+
+    def cancel(self) -> None:
+        """Stop: remove the frames rendered so far and restore the scene's settings."""
+        self._restore()
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+    def _restore(self) -> None:
+        filepath, compositing, frame = self._saved
+        self.scene.render.filepath = filepath
+        self.scene.render.use_compositing = compositing
+        configure_output(self.scene, self.fmt)  # the scene's output is the video it made
+        if self.scene.frame_current != frame:
+            self.scene.frame_set(frame)

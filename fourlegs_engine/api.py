@@ -15,7 +15,8 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-from .errors import FourlegsError, InputError, OutputExistsError, describe_environment_error, print_error
+from .errors import (Cancelled, FourlegsError, InputError, OutputExistsError, describe_environment_error,
+                     print_error)
 
 # name -> engine module it lives in. They are imported on first use, so a front end that only opens and
 # shows a scene (the Blender add-on's import and timeline playback) runs without PyTorch installed.
@@ -30,6 +31,7 @@ _LAZY = {
     "has_language_field": "pipeline", "open_query_engine": "pipeline", "open_scene": "pipeline",
     "text_encoder": "pipeline",
     "rasterize": "render",
+    "rank_scenes_opening": "query.multiscene",
     "Camera": "scene", "Scene": "scene", "load_scene": "scene",
     "torch_threads": "threads", "kernel_threads": "threads",
 }
@@ -40,6 +42,7 @@ if TYPE_CHECKING:
     from .highlights import available_presets, load_preset, plan_highlight, plan_needs
     from .pipeline import (EncoderConfig, FieldStep, QueryOptions, ensure_language_field, has_language_field,
                            language_field_steps, open_query_engine, open_scene, text_encoder)
+    from .query.multiscene import rank_scenes_opening
     from .render import rasterize
     from .scene import Camera, Scene, load_scene
     from .threads import kernel_threads, torch_threads
@@ -59,9 +62,9 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(_LAZY))
 
 
-__all__ = ["Camera", "EncoderConfig", "FieldStep", "FourlegsError", "InputError", "OUTPUTS_MARKER",
+__all__ = ["Cancelled", "Camera", "EncoderConfig", "FieldStep", "FourlegsError", "InputError", "OUTPUTS_MARKER",
            "OutputExistsError", "QueryOptions", "Scene", "atomic_path", "available_presets", "check_text",
            "claim_outputs", "describe_environment_error", "ensure_language_field", "has_language_field",
            "image_file_problem", "incomplete_write_error", "kernel_threads", "language_field_steps", "load_preset",
            "load_scene", "open_query_engine", "open_scene", "plan_highlight", "plan_needs", "print_error",
-           "rasterize", "text_encoder", "torch_threads", "write_json_atomic"]
+           "rank_scenes_opening", "rasterize", "text_encoder", "torch_threads", "write_json_atomic"]

@@ -29,6 +29,10 @@ class InputError(FourlegsError, ValueError):
         super().__init__(": ".join(parts + [problem]))
 
 
+class Cancelled(FourlegsError):
+    """A long computation stopped because its progress callback asked it to (the user cancelled)."""
+
+
 class ConfigMismatchError(FourlegsError):
     """Existing partial results were produced by a different configuration."""
 

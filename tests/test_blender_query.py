@@ -208,3 +208,73 @@ def test_generate_without_a_query_result_starts_the_query_instead_of_blocking(bl
     assert len(opened) == 1
     assert bl.ops.fourlegs.generate_highlight() == {"FINISHED"}
     assert render_engine.plan_of(bl.context.scene) is not None and len(opened) == 1  # no second localization
+
+
+def test_cancel_stops_the_query_inside_the_temporal_pass(bl, monkeypatch):
+    """Cancel pressed while the engine scores timesteps: it stops at the next timestep, no error shown."""
+    from fourlegs_addon import operators
+
+    scene = tiny_scene()
+    engine = _engine_for(scene)
+    monkeypatch.setattr(operators.querying, "open_query_engine", lambda s, **kw: engine)
+    job = operators._QueryJob(scene, "the cube")
+    seen = []
+    real = job.on_progress
+
+    def press_cancel_after_first_timestep(fraction, stage):
+        seen.append((round(job.progress, 3), stage))
+        if len([s for _, s in seen if s == "scoring timesteps"]) == 2:
+            job.cancelled = True  # what the Cancel button / Esc does
+        real(fraction, stage)
+
+    job.on_progress = press_cancel_after_first_timestep
+    job.run()
+    assert job.done and job.localization is None and job.error is None and job.peak_relevancy is None
+    assert engine.stats["decoded_latents"] == scene.num_gaussians  # one timestep of four scored
+    assert 0.2 <= job.progress < 0.9 and job.stage == "localizing: scoring timesteps"
+
+
+def _ranked_bundle(path, label, active):
+    from _blender_helpers import language_bundle
+
+    language_bundle(path, T=6, N=200, query_label=label)
+    lat = np.load(path / "language" / "latents.npy")
+    lat[:, :, :] = [0.0, 1.0]
+    lat[list(active), :100] = [1.0, 0.0]  # the label's Gaussians at these timesteps only
+    np.save(path / "language" / "latents.npy", lat)
+    return path
+
+
+def test_find_best_scene_ranks_the_imported_scenes_and_selects_the_best(bl, tmp_path):
+    from fourlegs_addon import importer, operators, querying
+    from fourlegs_engine.query.multiscene import scene_relevance
+
+    cube = _ranked_bundle(tmp_path / "cube", "red cube", active=(0, 1))
+    ball = _ranked_bundle(tmp_path / "ball", "blue ball", active=(0, 1))
+    objs = {}
+    for path in (cube, ball):
+        scene = importer.load_engine_scene(path)
+        objs[path.name] = importer.import_scene(bl.context.scene, scene, source=str(path))
+    props = bl.context.scene.fourlegs
+    props.splat_object = objs["ball"]
+    props.query = ""
+    assert not bl.ops.fourlegs.find_best_scene.poll()  # needs a query
+    props.query = "red cube"
+    assert bl.ops.fourlegs.find_best_scene.poll()
+    assert bl.ops.fourlegs.find_best_scene() == {"FINISHED"}
+    want = {name: scene_relevance(querying.open_query_engine(importer.engine_scene_for(obj)), "red cube", 10)
+            for name, obj in objs.items()}
+    assert want["cube"] > want["ball"] and want["cube"] > 0  # the paper's stride 10 samples t=0 here
+    for name, obj in objs.items():
+        assert obj[operators.RELEVANCE_KEY] == pytest.approx(want[name])
+    assert props.splat_object == objs["cube"] and objs["cube"].select_get() and not objs["ball"].select_get()
+    assert bl.context.view_layer.objects.active == objs["cube"]
+    assert props.status == f"best scene: {objs['cube'].name}" and not props.running
+    from fourlegs_addon import panels
+
+    log = []
+    panels.FOURLEGS_PT_query.draw(type("P", (), {"layout": _Layout(log)})(), bl.context)
+    assert "fourlegs.find_best_scene" in [a[0] for name, a, k in log if name == "operator"]
+    # one scene only: nothing to rank
+    bl.data.objects.remove(objs["ball"])
+    assert not bl.ops.fourlegs.find_best_scene.poll()

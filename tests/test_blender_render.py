@@ -213,3 +213,99 @@ def test_frame_by_frame_rendering_resumes_and_encodes(highlight, bl, tmp_path):
     assert video.movie_frame_count(movie) == 5
     with pytest.raises(FileExistsError):
         video.encode_mp4(again, tmp_path / "clip.mp4", fps=12)
+
+
+def test_render_job_renders_one_frame_per_step_and_cancel_leaves_nothing(highlight, bl, tmp_path):
+    """What the modal Render Video does on each timer tick: one frame, progress, cancel removes it all."""
+    from fourlegs_addon import video
+
+    scene, _, _ = highlight
+    scene.frame_end = 4
+    scene.frame_set(2)
+    job = video.RenderJob(scene, tmp_path / "clip.mp4")
+    assert (job.total, job.done) == (4, 0)
+    assert job.step() and job.done == 1 and job.written[0].name == "frame_0001.png"
+    assert job.step() and job.done == 2
+    job.cancel()
+    assert list(tmp_path.iterdir()) == []  # no movie, no temporary frames
+    assert scene.frame_current == 2 and scene.render.image_settings.file_format == "FFMPEG"
+
+    job = video.RenderJob(scene, tmp_path / "clip.mp4")
+    steps = 0
+    while job.step():
+        steps += 1
+    assert steps == 3 and job.done == 4
+    out = job.finish()
+    assert video.movie_frame_count(out) == 4
+    assert [p.name for p in tmp_path.iterdir()] == ["clip.mp4"]
+    with pytest.raises(FileExistsError):
+        video.RenderJob(scene, out)
+
+    seq = video.RenderJob(scene, tmp_path / "frames", fmt="PNG")
+    while seq.step():
+        pass
+    frames = seq.finish()
+    assert sorted(p.name for p in frames.iterdir()) == [f"frame_{i:04d}.png" for i in range(1, 5)]
+
+
+def test_render_video_operator_cancel_button_stops_it_between_frames(highlight, bl, tmp_path):
+    from fourlegs_addon import operators, video
+
+    scene, _, _ = highlight
+    scene.frame_end = 5
+    props = scene.fourlegs
+    props.output_path = str(tmp_path / "clip.mp4")
+    rendered = []
+    real_step = video.RenderJob.step
+
+    def step_then_press_cancel(job):
+        more = real_step(job)
+        rendered.append(job.done)
+        if job.done == 2:
+            bl.ops.fourlegs.cancel_query()  # the panel's Cancel button, as a timer tick would see it
+        return more
+
+    video.RenderJob.step = step_then_press_cancel
+    try:
+        assert bl.ops.fourlegs.render_video() == {"CANCELLED"}
+    finally:
+        video.RenderJob.step = real_step
+    assert rendered == [1, 2] and not props.running and props.status == "render cancelled"
+    assert list(tmp_path.iterdir()) == [] and operators._RENDERS == []
+
+
+def test_viewport_image_is_the_render_seen_from_the_viewport_matrices(highlight, bl):
+    """view_draw's image: the CPU rasterizer from the region's view/window matrices. Given the scene
+    camera's own matrices it must equal an F12 render of the same size."""
+    from fourlegs_addon import render_engine
+
+    scene, _, _ = highlight
+    scene.frame_set(4)
+    depsgraph = bl.context.evaluated_depsgraph_get()
+    cam = scene.camera.evaluated_get(depsgraph)
+    w, h = 32, 24
+    window = cam.calc_matrix_camera(depsgraph, x=w, y=h)
+    view = cam.matrix_world.inverted()
+    img = render_engine.viewport_image(scene, view, window, w, h, near=cam.data.clip_start, far=cam.data.clip_end)
+    ref = render_engine.render_arrays(scene, depsgraph, w, h, frame=4, relevancy_pass=False, depth=False, plan=None,
+                                      transparent=True)["rgba"]
+    assert img.shape == (h, w, 4)
+    np.testing.assert_allclose(img, ref, atol=2e-5)
+    assert 0.05 < (img[..., 3] > 0.5).mean() < 0.95  # the cube covers part of the view, alpha is coverage
+    # a region larger than the interactive size is rasterized smaller, same aspect, then scaled up
+    assert render_engine.VIEWPORT_MAX_SIDE == 320
+    assert render_engine.viewport_size(1920, 1080) == (320, 180)
+    assert render_engine.viewport_size(300, 200) == (300, 200)
+    big = render_engine.viewport_image(scene, view, window, 640, 480)
+    assert big.shape == (240, 320, 4) and big[..., 3].max() > 0.5
+    # the view moved: another image; orthographic: one clear error
+    moved = view.copy()
+    moved.translation.x += 0.5
+    assert np.abs(render_engine.viewport_image(scene, moved, window, w, h) - img).max() > 0.1
+    ortho = window.copy()
+    ortho[3][2], ortho[3][3] = 0.0, 1.0
+    with pytest.raises(RuntimeError, match="perspective"):
+        render_engine.viewport_image(scene, view, ortho, w, h)
+    # the engine draws in the viewport (Rendered shading), not only on F12
+    assert "view_draw" in render_engine.FourlegsRenderEngine.__dict__
+    assert "view_update" in render_engine.FourlegsRenderEngine.__dict__

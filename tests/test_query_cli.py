@@ -22,11 +22,14 @@ from _query_helpers import two_cluster_scene
 @pytest.fixture(scope="module")
 def bundle(tmp_path_factory):
     """A bundle with a real decoder file whose first layers pass the latent through unchanged."""
+    return _clusters_bundle(tmp_path_factory.mktemp("q") / "clusters", active=(2, 3))
+
+
+def _clusters_bundle(root, active, T=5):
     from fourlegs_engine.language.autoencoder import FeatureDecoder
 
-    scene, field, enc, dirs = two_cluster_scene(T=5, active=(2, 3), d=8, D=16)
+    scene, field, enc, dirs = two_cluster_scene(T=T, active=active, d=8, D=16)
     scene.gaussians.latents = field.latents
-    root = tmp_path_factory.mktemp("q") / "clusters"
     write_bundle(scene, root)
     dec = FeatureDecoder((8, 8, 8, 16))
     with torch.no_grad():
@@ -115,3 +118,44 @@ def test_multiscene_ranks_the_scene_with_the_action_first():
     assert res.localization.temporal.found and engines["without"].stats["temporal"] == 1
     json.dumps(res.to_dict(), allow_nan=False)
     assert rank_scenes({"without": engines["without"]}, "a ball flying").best is None
+
+
+def test_query_with_several_scenes_ranks_them_and_localizes_in_the_best(bundle, tmp_path, monkeypatch, capsys):
+    from fourlegs_engine.language.field import LanguageField
+    from fourlegs_engine.query.multiscene import scene_relevance
+    from fourlegs_engine.query.options import QueryOptions
+    from fourlegs_engine.scene.bundle import load_bundle
+
+    root, enc = bundle
+    without, _ = _clusters_bundle(tmp_path / "quiet", active=())
+    late, _ = _clusters_bundle(tmp_path / "late", active=(9, 10, 11), T=20)
+    monkeypatch.setattr(pipeline, "text_encoder", lambda scene, config=None: enc)
+    paths = (without, late, root)
+
+    def expected(stride):  # max_t s_t on every stride-th timestep, computed here scene by scene
+        out = {}
+        for path in paths:
+            engine = QueryEngine(load_bundle(path), LanguageField.open(path), enc, QueryOptions())
+            out[str(path)] = scene_relevance(engine, "a ball flying", stride)
+        return out
+
+    for stride, best in ((10, late), (1, root)):  # at stride 10 the short scene's action is not sampled
+        out = tmp_path / f"rank{stride}.json"
+        extra = [] if stride == 10 else ["--scene-stride", str(stride)]
+        rc = main(["query", *map(str, paths), "a ball flying", "--json", str(out), "--no-spatial", *extra])
+        text = capsys.readouterr().out
+        assert rc == 0, text
+        data = json.loads(out.read_text())
+        want = expected(stride)
+        names = [n for n, _ in data["ranking"]]
+        assert {n: s for n, s in data["ranking"]} == pytest.approx(want)
+        assert names == sorted(want, key=lambda n: -want[n]) and want[str(without)] == 0.0
+        assert data["best"] == names[0] == str(best) and data["scene_stride"] == stride
+        assert data["localization"]["found"] and want[str(best)] > max(v for k, v in want.items() if k != str(best))
+        table = [line.split() for line in text.splitlines() if line.split()[:1] in (["1"], ["2"], ["3"])]
+        assert [row[1] for row in table] == names and table[0][-1] == "best"
+    # ranking only: exr/plot of one scene are refused, as is a scene given twice
+    assert main(["query", str(root), str(late), "a ball flying", "--exr", str(tmp_path / "m")]) == 2
+    assert main(["query", str(root), str(root), "a ball flying"]) == 2
+    assert main(["query", str(root), "a ball flying", "--scene-stride", "2"]) == 2
+    assert not (tmp_path / "m").exists()

@@ -302,3 +302,51 @@ def test_scattered_exact_reads_do_not_stay_resident(tmp_path):
     t_of, g_of = np.divmod(flat, N)
     want = eng._score_latents(np.asarray(mm[t_of, g_of], dtype=np.float32), eng.embed_query(Q)).double().numpy()
     np.testing.assert_array_equal(got, want)
+
+
+def test_localize_reports_progress_per_timestep_and_stops_when_the_callback_raises(setup):
+    from fourlegs_engine.errors import Cancelled
+
+    scene, field, enc, _ = setup
+    eng = QueryEngine(scene, field, enc, QueryOptions(spatial="fast"))
+    seen = []
+    loc = eng.localize(Q, {"temporal", "best_view", "action_centre"}, progress=lambda f, s: seen.append((f, s)))
+    plain = QueryEngine(scene, field, enc, QueryOptions(spatial="fast")).localize(Q, {"temporal", "best_view",
+                                                                                     "action_centre"})
+    assert loc.temporal.segment == plain.temporal.segment and loc.best_view == plain.best_view
+    fractions = [f for f, _ in seen]
+    assert fractions == sorted(fractions) and 0.0 <= fractions[0] and fractions[-1] <= 1.0
+    per_timestep = [f for f, s in seen if s == "scoring timesteps"]
+    assert len(per_timestep) == scene.num_timesteps  # one call before each scored timestep
+    assert sum(s == "rendering the views" for _, s in seen) == len(eng.cameras_at(loc.t))
+
+    calls = []
+
+    def cancel_at_third(fraction, stage):
+        calls.append(stage)
+        if calls.count("scoring timesteps") == 3:
+            raise Cancelled("stop")
+
+    eng.stats.clear()
+    with pytest.raises(Cancelled):
+        eng.localize(Q, {"temporal", "best_view"}, progress=cancel_at_third)
+    assert eng.stats["decoded_latents"] == 2 * scene.num_gaussians  # stopped inside the temporal pass
+    assert eng.stats["best_view"] == 0
+    assert eng._progress is None  # a later call without a callback is not stopped
+    assert eng.localize(Q, {"temporal"}).temporal.segment == plain.temporal.segment
+
+
+def test_codebook_refined_temporal_pass_can_be_cancelled(setup, tmp_path):
+    from fourlegs_engine.errors import Cancelled
+
+    scene, field, enc, _ = setup
+    eng = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=2, codebook_refine=1.0,
+                                                      codebook_samples=10 ** 9), codebook_dir=tmp_path)
+
+    def cancel(fraction, stage):
+        if stage == "re-scoring the uncertain Gaussians":
+            raise Cancelled("stop")
+
+    with pytest.raises(Cancelled):
+        eng.localize(Q, {"temporal"}, progress=cancel)
+    assert eng.stats["rescored_latents"] == 0

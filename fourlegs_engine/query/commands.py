@@ -15,8 +15,10 @@ def register(subparsers: Any) -> None:
         description="Localize a text query in a scene with a distilled language field: prints the "
                     "temporal segment, its peak and an s_t sparkline; optionally writes JSON, an s_t plot "
                     "and relevancy/depth/alpha maps as multi-channel EXR files.")
-    p.add_argument("scene", nargs="?", help="bundle directory with a language field")
-    p.add_argument("text", nargs="?", help="the query, e.g. \"a ball flying in the air\"")
+    p.add_argument("scene", nargs="*", metavar="SCENE... TEXT",
+                   help="bundle directory(ies) with a language field, then the query, e.g. \"a ball flying in "
+                        "the air\"; with several scenes they are ranked by max_t s_t (paper §6.2, on every "
+                        "--scene-stride-th timestep) and the query is localized in the best one")
     p.add_argument("--demo", action="store_true",
                    help="use the synthetic demo scene (built, with its language field, on first use)")
     p.add_argument("--json", metavar="PATH", help="write the localization as JSON")
@@ -48,6 +50,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--negatives", nargs="+", default=(), metavar="PHRASE",
                    help="scene-specific negative phrases added to the canonical ones")
     p.add_argument("--no-spatial", action="store_true", help="temporal localization only")
+    p.add_argument("--scene-stride", type=bounded(int, 1, MAX_TIMESTEP_ARGUMENT), default=None, metavar="K",
+                   help="several scenes: rank them on every K-th timestep (default 10, as the paper)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(func=run_query)
 
@@ -60,8 +64,6 @@ def _open(args: argparse.Namespace):
 
     if args.demo:
         from ..scene.synthetic import ensure_demo_bundle
-        if args.text is None and args.scene is not None:
-            args.text, args.scene = args.scene, None
         if args.scene is not None:
             raise InputError("give either --demo TEXT or SCENE TEXT, not both", field="scene")
         path = ensure_demo_bundle()
@@ -92,7 +94,88 @@ def _open(args: argparse.Namespace):
     return scene, open_query_engine(scene, encoder, options=options)
 
 
+def _split_inputs(args: argparse.Namespace) -> list[str]:
+    """``SCENE... TEXT`` into ``args.text`` (and ``args.scene`` for one scene); returns the scene paths."""
+    from ..errors import InputError
+
+    items = list(args.scene or [])
+    args.text = items.pop() if items else None
+    args.scene = items[0] if len(items) == 1 else None
+    if args.demo and items:
+        raise InputError("give either --demo TEXT or SCENE TEXT, not both", field="scene")
+    if not args.demo and not items:
+        raise InputError("expected SCENE TEXT (or SCENE SCENE... TEXT, or --demo TEXT)", field="arguments")
+    if len(set(map(str, items))) != len(items):
+        raise InputError("a scene is given twice", field="scene")
+    return items
+
+
 def run_query(args: argparse.Namespace) -> int:
+    scenes = _split_inputs(args)
+    if len(scenes) > 1:
+        return run_multiscene(args, scenes)
+    if args.scene_stride is not None:
+        from ..errors import InputError
+        raise InputError("--scene-stride ranks several scenes; give at least two", field="--scene-stride")
+    return _run_one(args)
+
+
+def run_multiscene(args: argparse.Namespace, scenes: list[str]) -> int:
+    """Rank ``scenes`` by max_t s_t of ``args.text`` and localize it in the best one (paper §6.2)."""
+    import copy
+
+    from ..errors import InputError, OutputExistsError
+    from ..fileio import write_json_atomic
+    from .multiscene import DEFAULT_SCENE_STRIDE, rank_scenes_opening
+
+    for flag in ("exr", "plot", "views", "frames"):
+        if getattr(args, flag):
+            raise InputError("writes maps/plots of one scene; query that scene alone", field=f"--{flag}")
+    if args.json and Path(args.json).exists() and not args.overwrite:
+        raise OutputExistsError(args.json)
+    from ..validate import check_text
+    check_text(args.text, "text")
+    if not args.text or not args.text.strip():
+        raise InputError("the query text is empty", field="text")
+
+    def opener(path: str):
+        def open_engine():
+            one = copy.copy(args)
+            one.scene = path
+            return _open(one)[1]
+        return open_engine
+
+    stride = args.scene_stride or DEFAULT_SCENE_STRIDE
+    for path in scenes:  # a wrong path fails before any field is opened
+        from ..scene.bundle import is_bundle
+        if not is_bundle(Path(path)):
+            raise InputError("not a scene bundle (scene.json missing)", file=path)
+    need = {"temporal"} if args.no_spatial else {"temporal", "best_view", "action_centre"}
+    start = time.perf_counter()
+    ranked = rank_scenes_opening({p: opener(p) for p in scenes}, args.text, stride=stride, need=need,
+                                 on_scene=lambda name, r: print(f"scored {name}: max_t s_t = {r:.4f}", flush=True))
+    print(f'"{args.text}" in {len(scenes)} scenes (ranked by max_t s_t on every {stride}th timestep, '
+          f"{time.perf_counter() - start:.1f} s)")
+    width = max(len(p) for p in scenes)
+    print(f"{'rank':>4}  {'scene':<{width}}  max_t s_t")
+    for i, (name, score) in enumerate(ranked.ranking, 1):
+        print(f"{i:>4}  {name:<{width}}  {score:.4f}" + ("  <- best" if name == ranked.best else ""))
+    loc = ranked.localization
+    if ranked.best is None:
+        print("not found in any scene")
+    elif loc.temporal is not None and loc.temporal.found:
+        a, b = loc.temporal.segment
+        print(f"best scene {ranked.best}: segment {a}..{b} (inclusive), peak t={loc.temporal.peak}"
+              + (f", best view {loc.best_view}" if loc.best_view else ""))
+    if args.json:
+        result = ranked.to_dict()
+        result.update(query=args.text, scene_stride=stride)
+        write_json_atomic(args.json, result, overwrite=args.overwrite)
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _run_one(args: argparse.Namespace) -> int:
     from ..errors import OutputExistsError
     from ..fileio import output_group, write_json_atomic
     from .exr import write_exr

@@ -22,7 +22,7 @@ import time
 import zlib
 from collections import Counter
 from pathlib import Path
-from typing import Any, Iterable, Optional, Sequence
+from typing import Any, Callable, Iterable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -69,6 +69,8 @@ class QueryEngine:
                  codebook: Optional[Codebook] = None, codebook_dir: Optional[Path] = None):
         options = options if options is not None else QueryOptions()
         self.options = options
+        self._progress: Optional[Callable[[float, str], None]] = None
+        self._progress_span = (0.0, 1.0)
         (path, codebook_size, codebook_refine, codebook_samples, negatives, temporal_stride, spatial,
          resolution_scale, dilation, chunk, latent_dtype, camera_split, render_options, render_backend,
          relevancy_scale) = (options.path, options.codebook_size, options.codebook_refine,
@@ -396,7 +398,7 @@ class QueryEngine:
                 c, a, n, rescored, sampled = counts_from_codes_refined(
                     self._codes_scores(q).double().numpy(), hist,
                     members=lambda codes, rows: self._band_members(codes, rows, ts),
-                    score=lambda flat, window, q=q: self._score_any(q, flat, window),
+                    score=lambda flat, window, q=q: self._reported(self._score_any, q, flat, window),
                     sample=lambda groups, sizes, q=q, rng=rng: self._sample_members(q, groups, sizes, ts, rng,
                                                                                      (RELEVANT, np.inf)),
                     margin=self.codebook_refine, weights=weights, samples=self.codebook_samples,
@@ -411,6 +413,7 @@ class QueryEngine:
             qs = torch.stack([self.embed_query(q) for q in queries])
             scores = np.empty((Q, len(ts), N), dtype=np.float32)
             for i, t in enumerate(ts):
+                self._report(i / len(ts), "scoring timesteps")
                 lat = self._read_latents(int(t))
                 for s in range(0, N, self.chunk):
                     scores[:, i, s:s + self.chunk] = self._score_latents_many(lat[s:s + self.chunk], qs).T.numpy()
@@ -524,8 +527,14 @@ class QueryEngine:
         """The camera with the highest mean relevancy at timestep ``t`` (paper §6.1)."""
         self.stats["best_view"] += 1
         cams = list(cameras) if cameras is not None else self.cameras_at(t)
-        return viewpoint.best_view(
-            cams, lambda cam: self.relevancy_map(query, cam, t, outputs=("relevancy",))["relevancy"], t)
+        seen = [0]
+
+        def relevancy_of(cam: Camera) -> np.ndarray:
+            self._report(seen[0] / max(1, len(cams)), "rendering the views")
+            seen[0] += 1
+            return self.relevancy_map(query, cam, t, outputs=("relevancy",))["relevancy"]
+
+        return viewpoint.best_view(cams, relevancy_of, t)
 
     def action_centre(self, query: str, t: int, camera: Camera) -> CentreResult:
         """2D centre of mass of the relevancy map, lifted to 3D with the rendered depth; plus the bbox."""
@@ -542,8 +551,38 @@ class QueryEngine:
                             message=message)
 
     # ------------------------------------------------------------------ all together
+    # ------------------------------------------------------------------ progress
+    def _report(self, fraction: float, stage: str) -> None:
+        """Tell the progress callback of the running :meth:`localize` (if any) how far it is; the
+        callback stops the computation by raising (e.g. :class:`~fourlegs_engine.errors.Cancelled`)."""
+        if self._progress is not None:
+            lo, hi = self._progress_span
+            self._progress(lo + (hi - lo) * min(max(float(fraction), 0.0), 1.0), stage)
+
+    def _reported(self, fn: Callable, *args):
+        """``fn(*args)`` after giving the progress callback a chance to stop the computation."""
+        self._report(0.0, "re-scoring the uncertain Gaussians")
+        return fn(*args)
+
     def localize(self, query: str, need: Iterable[str] = ("temporal",), *, t: Optional[int] = None,
-                 camera: Optional[Camera] = None) -> Localization:
+                 camera: Optional[Camera] = None,
+                 progress: Optional[Callable[[float, str], None]] = None) -> Localization:
+        """See :meth:`_localize`. ``progress(fraction in [0, 1], stage)`` is called between timesteps of
+        the temporal pass, rescoring chunks and rendered views; an exception it raises (e.g.
+        :class:`~fourlegs_engine.errors.Cancelled`) stops the localization and propagates."""
+        previous = self._progress, self._progress_span
+        self._progress = progress
+        try:
+            return self._localize(query, need, t=t, camera=camera)
+        finally:
+            self._progress, self._progress_span = previous
+
+    def _span(self, lo: float, hi: float) -> None:
+        self._progress_span = (lo, hi)
+        self._report(0.0, "")
+
+    def _localize(self, query: str, need: Iterable[str] = ("temporal",), *, t: Optional[int] = None,
+                  camera: Optional[Camera] = None) -> Localization:
         """Compute only what ``need`` names ({"temporal", "best_view", "action_centre"}).
 
         The spatial parts are evaluated at ``t`` (default: the temporal peak, which then requires the
@@ -560,6 +599,7 @@ class QueryEngine:
         spatial_needed = bool(need & {"best_view", "action_centre"})
         if "temporal" in need or (spatial_needed and t is None):
             t0 = time.perf_counter()
+            self._span(0.0, 0.7 if spatial_needed else 1.0)
             loc.temporal = self.temporal(query)
             loc.timings["temporal"] = time.perf_counter() - t0
             if not loc.temporal.found and loc.temporal.message:
@@ -575,6 +615,7 @@ class QueryEngine:
         view_cam = camera
         if "best_view" in need or ("action_centre" in need and camera is None):
             t0 = time.perf_counter()
+            self._span(0.7, 0.95 if "action_centre" in need else 1.0)
             cams = self.cameras_at(int(t))
             view = self.best_view(query, int(t), cams)
             loc.timings["best_view"] = time.perf_counter() - t0
@@ -586,6 +627,7 @@ class QueryEngine:
                 loc.messages.append("no camera to localize the action centre in")
                 return loc
             t0 = time.perf_counter()
+            self._span(0.95, 1.0)
             centre = self.action_centre(query, int(t), view_cam)
             loc.timings["action_centre"] = time.perf_counter() - t0
             loc.action_centre, loc.centre_px, loc.bbox = centre.centre_3d, centre.centre_px, centre.bbox

@@ -7,7 +7,7 @@ timesteps, so scenes of different lengths are compared as the paper does (no ext
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Iterable, Mapping, Optional
+from typing import Callable, Iterable, Mapping, Optional
 
 from ..errors import InputError
 from .results import Localization
@@ -43,10 +43,32 @@ def rank_scenes(engines: Mapping[str, object], query: str, *, stride: int = DEFA
 
     Ties keep the given order. When no scene has a relevant Gaussian, ``best`` is None.
     """
-    if not engines:
+    return rank_scenes_opening({name: (lambda e=eng: e) for name, eng in engines.items()}, query, stride=stride,
+                               need=need)
+
+
+def rank_scenes_opening(openers: Mapping[str, Callable[[], object]], query: str, *,
+                        stride: int = DEFAULT_SCENE_STRIDE, need: Iterable[str] = ("temporal",),
+                        on_scene: Optional[Callable[[str, float], None]] = None) -> SceneRanking:
+    """:func:`rank_scenes` over engines opened one at a time (``openers``: {name: () -> QueryEngine}): at
+    most two scenes' fields are held (the one being scored and the best so far), which then localizes.
+
+    ``on_scene(name, relevance)`` is called after each scene is scored (progress).
+    """
+    if not openers:
         raise InputError("no scenes to rank", field="scenes")
-    scores = [(name, scene_relevance(eng, query, stride)) for name, eng in engines.items()]
+    scores: list[tuple[str, float]] = []
+    leader, leader_engine = None, None
+    for name, open_engine in openers.items():
+        engine = open_engine()
+        relevance = scene_relevance(engine, query, stride)
+        scores.append((name, relevance))
+        if on_scene is not None:
+            on_scene(name, relevance)
+        if relevance > 0 and (leader is None or relevance > leader[1]):
+            leader, leader_engine = (name, relevance), engine
+        del engine
     ranking = sorted(scores, key=lambda ns: -ns[1])
-    best = ranking[0][0] if ranking[0][1] > 0 else None
-    loc = engines[best].localize(query, set(need)) if best is not None else None
-    return SceneRanking(ranking=ranking, best=best, localization=loc)
+    if leader is None:
+        return SceneRanking(ranking=ranking, best=None, localization=None)
+    return SceneRanking(ranking=ranking, best=leader[0], localization=leader_engine.localize(query, set(need)))

@@ -17,9 +17,9 @@ def register(subparsers) -> None:
         description="Make a highlight video of a text query in a 4D scene, headless through Blender's bpy "
                     "module. Example: fourlegs highlight --demo \"a ball flying in the air\" --preset "
                     "broadcast -o out/")
-    from . import headless
+    from fourlegs_engine.cli_options import add_highlight_arguments
 
-    headless.build_parser(hl)
+    add_highlight_arguments(hl)
     hl.set_defaults(func=run_highlight)
 
     be = subparsers.add_parser("build-extension", help="build the Blender extension zip (add-on + engine + wheels)")

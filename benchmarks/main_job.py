@@ -144,7 +144,7 @@ def epoch_sweep(bundle: Path, epochs: Sequence[int], query: str, work: Path) -> 
     shared), lift, and localize ``query`` as the job does; returns seconds and the answer per count."""
     import torch
 
-    from fourlegs_addon.headless import DEFAULT_QUERY_PATH, DEFAULT_SPATIAL
+    from fourlegs_engine.highlight_job import DEFAULT_QUERY_PATH, DEFAULT_SPATIAL
     from fourlegs_engine.fileio import read_json, write_json_atomic
     from fourlegs_engine.language.autoencoder import AETrainConfig, train_autoencoder
     from fourlegs_engine.language.distill import distill_scene

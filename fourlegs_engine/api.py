@@ -33,19 +33,23 @@ _LAZY = {
     "rasterize": "render",
     "rank_scenes_opening": "query.multiscene",
     "Camera": "scene", "Scene": "scene", "load_scene": "scene",
-    "torch_threads": "threads", "kernel_threads": "threads",
+    "torch_threads": "threads", "kernel_threads": "threads", "usable_cpu_count": "threads",
+    "HighlightJobOptions": "highlight_job", "StageTimer": "highlight_job", "finish_highlight_job": "highlight_job",
+    "plan_digest": "highlight_job", "prepare_highlight_job": "highlight_job",
 }
 
 if TYPE_CHECKING:
     from .fileio import (OUTPUTS_MARKER, atomic_path, claim_outputs, image_file_problem, incomplete_write_error,
                          write_json_atomic)
+    from .highlight_job import (HighlightJobOptions, StageTimer, finish_highlight_job, plan_digest,
+                                prepare_highlight_job)
     from .highlights import available_presets, load_preset, plan_highlight, plan_needs
     from .pipeline import (EncoderConfig, FieldStep, QueryOptions, ensure_language_field, has_language_field,
                            language_field_steps, open_query_engine, open_scene, text_encoder)
     from .query.multiscene import rank_scenes_opening
     from .render import rasterize
     from .scene import Camera, Scene, load_scene
-    from .threads import kernel_threads, torch_threads
+    from .threads import kernel_threads, torch_threads, usable_cpu_count
     from .validate import check_text
 
 
@@ -62,9 +66,11 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(_LAZY))
 
 
-__all__ = ["Cancelled", "Camera", "EncoderConfig", "FieldStep", "FourlegsError", "InputError", "OUTPUTS_MARKER",
-           "OutputExistsError", "QueryOptions", "Scene", "atomic_path", "available_presets", "check_text",
-           "claim_outputs", "describe_environment_error", "ensure_language_field", "has_language_field",
-           "image_file_problem", "incomplete_write_error", "kernel_threads", "language_field_steps", "load_preset",
-           "load_scene", "open_query_engine", "open_scene", "plan_highlight", "plan_needs", "print_error",
-           "rank_scenes_opening", "rasterize", "text_encoder", "torch_threads", "write_json_atomic"]
+__all__ = ["Cancelled", "Camera", "EncoderConfig", "FieldStep", "FourlegsError", "HighlightJobOptions", "InputError",
+           "OUTPUTS_MARKER", "OutputExistsError", "QueryOptions", "Scene", "StageTimer", "atomic_path",
+           "available_presets", "check_text", "claim_outputs", "describe_environment_error",
+           "ensure_language_field", "finish_highlight_job", "has_language_field", "image_file_problem",
+           "incomplete_write_error", "kernel_threads", "language_field_steps", "load_preset", "load_scene",
+           "open_query_engine", "open_scene", "plan_digest", "plan_highlight", "plan_needs",
+           "prepare_highlight_job", "print_error", "rank_scenes_opening", "rasterize", "text_encoder",
+           "torch_threads", "usable_cpu_count", "write_json_atomic"]

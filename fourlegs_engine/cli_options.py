@@ -1,7 +1,8 @@
 """Command-line options shared by several commands, and their translation into the library's option types.
 
-argparse stays here, at the edge: the library takes :class:`~fourlegs_engine.pipeline.EncoderConfig` and
-:class:`~fourlegs_engine.query.options.QueryOptions`.
+argparse stays here, at the edge: the library takes :class:`~fourlegs_engine.pipeline.EncoderConfig`,
+:class:`~fourlegs_engine.query.options.QueryOptions` and
+:class:`~fourlegs_engine.highlight_job.HighlightJobOptions`.
 """
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import argparse
 from typing import Optional
 
 from .errors import InputError
+from .highlight_job import DEFAULT_QUERY_PATH, DEFAULT_SPATIAL, VIDEO_FORMATS, HighlightJobOptions
 from .language.encoders import DTYPES, encoder_names
 from .pipeline import EncoderConfig
 
@@ -59,3 +61,44 @@ def parse_resolution(text: Optional[str], field: str = "--resolution", *, even: 
     if w <= 0 or h <= 0:
         raise InputError(f"must be positive, got {text!r}", field=field)
     return w, h
+
+
+def add_highlight_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of the main job (``fourlegs highlight`` and ``python -m fourlegs_addon.headless``)."""
+    p = parser
+    p.add_argument("scene", nargs="?", default=None,
+                   help="scene: bundle dir, params.npz dir, .ply file or dir of .ply files (or --demo)")
+    p.add_argument("query", help="what to find, e.g. \"a ball flying in the air\"")
+    p.add_argument("--demo", action="store_true", help="use the synthetic demo scene (generated on first use)")
+    p.add_argument("--demo-size", default="demo", choices=("tiny", "demo", "bench", "full"),
+                   help="size of the synthetic demo scene (default demo: 30k Gaussians, 48 timesteps)")
+    p.add_argument("--preset", default="broadcast", help="highlight preset name or .toml file (default broadcast)")
+    p.add_argument("-o", "--output", required=True, help="output directory")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.add_argument("--resolution", default=None,
+                   help="output WIDTHxHEIGHT (default: 640x360 for --demo, else the preset's)")
+    p.add_argument("--fps", type=float, default=None, help="output frame rate (default: the preset's)")
+    p.add_argument("--render-threads", type=int, default=1, metavar="N",
+                   help="torch threads for the per-frame rasterization (default 1: small per-frame work, "
+                        "extra threads mostly wait; 0 = torch's default)")
+    p.add_argument("--format", default="MP4", choices=VIDEO_FORMATS, help="video or image sequence")
+    p.add_argument("--no-effect", action="append", default=[], metavar="EFFECT",
+                   help="leave out the preset's shots with this effect (repeatable)")
+    p.add_argument("--query-path", default=DEFAULT_QUERY_PATH, choices=("exact", "codebook"),
+                   help="per-Gaussian relevancy path of the query engine (default %(default)s; see "
+                        "`fourlegs bench accuracy-time` for what each costs and scores)")
+    p.add_argument("--spatial", default=DEFAULT_SPATIAL, choices=("exact", "fast"),
+                   help="relevancy maps for the best view and the action centre: exact (128-channel render, "
+                        "per-pixel decode, paper) or fast (1-channel per-Gaussian relevancy render); "
+                        "default %(default)s")
+    add_encoder_arguments(p, default="auto")
+
+
+def highlight_job_options(args: argparse.Namespace) -> HighlightJobOptions:
+    """The :class:`HighlightJobOptions` of the options :func:`add_highlight_arguments` defined.
+    InputError for a malformed ``--resolution``."""
+    return HighlightJobOptions(
+        query=args.query, output=args.output, scene=args.scene, demo=args.demo_size if args.demo else None,
+        preset=args.preset, overwrite=args.overwrite, resolution=parse_resolution(args.resolution, even=True),
+        fps=args.fps, format=args.format, no_effect=tuple(args.no_effect), query_path=args.query_path,
+        spatial=args.spatial, encoder=encoder_config_from_args(args), render_threads=args.render_threads or None)

@@ -1,6 +1,8 @@
 """Scoped thread counts: torch's intra-op threads and the fused CPU kernels' worker threads."""
 from __future__ import annotations
 
+import os
+
 from contextlib import contextmanager
 from typing import Iterator, Optional
 
@@ -46,3 +48,8 @@ def kernel_threads(count: Optional[int]) -> Iterator[None]:
         yield
     finally:
         _kernel_threads = before
+
+
+def usable_cpu_count() -> int:
+    """The CPU cores this process may run on (its affinity mask where the OS has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)

@@ -37,10 +37,12 @@ def test_headless_argv_round_trips_every_option():
 @pytest.mark.parametrize("text", ["640", "640x", "0x360", "641x360", "axb"])
 def test_bad_resolution_is_an_input_error(text):
     from fourlegs_addon import headless
+    from fourlegs_engine.cli_options import highlight_job_options
     from fourlegs_engine.errors import InputError
 
+    args = headless.build_parser().parse_args(["scene_dir", "q", "-o", "o", "--resolution", text])
     with pytest.raises(InputError, match="--resolution"):
-        headless.parse_resolution(text, demo=False)
+        highlight_job_options(args)
 
 
 @pytest.mark.blender
@@ -115,7 +117,7 @@ def test_highlight_end_to_end(tmp_path, request, capsys):
 
 def test_plan_digest_ignores_float_noise_but_not_changes():
     from _blender_helpers import hand_plan
-    from fourlegs_addon.headless import plan_digest
+    from fourlegs_engine.api import plan_digest
 
     plan = hand_plan()
     noisy = hand_plan()

@@ -17,7 +17,7 @@ ENGINE = REPO / "fourlegs_engine"
 #: engine packages in data-flow order; a module may import its own layer and the ones before it; every
 #: package's ``commands`` module is part of the command line, the last layer
 LAYERS = {"errors": 0, "fileio": 0, "paths": 0, "threads": 0, "validate": 0, "scene": 1, "render": 2, "language": 3, "query": 4,
-          "highlights": 5, "pipeline": 6, "api": 7, "cli_options": 7, "cli": 8}
+          "highlights": 5, "pipeline": 6, "highlight_job": 7, "api": 7, "cli_options": 7, "cli": 8}
 FORBIDDEN = ("benchmarks", "fourlegs_addon", "bpy")
 
 

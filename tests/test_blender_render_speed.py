@@ -111,14 +111,15 @@ def test_render_threads_are_set_for_the_block_and_restored(bl):
     import torch
 
     from fourlegs_addon import headless
+    from fourlegs_engine import api
 
     before = torch.get_num_threads()
-    with headless.torch_threads(1):
+    with api.torch_threads(1):
         assert torch.get_num_threads() == 1
     assert torch.get_num_threads() == before
-    with pytest.raises(KeyboardInterrupt), headless.torch_threads(1):
+    with pytest.raises(KeyboardInterrupt), api.torch_threads(1):
         raise KeyboardInterrupt
     assert torch.get_num_threads() == before
-    with headless.torch_threads(None):
+    with api.torch_threads(None):
         assert torch.get_num_threads() == before
     assert headless.build_parser().parse_args(["q", "--demo", "-o", "out"]).render_threads == 1

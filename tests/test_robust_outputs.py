@@ -25,14 +25,15 @@ class _Stop(Exception):
 
 def _headless_run(monkeypatch, argv):
     from fourlegs_addon import headless
-    from fourlegs_engine import api
+    from fourlegs_engine import pipeline
+    from fourlegs_engine.cli_options import highlight_job_options
 
     def stop(*args, **kwargs):
         raise _Stop
 
-    monkeypatch.setattr(api, "open_scene", stop)
+    monkeypatch.setattr(pipeline, "open_scene", stop)
     args = headless.build_parser().parse_args(argv)
-    return headless.run(args)
+    return headless.run(highlight_job_options(args))
 
 
 def test_highlight_refuses_to_replace_the_users_plan_and_plot(tmp_path, monkeypatch):

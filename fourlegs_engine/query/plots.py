@@ -1,7 +1,8 @@
-"""The s_t plot of a temporal localization (matplotlib, written atomically)."""
+"""The s_t plots of a temporal localization (matplotlib, written atomically)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -42,3 +43,35 @@ def plot_temporal(result: TemporalResult, path: str | Path, *, query: str = "", 
     finally:
         plt.close(fig)
     return path
+
+
+def write_scores_plot(path: str | Path, scores: Sequence[float], positive: Sequence[bool],
+                      segment: Optional[Sequence[int]], peak: Optional[int], query: str) -> None:
+    """PNG of s_t per timestep as bars (positive ones highlighted), the threshold 1/T, segment and peak:
+    the main job's scores.png, drawn from a plan's ``localization``. Replaces ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = list(scores)
+    T = len(s)
+    fig, ax = plt.subplots(figsize=(8, 3), dpi=100)
+    try:
+        colours = ["tab:orange" if p else "tab:gray" for p in positive]
+        ax.bar(range(T), s, color=colours, width=0.9)
+        if T:
+            ax.axhline(1.0 / T, color="black", lw=0.8, ls="--", label="k = 1/T")
+        if segment is not None:
+            ax.axvspan(segment[0] - 0.5, segment[1] + 0.5, color="tab:blue", alpha=0.15, label="segment")
+        if peak is not None:
+            ax.axvline(peak, color="tab:red", lw=1.2, label="peak")
+        ax.set_xlabel("timestep t")
+        ax.set_ylabel("s_t")
+        ax.set_title(f"temporal relevancy: {query!r}")
+        ax.legend(loc="upper right", fontsize=8)
+        fig.tight_layout()
+        with atomic_path(Path(path)) as tmp:
+            fig.savefig(tmp)
+    finally:
+        plt.close(fig)

@@ -5,6 +5,9 @@ cd "$(dirname "$0")/.."
 python -m pip install --quiet torch==2.13.0
 python -m pip install --quiet -e ".[dev,blender,cluster]"
 export FOURLEGS_CACHE="${FOURLEGS_CACHE:-$PWD/.cache/fourlegs}"
+# the extension's dependency wheels (cp311 + cp313, four platforms), so the offline zip-install tests run
+python -c "from fourlegs_addon import build; from fourlegs_engine.paths import cache_dir; \
+build.fetch_wheels(cache_dir() / 'extension-wheels')" >/dev/null
 set +e
 python -m pytest -q -p no:cacheprovider --timeout=600 "$@"
 rc=$?

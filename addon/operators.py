@@ -151,6 +151,23 @@ class _JobModal:
                 return self._finish(context)
         return {"PASS_THROUGH"}
 
+    def _start(self, context, job, thread_name: str, status: str):
+        """Run ``job`` in a worker thread: modal with a timer in the UI, waited for in background mode."""
+        self._job = job
+        _JOBS.append(job)
+        threading.Thread(target=job.run, name=thread_name, daemon=True).start()
+        props = context.scene.fourlegs
+        props.running, props.progress, props.status = True, 0.0, status
+        wm = context.window_manager
+        if context.window is not None and not bpy.app.background:
+            self._timer = wm.event_timer_add(0.2, window=context.window)
+            wm.modal_handler_add(self)
+            return {"RUNNING_MODAL"}
+        while not job.done:  # background mode has no event loop
+            threading.Event().wait(0.05)
+        self._stop(context)
+        return self._finish(context)
+
     def _stop(self, context) -> None:
         if self._timer is not None:
             context.window_manager.event_timer_remove(self._timer)
@@ -182,19 +199,8 @@ class FOURLEGS_OT_run_query(_JobModal, bpy.types.Operator):
         except Exception as exc:
             self.report({"ERROR"}, f"4-LEGS query: {_err(exc)}")
             return {"CANCELLED"}
-        self._job = _QueryJob(scene, props.query.strip(), querying.encoder_config(props))
-        _JOBS.append(self._job)
-        threading.Thread(target=self._job.run, name="fourlegs-query", daemon=True).start()
-        props.running, props.progress, props.status = True, 0.0, "starting"
-        wm = context.window_manager
-        if context.window is not None and not bpy.app.background:
-            self._timer = wm.event_timer_add(0.2, window=context.window)
-            wm.modal_handler_add(self)
-            return {"RUNNING_MODAL"}
-        # background mode has no event loop: wait here
-        while not self._job.done:
-            threading.Event().wait(0.05)
-        return self._finish(context)
+        return self._start(context, _QueryJob(scene, props.query.strip(), querying.encoder_config(props)),
+                           "fourlegs-query", "starting")
 
     def _finish(self, context):
         props = context.scene.fourlegs
@@ -345,19 +351,8 @@ class FOURLEGS_OT_find_best_scene(_JobModal, bpy.types.Operator):
         except Exception as exc:
             self.report({"ERROR"}, f"4-LEGS Find Best Scene: {_err(exc)}")
             return {"CANCELLED"}
-        self._job = _RankJob(scenes, props.query.strip(), querying.encoder_config(props))
-        _JOBS.append(self._job)
-        threading.Thread(target=self._job.run, name="fourlegs-rank", daemon=True).start()
-        props.running, props.progress, props.status = True, 0.0, "ranking scenes"
-        wm = context.window_manager
-        if context.window is not None and not bpy.app.background:
-            self._timer = wm.event_timer_add(0.2, window=context.window)
-            wm.modal_handler_add(self)
-            return {"RUNNING_MODAL"}
-        while not self._job.done:
-            threading.Event().wait(0.05)
-        self._stop(context)
-        return self._finish(context)
+        return self._start(context, _RankJob(scenes, props.query.strip(), querying.encoder_config(props)),
+                           "fourlegs-rank", "ranking scenes")
 
     def _finish(self, context):
         props = context.scene.fourlegs

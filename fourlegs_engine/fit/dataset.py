@@ -23,6 +23,7 @@ import numpy as np
 from ..errors import InputError
 from ..fileio import read_json
 from ..scene.camera import Camera
+from ..scene.dynamic3dgs import meta_matrix
 
 META_FILES = {"train": "train_meta.json", "test": "test_meta.json"}
 #: Panoptic rigs render with near 1.0, far 100 (Dynamic 3D Gaussians' setting)
@@ -194,8 +195,8 @@ def _read_split(path: Path) -> tuple[CaptureSplit, int, int]:
                 raise InputError(f"must list one entry per camera ({n})", file=path, field=f"{key}[{t}]")
         row, names = [], []
         for c in range(n):
-            K = _matrix(ks[t][c], (3, 3), path, f"k[{t}][{c}]")
-            w2c = _matrix(w2cs[t][c], (4, 4), path, f"w2c[{t}][{c}]")
+            K = meta_matrix(ks[t][c], (3, 3), path, f"k[{t}][{c}]")
+            w2c = meta_matrix(w2cs[t][c], (4, 4), path, f"w2c[{t}][{c}]")
             name = str(ids[t][c]) if ids is not None else str(fns[t][c]).split("/")[0]
             cam = Camera(K=K, w2c=w2c, width=width, height=height, near=NEAR, far=FAR, name=name)
             try:
@@ -216,15 +217,3 @@ def _read_split(path: Path) -> tuple[CaptureSplit, int, int]:
         files.append([str(f) for f in fns[t]])
         cam_ids.append(names)
     return CaptureSplit(cameras, files, cam_ids), width, height
-
-
-def _matrix(value: Any, shape: tuple[int, int], file: Path, field: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"is not a numeric {shape[0]}x{shape[1]} matrix", file=file, field=field) from None
-    if arr.shape != shape:
-        raise InputError(f"has shape {arr.shape}, expected {shape}", file=file, field=field)
-    if not np.isfinite(arr).all():
-        raise InputError("contains NaN or Inf", file=file, field=field)
-    return arr

@@ -213,8 +213,8 @@ def read_meta(path: Path, T: int) -> list[list[Camera]]:
                              field=f"cam_id[{t}]")
         cams = []
         for c in range(len(ks[t])):
-            K = _matrix(ks[t][c], (3, 3), path, f"k[{t}][{c}]")
-            w2c = _matrix(w2cs[t][c], (4, 4), path, f"w2c[{t}][{c}]")
+            K = meta_matrix(ks[t][c], (3, 3), path, f"k[{t}][{c}]")
+            w2c = meta_matrix(w2cs[t][c], (4, 4), path, f"w2c[{t}][{c}]")
             if not (K[0, 0] > 0 and K[1, 1] > 0):
                 raise InputError(f"focal length must be positive (fx={K[0, 0]}, fy={K[1, 1]})", file=path,
                                  field=f"k[{t}][{c}]")
@@ -230,7 +230,8 @@ def read_meta(path: Path, T: int) -> list[list[Camera]]:
     return rig
 
 
-def _matrix(value: Any, shape: tuple[int, int], file: Path, field: str) -> np.ndarray:
+def meta_matrix(value: Any, shape: tuple[int, int], file: Path, field: str) -> np.ndarray:
+    """A finite float64 matrix of ``shape`` read from camera metadata (else InputError naming file/field)."""
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):

@@ -84,6 +84,7 @@ def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str
                 video.render_animation(bl_scene, out["video"], fmt=fmt, overwrite=True, on_frame=progress)
             else:  # frame by frame into a resumable directory (an interrupted run continues from there)
                 frames_dir = out["video"] if fmt == "PNG" else out["video"].parent / f".frames-{api.plan_digest(plan)}"
+                bl_scene.render.image_settings.compression = 0 if fmt == "MP4" else 15  # MP4: temporary frames
                 frames = video.render_frames(bl_scene, frames_dir, on_frame=progress)
                 if fmt == "MP4":
                     cpu_frames = time.process_time() - cpu_start

@@ -165,7 +165,7 @@ def epoch_sweep(bundle: Path, epochs: Sequence[int], query: str, work: Path) -> 
         start = time.perf_counter()
         ae = train_autoencoder(scene, AETrainConfig(epochs=int(count)))
         trained = time.perf_counter()
-        distill_scene(scene, mode="lift")
+        distill_scene(scene, mode="lift", view_scale=pipeline.FIELD_VIEW_SCALE)  # as the job lifts
         lifted = time.perf_counter()
         scene = load_scene(root)
         engine = pipeline.open_query_engine(

@@ -39,6 +39,12 @@ __all__ = ["EncoderConfig", "FieldStep", "QueryOptions", "ensure_language_field"
 StageReporter = Callable[[str], ContextManager[Any]]
 
 
+#: fraction of each training view's resolution the lift of :func:`ensure_language_field` and
+#: :func:`language_field_steps` splats at (``DistillConfig.view_scale``): the lift's cost is per pixel, and
+#: the highlight job's answer (segment, peak, best view) is the full-resolution lift's
+FIELD_VIEW_SCALE = 0.5
+
+
 @dataclass(frozen=True)
 class EncoderConfig:
     """Which video-text encoder to build, and how.
@@ -156,7 +162,7 @@ def ensure_language_field(scene: "Scene", encoder: Any = None, *, encoder_config
     with report("train autoencoder"):
         train_autoencoder(scene, progress=progress)
     with report(f"distil ({mode})"):
-        distill_scene(scene, mode=mode, progress=progress)
+        distill_scene(scene, mode=mode, progress=progress, view_scale=FIELD_VIEW_SCALE)
     return load_bundle(scene.root)
 
 
@@ -216,5 +222,5 @@ def language_field_steps(scene: "Scene", encoder: Any = None, *, encoder_config:
             break
         yield FieldStep("train autoencoder", int(report["stopped_after_epoch"]), epochs)
     for t in range(T):
-        distill_scene(scene, mode=mode, timesteps=[t])
+        distill_scene(scene, mode=mode, timesteps=[t], view_scale=FIELD_VIEW_SCALE)
         yield FieldStep(f"distil ({mode})", t + 1, T)

@@ -58,8 +58,8 @@ def test_language_field_stages_run_once_in_order_with_the_chosen_encoder(tmp_pat
     monkeypatch.setattr(extract, "extract_features", lambda sc, enc, progress=False: calls.append(("extract", enc.name)))
     monkeypatch.setattr(autoencoder, "train_autoencoder", lambda sc, progress=False: calls.append(("train",)))
 
-    def fake_distill(sc, mode="lift", progress=False):
-        calls.append(("distill", mode))
+    def fake_distill(sc, mode="lift", progress=False, view_scale=1.0):
+        calls.append(("distill", mode, view_scale))
         np.save(sc.root / "latents.npy", np.zeros((2, sc.num_gaussians, 4), np.float32))
         update_bundle_meta(sc.root, language={"encoder": "simulated", "latents": "latents.npy"})
 
@@ -72,7 +72,7 @@ def test_language_field_stages_run_once_in_order_with_the_chosen_encoder(tmp_pat
         return nullcontext()
 
     built = pipeline.ensure_language_field(scene, stage=stage)
-    assert calls == [("extract", "simulated"), ("train",), ("distill", "lift")]
+    assert calls == [("extract", "simulated"), ("train",), ("distill", "lift", pipeline.FIELD_VIEW_SCALE)]
     assert stages == ["extract features", "train autoencoder", "distil (lift)"]
     assert built is not scene and pipeline.has_language_field(built)  # the bundle re-read with its field
     assert pipeline.ensure_language_field(built, stage=stage) is built and len(calls) == 3  # nothing rerun
@@ -99,7 +99,8 @@ def test_language_field_steps_report_each_unit_and_resume_after_a_stop(tmp_path,
         calls.append(("train", done["epochs"]))
         return {"config_hash": "x"} if done["epochs"] == 4 else {"stopped_after_epoch": done["epochs"]}
 
-    def fake_distill(sc, mode="lift", timesteps=None):
+    def fake_distill(sc, mode="lift", timesteps=None, view_scale=1.0):
+        assert view_scale == pipeline.FIELD_VIEW_SCALE  # the same field as ensure_language_field's
         calls.append(("distill", tuple(timesteps)))
         done["distill"].update(timesteps)
         if done["distill"] == {0, 1, 2}:

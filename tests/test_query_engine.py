@@ -350,3 +350,31 @@ def test_codebook_refined_temporal_pass_can_be_cancelled(setup, tmp_path):
     with pytest.raises(Cancelled):
         eng.localize(Q, {"temporal"}, progress=cancel)
     assert eng.stats["rescored_latents"] == 0
+
+
+@pytest.mark.parametrize("chunk", [17, 4096])
+def test_temporal_on_concurrent_streams_equals_one_stream(setup, chunk):
+    """Two torch threads score the timesteps on two streams; one thread scores them one by one: the
+    per-Gaussian scores, the answer and the counted work (decodes, text encodings) are the same."""
+    import torch
+
+    from fourlegs_engine.threads import torch_threads
+    scene, field, enc, _ = setup
+    queries = [Q, "object"]
+    answers, engines, encodings = {}, {}, {}
+    for threads in (1, 2):
+        eng = QueryEngine(scene, field, enc, QueryOptions(chunk=chunk))
+        calls = enc.calls
+        with torch_threads(threads):
+            answers[threads] = eng.temporal_many(queries)
+            assert torch.get_num_threads() == threads  # the streams restore the thread count
+        encodings[threads] = (enc.calls - calls, eng.stats["encode_text"])
+        assert eng.stats["decoded_latents"] == scene.num_timesteps * scene.num_gaussians
+        engines[threads] = eng
+    assert encodings[1] == encodings[2] == (3, 3)  # each query, then the canonical phrases, once
+    for one, two in zip(answers[1], answers[2]):
+        np.testing.assert_array_equal(one.scores, two.scores)
+        assert one.segment == two.segment and one.peak == two.peak
+    for q in queries:
+        for t in range(scene.num_timesteps):
+            np.testing.assert_array_equal(engines[1]._temporal_scores[q][t], engines[2]._temporal_scores[q][t])

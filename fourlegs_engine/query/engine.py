@@ -18,9 +18,11 @@ for; ``localize(query, need)`` computes only the parts named in ``need``.
 """
 from __future__ import annotations
 
+import threading
 import time
 import zlib
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Callable, Iterable, Optional, Sequence
 
@@ -30,6 +32,7 @@ import torch
 from ..errors import InputError
 from ..scene.camera import Camera
 from ..scene.scene import Scene
+from ..threads import torch_threads
 from ..validate import check_number
 from . import spatial, viewpoint
 from .codebook import Codebook, ensure_codebook
@@ -50,6 +53,7 @@ MAX_RESOLUTION_SCALE = 8.0  # of the camera resolution; Camera.scaled also bound
 MAX_TIMESTEP_ARGUMENT = 1 << 20  # strides and dilation radii beyond any scene's length
 GAUSSIAN_CACHE_SIZE = 16  # per-Gaussian relevancy vectors (query, t) kept for reuse
 TEMPORAL_SCORE_BYTES = 512 << 20  # exact temporal scores (T·N float32 per query) kept for per-frame reuse
+TEMPORAL_STREAMS = 2  # timesteps scored concurrently on the exact temporal path (CPU)
 
 
 class QueryEngine:
@@ -411,13 +415,22 @@ class QueryEngine:
             stats = [counts_from_code_histogram(self._codes_scores(q).double().numpy(), hist) for q in queries]
         else:
             qs = torch.stack([self.embed_query(q) for q in queries])
+            self.reference_embeddings()  # encoded here, not by two streams at once
             scores = np.empty((Q, len(ts), N), dtype=np.float32)
-            for i, t in enumerate(ts):
-                self._report(i / len(ts), "scoring timesteps")
-                lat = self._read_latents(int(t))
+            bookkeeping = threading.Lock()  # progress in start order and the decode count, across streams
+            started = [0]
+
+            def score_timestep(i: int) -> None:
+                with bookkeeping:
+                    self._report(started[0] / len(ts), "scoring timesteps")
+                    started[0] += 1
+                lat = self._read_latents(int(ts[i]))
                 for s in range(0, N, self.chunk):
                     scores[:, i, s:s + self.chunk] = self._score_latents_many(lat[s:s + self.chunk], qs).T.numpy()
-                self.stats["decoded_latents"] += N
+                with bookkeeping:
+                    self.stats["decoded_latents"] += N
+
+            self._for_each_timestep(score_timestep, len(ts))
             stats = [counts_from_relevancy(scores[j]) for j in range(Q)]
             per_query = len(ts) * N * 4
             for j, q in enumerate(queries if per_query <= TEMPORAL_SCORE_BYTES else []):
@@ -428,6 +441,33 @@ class QueryEngine:
                     self._temporal_scores.pop(next(iter(self._temporal_scores)))
         return [localize_counts(c, ts, T, dilation=self.dilation, r_avg=a, num_relevant=n, query=q,
                                 num_gaussians=N) for q, (c, a, n) in zip(queries, stats)]
+
+    def _for_each_timestep(self, work, count: int) -> None:
+        """Run ``work(i)`` for i in range(count). On the CPU with two or more torch threads the
+        timesteps run on :data:`TEMPORAL_STREAMS` concurrent streams of fewer torch threads each: a
+        timestep's scoring is a few large products between many elementwise tensor ops, which one
+        stream on two threads spends largely at thread barriers. Each timestep's result is computed
+        alone, so it is the same whichever stream runs it."""
+        threads = torch.get_num_threads()
+        on_cpu = self.head is None or self.head.device.type == "cpu"
+        streams = min(TEMPORAL_STREAMS, threads, count)
+        if not on_cpu or streams < 2:
+            for i in range(count):
+                work(i)
+            return
+        stop = threading.Event()  # after a failure (or a cancel raised by work) the queued timesteps are skipped
+
+        def guarded(i: int) -> None:
+            if stop.is_set():
+                return
+            try:
+                work(i)
+            except BaseException:
+                stop.set()
+                raise
+
+        with torch_threads(max(1, threads // streams)), ThreadPoolExecutor(streams) as pool:
+            list(pool.map(guarded, range(count)))
 
     # ------------------------------------------------------------------ spatial
     def _camera(self, camera: Camera, scale: Optional[float]) -> Camera:

@@ -149,7 +149,9 @@ def test_blending_kernel_workers_follow_kernel_threads_not_torch_threads(monkeyp
         return real_pool(n, *a, **k)
 
     monkeypatch.setattr(cpu_kernels, "ThreadPoolExecutor", recording_pool)
-    render = lambda: rasterize(*(scene[k] for k in GEOM), cam, colors=scene["colors"], outputs=("rgb", "alpha"))  # noqa: E731
+    small_tiles = RasterOptions(tile_size=4)  # enough busy tiles for two workers at 160x120
+    render = lambda: rasterize(*(scene[k] for k in GEOM), cam, colors=scene["colors"], outputs=("rgb", "alpha"),  # noqa: E731
+                               options=small_tiles)
     with torch_threads(1):
         single = render()
         assert pools == [] and kernel_thread_count() == 1

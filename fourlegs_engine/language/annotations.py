@@ -228,7 +228,7 @@ def create_encoder(*, masks: Any = None, scene: Any = None, base_dir: str | Path
                          field="encoder")
     if not masks and scene is not None:
         lang = getattr(scene, "language", None) or {}
-        recorded = ((lang.get("config") or {}).get("encoder_config") or {}).get("masks")
+        recorded = (lang.get("encoder_config") or {}).get("masks")
         if isinstance(recorded, dict):
             masks = recorded
     return AnnotationMaskEncoder(masks, base_dir=base_dir)

@@ -17,9 +17,11 @@ Embeddings (768-d, L2-normalized, deterministic)
     every phrase.
 
 Features
-    A crop tube's feature is the coverage-weighted mix ``Σ_k m_k e_k + (1 - Σ_k m_k) e_background``
-    (normalized), with ``m_k`` the share of the crop's pixels set in phrase k's masks averaged over the
-    tube's 8 frames; a crop inside one phrase's mask gets exactly that phrase's embedding.
+    A crop tube's feature is the mix ``Σ_k s m_k e_k + (1 - Σ_k m_k) e_background`` (normalized), with
+    ``m_k`` the share of the crop's pixels set in phrase k's masks averaged over the tube's 8 frames and
+    ``s`` the ``salience`` of a masked pixel against an unmasked one (default 6, the simulated encoder's
+    foreground salience: a person filling a fifth of the smallest crop still dominates its feature, as it
+    would for a video model); a crop inside one phrase's mask gets exactly that phrase's embedding.
 """
 from __future__ import annotations
 
@@ -36,6 +38,7 @@ from ..errors import InputError
 from .phrases import CANONICAL_PHRASES
 
 ENCODER_NAME = "masks"
+DEFAULT_SALIENCE = 6.0
 EMBED_DIM = 768
 GENERIC_SHARE = 0.3
 MASK_PATTERN = "{camera}/{t:06d}.png"
@@ -112,6 +115,7 @@ class AnnotationMaskEncoder:
         masks: phrase -> mask folder (a mapping, pairs or ``"PHRASE=FOLDER"`` strings); may be empty for a
             query-only encoder (text embeddings need no masks).
         base_dir: folders given relative are resolved against it (default: the working directory).
+        salience: weight of a masked pixel's coverage against an unmasked one's (see the module docstring).
 
     Channel k of a frame is phrase k's mask; :meth:`coverage_frame` reads it from the folder instead of
     rendering the scene, and :meth:`encode_coverage` maps per-frame crop coverage to features.
@@ -122,7 +126,10 @@ class AnnotationMaskEncoder:
     input_kind = "labels"
 
     def __init__(self, masks: Mapping[str, Any] | Iterable[Any] | None = None, *,
-                 base_dir: str | Path | None = None):
+                 base_dir: str | Path | None = None, salience: float = DEFAULT_SALIENCE):
+        if not (math.isfinite(salience) and salience > 0):
+            raise InputError(f"salience must be finite and > 0, got {salience}", field="salience")
+        self.salience = float(salience)
         base = Path(base_dir) if base_dir is not None else Path.cwd()
         pairs = mask_pairs(masks)
         self.labels = [p for p, _ in pairs]
@@ -140,7 +147,7 @@ class AnnotationMaskEncoder:
     def config(self) -> dict[str, Any]:
         """JSON-serializable settings (recorded with the features and in scene.json's language block)."""
         return {"encoder": self.name, "masks": {p: str(f) for p, f in zip(self.labels, self.folders)},
-                "mask_pattern": MASK_PATTERN}
+                "mask_pattern": MASK_PATTERN, "salience": self.salience}
 
     # ----------------------------------------------------------------------------- text
     def encode_text(self, texts: Sequence[str] | str) -> torch.Tensor:
@@ -206,7 +213,7 @@ class AnnotationMaskEncoder:
                              field="frame_coverage")
         coverage = cov.mean(dim=1)                                          # (B, C)
         background = (1.0 - coverage.sum(dim=1)).clamp_min(0.0)           # (B,)
-        out = coverage @ self._label_emb + background[:, None] * self._background[None]
+        out = self.salience * coverage @ self._label_emb + background[:, None] * self._background[None]
         return (out / out.norm(dim=1, keepdim=True).clamp_min(1e-12)).float()
 
     def encode_video(self, clips: torch.Tensor) -> torch.Tensor:
@@ -219,7 +226,7 @@ class AnnotationMaskEncoder:
 
 
 def create_encoder(*, masks: Any = None, scene: Any = None, base_dir: str | Path | None = None,
-                   **unused: Any) -> AnnotationMaskEncoder:
+                   salience: float = DEFAULT_SALIENCE, **unused: Any) -> AnnotationMaskEncoder:
     """Factory of ``get_encoder("masks", ...)``. Without ``masks`` the ones recorded in ``scene``'s
     language block are reused (a later query reopens the field's encoder)."""
     unknown = set(unused) - {"device", "dtype", "batch_size"}
@@ -231,4 +238,4 @@ def create_encoder(*, masks: Any = None, scene: Any = None, base_dir: str | Path
         recorded = (lang.get("encoder_config") or {}).get("masks")
         if isinstance(recorded, dict):
             masks = recorded
-    return AnnotationMaskEncoder(masks, base_dir=base_dir)
+    return AnnotationMaskEncoder(masks, base_dir=base_dir, salience=salience)

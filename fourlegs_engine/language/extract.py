@@ -235,15 +235,16 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
     """
     config = config or ExtractConfig()
     cfg = extract_config_dict(scene, encoder, config)
+    if not 0 < config.frame_scale <= 1:
+        raise InputError(f"must be in (0, 1], got {config.frame_scale}", field="frame_scale")
+    # built before the store is opened: its input checks (annotation masks) leave nothing behind
+    source = FrameSource(scene, encoder.input_kind, config.split,
+                         cache_frames=max(64, 9 * scene.cameras.num_cameras(config.split)),
+                         frame_scale=config.frame_scale, encoder=encoder)
     store = feature_store(scene, cfg).open(overwrite=overwrite)
     steps = select_timesteps(scene.num_timesteps, timesteps, shard)
     todo = [t for t in steps if not store.is_done(t)]
     skipped = [t for t in steps if t not in set(todo)]
-    if not 0 < config.frame_scale <= 1:
-        raise InputError(f"must be in (0, 1], got {config.frame_scale}", field="frame_scale")
-    source = FrameSource(scene, encoder.input_kind, config.split,
-                         cache_frames=max(64, 9 * scene.cameras.num_cameras(config.split)),
-                         frame_scale=config.frame_scale, encoder=encoder)
     crop_size = cfg["crop_size"]
     clip_norm = encoder.input_kind == "rgb"
     start = time.perf_counter()

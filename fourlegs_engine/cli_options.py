@@ -19,7 +19,11 @@ def add_encoder_arguments(parser: argparse.ArgumentParser, *, default: str = "vi
     """The encoder options shared by every command that encodes video or text."""
     group = parser.add_argument_group("encoder")
     group.add_argument("--encoder", default=default, choices=encoder_names(),
-                       help=f"video-text encoder (default: {default})")
+                       help=f"teacher of the language field: a video-text encoder, or 'masks' (per-pixel "
+                            f"annotation masks, no network; see --masks) (default: {default})")
+    group.add_argument("--masks", action="append", default=None, metavar="PHRASE=FOLDER",
+                       help="annotation masks for --encoder masks: FOLDER/{camera}/{t:06d}.png, any nonzero "
+                            "pixel set (repeat for several phrases; a later query reuses the recorded ones)")
     group.add_argument("--checkpoint", default=None,
                        help="ViCLIP weights: ViClip-InternVid-10M-FLT.pth, a .safetensors file or a "
                             "ViCLIP-*-hf directory (never downloaded)")
@@ -45,7 +49,16 @@ def encoder_config_from_args(args: argparse.Namespace) -> EncoderConfig:
                          device=getattr(args, "device", None) or default.device,
                          dtype=getattr(args, "encoder_dtype", None) or default.dtype,
                          batch_size=getattr(args, "encoder_batch_size", None) or default.batch_size,
-                         normalization=getattr(args, "pixel_normalization", None) or default.normalization)
+                         normalization=getattr(args, "pixel_normalization", None) or default.normalization,
+                         masks=_mask_pairs(getattr(args, "masks", None)))
+
+
+def _mask_pairs(specs: Optional[list[str]]) -> tuple[tuple[str, str], ...]:
+    """``--masks`` values ("PHRASE=FOLDER") -> pairs; one clear line for a bad spec."""
+    if not specs:
+        return ()
+    from .language.annotations import mask_pairs
+    return tuple(mask_pairs(specs))
 
 
 def parse_resolution(text: Optional[str], field: str = "--resolution", *, even: bool = False) -> Optional[tuple[int, int]]:

@@ -50,7 +50,7 @@ class EncoderConfig:
     """Which video-text encoder to build, and how.
 
     Attributes:
-        name: a registered encoder name ("simulated", "viclip", "viclip-b16") or "auto": the encoder the
+        name: a registered encoder name ("simulated", "viclip", "viclip-b16", "masks") or "auto": the encoder the
             scene's field was distilled with, else "simulated" for synthetic scenes (they carry
             ``metadata["labels"]``), else "viclip".
         checkpoint / vocab: ViCLIP weights and CLIP BPE vocabulary (never downloaded).
@@ -59,6 +59,8 @@ class EncoderConfig:
         dtype: ViCLIP weights precision ("float32", "float16", "bfloat16").
         batch_size: clips or texts per encoder forward pass.
         normalization: pixel statistics ViCLIP sees ("clip" or "imagenet").
+        masks: the annotation-mask encoder's ("masks") phrase -> mask folder pairs; empty: the ones
+            recorded in the scene's language field.
     """
 
     name: str = "auto"
@@ -69,6 +71,7 @@ class EncoderConfig:
     dtype: str = "float32"
     batch_size: int = 16
     normalization: str = "clip"
+    masks: tuple[tuple[str, str], ...] = ()
 
     def resolved_name(self, scene: Optional["Scene"] = None) -> str:
         """The concrete encoder name ("auto" decided for ``scene``)."""
@@ -90,6 +93,8 @@ def text_encoder(scene: Optional["Scene"] = None, config: EncoderConfig = Encode
     name = config.resolved_name(scene)
     if name == "simulated":
         return get_encoder(name, scene=scene)
+    if name == "masks":
+        return get_encoder(name, masks=list(config.masks), scene=scene)
     if name.startswith("viclip"):
         kwargs: dict[str, Any] = dict(checkpoint=config.checkpoint, vocab=config.vocab, device=config.device,
                                       dtype=config.dtype, batch_size=config.batch_size,

@@ -585,7 +585,8 @@ def merge_latents(scene: Scene, store: StepStore, out: Path, chash: str, config:
     root = Path(scene.root)
     T = scene.num_timesteps
     path = out / "latents.npy"
-    info = {"encoder": _encoder_name(store, scene), "latent_dim": int(first.shape[1]),
+    info = {"encoder": _encoder_name(store, scene),
+            "encoder_config": feature_store(scene).config.get("encoder_config"), "latent_dim": int(first.shape[1]),
             "canonical_phrases": list(CANONICAL_PHRASES), "decoder": DECODER_FILE, "latents": LATENTS_FILE,
             "decoder_fingerprint": weights_fingerprint(load_decoder(root / DECODER_FILE)),
             "mode": config.mode, "config_hash": chash, "config": store.config}

@@ -10,7 +10,8 @@ Every encoder maps 8-frame clips and texts into one joint space:
 
 Names: ``"viclip"`` (needs ``checkpoint=`` and ``vocab=``; the size is read off the checkpoint),
 ``"viclip-b16"`` (the same, insisting on the B/16 size) and ``"simulated"`` (implemented in
-``language/simulated.py``, imported only when asked for). Heavy modules are imported lazily so
+``language/simulated.py``, imported only when asked for) and ``"masks"`` (per-pixel annotation
+masks read from folders, not a network: ``language/annotations.py``). Heavy modules are imported lazily so
 ``fourlegs --help`` stays fast.
 """
 from __future__ import annotations
@@ -70,10 +71,17 @@ def _simulated(**kwargs: Any) -> VideoTextEncoder:
     return create_encoder(**kwargs)
 
 
+def _annotation_masks(**kwargs: Any) -> VideoTextEncoder:
+    """``language/annotations.py``'s ``create_encoder`` (masks=, see there): annotation masks, no network."""
+    from .annotations import create_encoder
+    return create_encoder(**kwargs)
+
+
 _REGISTRY: dict[str, Callable[..., VideoTextEncoder]] = {
     "viclip": _viclip("auto"),
     "viclip-b16": _viclip("b"),
     "simulated": _simulated,
+    "masks": _annotation_masks,
 }
 
 

@@ -85,7 +85,8 @@ def extract_config_dict(scene: Scene, encoder: Any, config: ExtractConfig) -> di
             "crop_size": config.resolved_crop_size(encoder.input_kind, encoder),
             "frame_scale": float(config.frame_scale),
             "encoder_config": encoder.config() if hasattr(encoder, "config") else None, "split": config.split,
-            "frames": "rendered-rgb" if encoder.input_kind == "rgb" else "rendered-label-coverage",
+            "frames": ("rendered-rgb" if encoder.input_kind == "rgb" else "annotation-masks"
+                       if hasattr(encoder, "coverage_frame") else "rendered-label-coverage"),
             "scene": scene_signature(scene)}
 
 
@@ -118,8 +119,10 @@ class FrameSource:
     """Renders (and caches) the frames the encoder sees: (C,H,W) float32 per (timestep, camera)."""
 
     def __init__(self, scene: Scene, input_kind: str, split: str = "train", cache_frames: int = 64,
-                 frame_scale: float = 1.0):
+                 frame_scale: float = 1.0, encoder: Any = None):
         self.scene = scene
+        # label encoders that read their own coverage frames (annotation masks) instead of rendered labels
+        self.read_frames = encoder if hasattr(encoder, "coverage_frame") else None
         self.frame_scale = float(frame_scale)
         self.input_kind = input_kind
         self.split = split
@@ -127,7 +130,10 @@ class FrameSource:
         self.cache_frames = cache_frames
         self.render_seconds = 0.0
         self._lock = threading.Lock()  # cameras may be rendered from several threads
-        if input_kind == "labels":
+        if self.read_frames is not None:
+            self.num_labels = int(self.read_frames.num_labels)
+            self.read_frames.check_masks(scene.cameras.cameras(0, split), scene.num_timesteps)
+        elif input_kind == "labels":
             g = scene.gaussians
             if g.labels is None:
                 raise InputError("a label encoder needs per-Gaussian labels (synthetic scenes have them)",
@@ -180,6 +186,8 @@ class FrameSource:
         return torch.stack([self.frame(k, cam_index) for k in tube_indices(t, self.scene.num_timesteps)])
 
     def _render(self, t: int, cam_index: int) -> torch.Tensor:
+        if self.read_frames is not None:
+            return self.read_frames.coverage_frame(t, self.scene.cameras.cameras(t, self.split)[cam_index])
         g = self.scene.gaussians
         frame = g.at(t)
         full = self.scene.cameras.cameras(t, self.split)[cam_index]
@@ -227,15 +235,16 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
     """
     config = config or ExtractConfig()
     cfg = extract_config_dict(scene, encoder, config)
+    if not 0 < config.frame_scale <= 1:
+        raise InputError(f"must be in (0, 1], got {config.frame_scale}", field="frame_scale")
+    # built before the store is opened: its input checks (annotation masks) leave nothing behind
+    source = FrameSource(scene, encoder.input_kind, config.split,
+                         cache_frames=max(64, 9 * scene.cameras.num_cameras(config.split)),
+                         frame_scale=config.frame_scale, encoder=encoder)
     store = feature_store(scene, cfg).open(overwrite=overwrite)
     steps = select_timesteps(scene.num_timesteps, timesteps, shard)
     todo = [t for t in steps if not store.is_done(t)]
     skipped = [t for t in steps if t not in set(todo)]
-    if not 0 < config.frame_scale <= 1:
-        raise InputError(f"must be in (0, 1], got {config.frame_scale}", field="frame_scale")
-    source = FrameSource(scene, encoder.input_kind, config.split,
-                         cache_frames=max(64, 9 * scene.cameras.num_cameras(config.split)),
-                         frame_scale=config.frame_scale)
     crop_size = cfg["crop_size"]
     clip_norm = encoder.input_kind == "rgb"
     start = time.perf_counter()

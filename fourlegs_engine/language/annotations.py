@@ -1,0 +1,241 @@
+"""Annotation masks as the teacher: a language field from per-pixel masks instead of a video-text network.
+
+This is not a language model. An editor (or a segmentation tool) supplies, for each phrase, a folder of
+per-pixel masks, one PNG per camera and timestep: ``{folder}/{camera name}/{t:06d}.png`` (the layout of
+the Panoptic capture's ``seg/`` folder); any nonzero pixel is "set". The encoder turns them into the same
+crop-pyramid features a video-text encoder would produce, so the masks go through the same
+extract -> autoencoder -> distil/lift -> query path and come out as a 4D field that renders from any
+viewpoint and timestep.
+
+Embeddings (768-d, L2-normalized, deterministic)
+    A configured or queried phrase (lower case, whitespace collapsed) gets
+    ``sqrt(g) * generic + sqrt(1 - g) * h(phrase)`` with ``g`` = 0.3 and ``h`` a unit vector drawn from a
+    hash of the phrase text (nearly orthogonal to every other phrase); the canonical phrases ("object",
+    "things", ...) and the uncovered share ("background") use the simulated encoder's embeddings, which
+    are mostly the shared ``generic`` axis. Hence a pixel whose feature is a phrase's embedding has
+    relevancy > 0.5 for that phrase and < 0.5 for any other; an unmasked pixel has relevancy < 0.5 for
+    every phrase.
+
+Features
+    A crop tube's feature is the mix ``Σ_k s m_k e_k + (1 - Σ_k m_k) e_background`` (normalized), with
+    ``m_k`` the share of the crop's pixels set in phrase k's masks averaged over the tube's 8 frames and
+    ``s`` the ``salience`` of a masked pixel against an unmasked one (default 6, the simulated encoder's
+    foreground salience: a person filling a fifth of the smallest crop still dominates its feature, as it
+    would for a video model); a crop inside one phrase's mask gets exactly that phrase's embedding.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from .phrases import CANONICAL_PHRASES
+
+ENCODER_NAME = "masks"
+DEFAULT_SALIENCE = 6.0
+EMBED_DIM = 768
+GENERIC_SHARE = 0.3
+MASK_PATTERN = "{camera}/{t:06d}.png"
+
+
+def normalize_phrase(text: str) -> str:
+    """Lower case, whitespace collapsed: the key a phrase's embedding is drawn from."""
+    if not isinstance(text, str):
+        raise InputError(f"a phrase must be a string, got {type(text).__name__}", field="text")
+    return " ".join(text.lower().split())
+
+
+@lru_cache(maxsize=4096)
+def phrase_embedding(text: str) -> np.ndarray:
+    """(768,) float64 unit embedding of a phrase (see the module docstring)."""
+    from .simulated import _GENERIC_AXIS, BACKGROUND_PHRASE, _basis
+    from .simulated import phrase_embedding as simulated_embedding
+    key = normalize_phrase(text)
+    if key in CANONICAL_PHRASES or key == BACKGROUND_PHRASE:
+        return simulated_embedding(key)
+    digest = hashlib.sha256(("fourlegs-annotations:" + key).encode()).digest()
+    h = np.random.default_rng(int.from_bytes(digest[:8], "little")).normal(size=EMBED_DIM)
+    e = math.sqrt(GENERIC_SHARE) * _basis()[_GENERIC_AXIS] + math.sqrt(1 - GENERIC_SHARE) * h / np.linalg.norm(h)
+    return e / np.linalg.norm(e)
+
+
+def parse_mask_spec(spec: str) -> tuple[str, str]:
+    """``"a person=path/to/seg"`` -> ("a person", "path/to/seg"); InputError naming ``--masks`` otherwise."""
+    if not isinstance(spec, str) or "=" not in spec:
+        raise InputError(f"expected PHRASE=FOLDER, got {spec!r}", field="--masks")
+    phrase, folder = spec.split("=", 1)
+    phrase, folder = normalize_phrase(phrase), folder.strip()
+    if not phrase or not folder:
+        raise InputError(f"expected PHRASE=FOLDER with both parts non-empty, got {spec!r}", field="--masks")
+    return phrase, folder
+
+
+def mask_pairs(masks: Mapping[str, Any] | Iterable[Any] | None) -> list[tuple[str, str]]:
+    """Phrase -> folder pairs from a mapping, ``(phrase, folder)`` pairs or ``"PHRASE=FOLDER"`` strings."""
+    if masks is None:
+        return []
+    items = masks.items() if isinstance(masks, Mapping) else masks
+    pairs: list[tuple[str, str]] = []
+    for item in items:
+        if isinstance(item, str):
+            phrase, folder = parse_mask_spec(item)
+        else:
+            try:
+                phrase, folder = item
+            except (TypeError, ValueError):
+                raise InputError(f"expected (phrase, folder), got {item!r}", field="--masks") from None
+            phrase, folder = parse_mask_spec(f"{phrase}={folder}")
+        if any(phrase == p for p, _ in pairs):
+            raise InputError(f"the phrase {phrase!r} is given twice", field="--masks")
+        pairs.append((phrase, str(folder)))
+    return pairs
+
+
+def read_mask(path: Path) -> np.ndarray:
+    """(H, W) bool mask of one PNG: any nonzero channel of a pixel sets it."""
+    from PIL import Image, UnidentifiedImageError
+    try:
+        with Image.open(path) as img:
+            arr = np.asarray(img)
+    except (OSError, UnidentifiedImageError) as exc:
+        raise InputError(f"not a readable mask image ({exc})", file=path, field="masks") from None
+    return arr != 0 if arr.ndim == 2 else np.any(arr != 0, axis=2)
+
+
+class AnnotationMaskEncoder:
+    """Per-pixel annotation masks as crop features (``input_kind = "labels"``: the clips hold coverage).
+
+    Args:
+        masks: phrase -> mask folder (a mapping, pairs or ``"PHRASE=FOLDER"`` strings); may be empty for a
+            query-only encoder (text embeddings need no masks).
+        base_dir: folders given relative are resolved against it (default: the working directory).
+        salience: weight of a masked pixel's coverage against an unmasked one's (see the module docstring).
+
+    Channel k of a frame is phrase k's mask; :meth:`coverage_frame` reads it from the folder instead of
+    rendering the scene, and :meth:`encode_coverage` maps per-frame crop coverage to features.
+    """
+
+    name = ENCODER_NAME
+    dim = EMBED_DIM
+    input_kind = "labels"
+
+    def __init__(self, masks: Mapping[str, Any] | Iterable[Any] | None = None, *,
+                 base_dir: str | Path | None = None, salience: float = DEFAULT_SALIENCE):
+        if not (math.isfinite(salience) and salience > 0):
+            raise InputError(f"salience must be finite and > 0, got {salience}", field="salience")
+        self.salience = float(salience)
+        base = Path(base_dir) if base_dir is not None else Path.cwd()
+        pairs = mask_pairs(masks)
+        self.labels = [p for p, _ in pairs]
+        self.folders = [Path(f) if Path(f).is_absolute() else (base / f) for _, f in pairs]
+        self.folders = [f.resolve() for f in self.folders]
+        self._label_emb = torch.from_numpy(np.stack([phrase_embedding(p) for p in self.labels])) if pairs \
+            else torch.zeros(0, EMBED_DIM, dtype=torch.float64)                    # (C, D) float64
+        self._background = torch.from_numpy(phrase_embedding("background"))       # (D,)
+        self._checked = False
+
+    @property
+    def num_labels(self) -> int:
+        return len(self.labels)
+
+    def config(self) -> dict[str, Any]:
+        """JSON-serializable settings (recorded with the features and in scene.json's language block)."""
+        return {"encoder": self.name, "masks": {p: str(f) for p, f in zip(self.labels, self.folders)},
+                "mask_pattern": MASK_PATTERN, "salience": self.salience}
+
+    # ----------------------------------------------------------------------------- text
+    def encode_text(self, texts: Sequence[str] | str) -> torch.Tensor:
+        """n strings -> (n, 768) float32, L2-normalized; the same phrase always gives the same vector."""
+        if isinstance(texts, str):
+            texts = [texts]
+        texts = list(texts)
+        if not texts:
+            return torch.zeros(0, EMBED_DIM)
+        return torch.from_numpy(np.stack([phrase_embedding(t) for t in texts])).float()
+
+    # ----------------------------------------------------------------------------- masks
+    def mask_path(self, phrase_index: int, camera: str, t: int) -> Path:
+        return self.folders[phrase_index] / MASK_PATTERN.format(camera=camera, t=int(t))
+
+    def check_masks(self, cameras: Sequence[Any], num_timesteps: int) -> None:
+        """Fail early with one line: no phrase, a missing folder, a missing file, or all masks of a phrase
+        empty. Reads files only until it finds one set pixel per phrase (cheap on real masks)."""
+        if not self.labels:
+            raise InputError("the annotation-mask encoder needs at least one PHRASE=FOLDER", field="--masks")
+        for k, (phrase, folder) in enumerate(zip(self.labels, self.folders)):
+            if not folder.is_dir():
+                raise InputError(f"mask folder of {phrase!r} does not exist", file=folder, field="--masks")
+            found = False
+            for t in range(num_timesteps):
+                for cam in cameras:
+                    path = self.mask_path(k, cam.name, t)
+                    if not path.is_file():
+                        raise InputError(f"mask of {phrase!r} for camera {cam.name!r}, timestep {t} is missing",
+                                         file=path, field="--masks")
+                    if not found:
+                        mask = read_mask(path)
+                        self._check_size(mask, cam, path)
+                        found = bool(mask.any())
+            if not found:
+                raise InputError(f"every mask of {phrase!r} is empty (no pixel set)", file=folder, field="--masks")
+        self._checked = True
+
+    def _check_size(self, mask: np.ndarray, camera: Any, path: Path) -> None:
+        if mask.shape != (camera.height, camera.width):
+            raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]}, camera {camera.name!r} images are "
+                             f"{camera.width}x{camera.height}", file=path, field="--masks")
+
+    def coverage_frame(self, t: int, camera: Any) -> torch.Tensor:
+        """(C, H, W) float32 in {0, 1}: channel k = phrase k's mask of ``camera`` at timestep ``t``."""
+        planes = []
+        for k, phrase in enumerate(self.labels):
+            path = self.mask_path(k, camera.name, t)
+            if not path.is_file():
+                raise InputError(f"mask of {phrase!r} for camera {camera.name!r}, timestep {t} is missing",
+                                 file=path, field="--masks")
+            mask = read_mask(path)
+            self._check_size(mask, camera, path)
+            planes.append(torch.from_numpy(mask.astype(np.float32)))
+        return torch.stack(planes)
+
+    # ----------------------------------------------------------------------------- video
+    def encode_coverage(self, frame_coverage: torch.Tensor) -> torch.Tensor:
+        """Per-frame crop coverage (B, F, C) in [0, 1] -> (B, 768) float32 L2-normalized."""
+        cov = torch.nan_to_num(torch.as_tensor(frame_coverage, dtype=torch.float64), nan=0.0).clamp(0.0, 1.0)
+        if cov.dim() != 3 or cov.shape[2] != self.num_labels:
+            raise InputError(f"frame coverage must be (B, frames, {self.num_labels}), got {tuple(cov.shape)}",
+                             field="frame_coverage")
+        coverage = cov.mean(dim=1)                                          # (B, C)
+        background = (1.0 - coverage.sum(dim=1)).clamp_min(0.0)           # (B,)
+        out = self.salience * coverage @ self._label_emb + background[:, None] * self._background[None]
+        return (out / out.norm(dim=1, keepdim=True).clamp_min(1e-12)).float()
+
+    def encode_video(self, clips: torch.Tensor) -> torch.Tensor:
+        """clips (B, 8, C, h, w) mask coverage in [0, 1] -> (B, 768) float32 L2-normalized."""
+        clips = torch.as_tensor(clips)
+        if clips.dim() != 5 or clips.shape[2] != self.num_labels:
+            raise InputError(f"clips must be (B, frames, {self.num_labels}, h, w) mask coverage, got "
+                             f"{tuple(clips.shape)}", field="clips")
+        return self.encode_coverage(clips.to(torch.float64).mean(dim=(3, 4)))
+
+
+def create_encoder(*, masks: Any = None, scene: Any = None, base_dir: str | Path | None = None,
+                   salience: float = DEFAULT_SALIENCE, **unused: Any) -> AnnotationMaskEncoder:
+    """Factory of ``get_encoder("masks", ...)``. Without ``masks`` the ones recorded in ``scene``'s
+    language block are reused (a later query reopens the field's encoder)."""
+    unknown = set(unused) - {"device", "dtype", "batch_size"}
+    if unknown:
+        raise InputError(f"unknown option(s) for the annotation-mask encoder: {', '.join(sorted(unknown))}",
+                         field="encoder")
+    if not masks and scene is not None:
+        lang = getattr(scene, "language", None) or {}
+        recorded = (lang.get("encoder_config") or {}).get("masks")
+        if isinstance(recorded, dict):
+            masks = recorded
+    return AnnotationMaskEncoder(masks, base_dir=base_dir, salience=salience)

@@ -73,7 +73,7 @@ def register(subparsers: Any) -> None:
         description="Run the three language stages in order; each resumes and skips finished work.")
     _scene_argument(p)
     add_encoder_arguments(p, default="simulated")
-    _ae_arguments(p, epochs=LANGUAGE_AE_EPOCHS)
+    _ae_arguments(p)  # the main job's epochs: fewer reconstruct as well but leave queries unanswered
     _distill_arguments(p)
     p.add_argument("--overwrite", action="store_true", help="discard results of other configurations")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -94,11 +94,6 @@ def _split_arguments(p: argparse.ArgumentParser) -> None:
     if not any(a.dest == "overwrite" for a in p._actions):
         p.add_argument("--overwrite", action="store_true", help="discard results of another configuration")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-
-
-#: the `language` (demo) path trains 2 epochs: on the demo scene they reconstruct the held-out view as
-#: well as 4 in half the time
-LANGUAGE_AE_EPOCHS = 2
 
 
 def _ae_arguments(p: argparse.ArgumentParser, epochs: int = 4) -> None:

@@ -168,6 +168,16 @@ class _JobModal:
         self._stop(context)
         return self._finish(context)
 
+    def _failed(self, context, label: str) -> bool:
+        """Mark the job over; if it raised, show its error (status line and report) and say so."""
+        props = context.scene.fourlegs
+        props.running = False
+        if self._job.error is None:
+            return False
+        props.status = f"error: {self._job.error}"
+        self.report({"ERROR"}, f"4-LEGS {label}: {self._job.error}")
+        return True
+
     def _stop(self, context) -> None:
         if self._timer is not None:
             context.window_manager.event_timer_remove(self._timer)
@@ -205,10 +215,7 @@ class FOURLEGS_OT_run_query(_JobModal, bpy.types.Operator):
     def _finish(self, context):
         props = context.scene.fourlegs
         job = self._job
-        props.running = False
-        if job.error is not None:
-            props.status = f"error: {job.error}"
-            self.report({"ERROR"}, f"4-LEGS query: {job.error}")
+        if self._failed(context, "query"):
             return {"CANCELLED"}
         obj = _splat_object(context)
         store_results(context.scene, obj, job.engine, job.query, job.localization, job.peak_relevancy)
@@ -357,10 +364,7 @@ class FOURLEGS_OT_find_best_scene(_JobModal, bpy.types.Operator):
     def _finish(self, context):
         props = context.scene.fourlegs
         job = self._job
-        props.running = False
-        if job.error is not None:
-            props.status = f"error: {job.error}"
-            self.report({"ERROR"}, f"4-LEGS Find Best Scene: {job.error}")
+        if self._failed(context, "Find Best Scene"):
             return {"CANCELLED"}
         ranking = job.ranking
         for name, relevance in ranking.ranking:

@@ -5,6 +5,8 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
+import torch
 
 from fourlegs_engine.scene.bundle import write_bundle
 from fourlegs_engine.scene.camera import Camera, CameraRig
@@ -50,3 +52,12 @@ def micro_scene(T: int = 4, width: int = 32, height: int = 18, cameras: int = 3,
 
 def micro_bundle(path: Path, **kw) -> Path:
     return write_bundle(micro_scene(**kw), path)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """One torch thread for the test (autouse where imported): bit-identical resumes and quieter timings."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from _language_helpers import micro_bundle
+from _language_helpers import micro_bundle, one_thread  # noqa: F401 (one_thread: autouse fixture)
 from fourlegs_engine.cli import main
 from fourlegs_engine.errors import ConfigMismatchError, InputError
 from fourlegs_engine.language.autoencoder import AETrainConfig, train_autoencoder
@@ -31,14 +31,6 @@ from fourlegs_engine.scene.camera import Camera
 from fourlegs_engine.scene.gaussians import GaussianFrame
 
 AE_ARGS = ["--epochs", "2", "--samples", "2048", "--ae-batch-size", "256"]
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
 
 
 @pytest.fixture(scope="module")

@@ -61,3 +61,25 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(old)
+
+
+def kill_after_first_step(argv: list, env: dict, steps: Path, timeout: float = 240) -> None:
+    """Start ``argv`` and SIGKILL it as soon as ``steps`` holds a finished per-timestep ``.npy`` (an
+    interrupted distillation); fails if the run ends before it could be killed."""
+    import signal
+    import subprocess
+    import time
+
+    proc = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + timeout
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            if steps.is_dir() and any(p.suffix == ".npy" and not p.name.startswith(".") for p in steps.iterdir()):
+                break
+            time.sleep(0.01)
+        assert proc.poll() is None, "the run finished before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()

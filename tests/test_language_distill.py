@@ -6,17 +6,15 @@ from __future__ import annotations
 import math
 import os
 import shutil
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from _language_helpers import micro_bundle, one_thread  # noqa: F401 (one_thread: autouse fixture)
+from _language_helpers import kill_after_first_step, micro_bundle, one_thread  # noqa: F401 (one_thread: autouse fixture)
 from fourlegs_engine.cli import main
 from fourlegs_engine.errors import ConfigMismatchError, InputError
 from fourlegs_engine.language.autoencoder import AETrainConfig, train_autoencoder
@@ -251,21 +249,8 @@ def test_resume_after_a_real_kill_gives_the_uninterrupted_result(prepared, tmp_p
             "sys.exit(main(sys.argv[1:]))")
     subprocess.run([sys.executable, "-c", code, "distill", str(reference), *args], env=env, check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=300)
-    proc = subprocess.Popen([sys.executable, "-c", code, "distill", str(killed), *args], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     steps = killed / "language" / "steps"
-    deadline = time.time() + 240
-    try:
-        while time.time() < deadline and proc.poll() is None:
-            if steps.is_dir() and any(p.suffix == ".npy" and not p.name.startswith(".") for p in steps.iterdir()):
-                break
-            time.sleep(0.01)
-        assert proc.poll() is None, "the run finished before it could be killed"
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    kill_after_first_step([sys.executable, "-c", code, "distill", str(killed), *args], env, steps)
     done = [p for p in steps.iterdir() if p.suffix == ".npy" and not p.name.startswith(".")]
     assert 1 <= len(done) < 4
     assert not (killed / "language" / "latents.npy").exists()

@@ -6,17 +6,15 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from _language_helpers import micro_bundle, one_thread  # noqa: F401 (one_thread: autouse fixture)
+from _language_helpers import kill_after_first_step, micro_bundle, one_thread  # noqa: F401 (one_thread: autouse fixture)
 from fourlegs_engine.cli import main
 from fourlegs_engine.errors import InputError
 from fourlegs_engine.language.autoencoder import load_decoder, weights_fingerprint
@@ -154,21 +152,8 @@ def test_an_interrupted_distill_overwrite_keeps_the_old_field(distilled, tmp_pat
     old_meta = json.loads((path / "scene.json").read_text())
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     args = ["distill", str(path), "--mode", "optimize", "--iterations", "20", "--no-progress", "--overwrite"]
-    proc = subprocess.Popen([sys.executable, "-c", CODE, *args], env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
     steps = path / "language" / "steps"
-    deadline = time.time() + 240
-    try:
-        while time.time() < deadline and proc.poll() is None:
-            if steps.is_dir() and any(p.suffix == ".npy" and not p.name.startswith(".") for p in steps.iterdir()):
-                break
-            time.sleep(0.01)
-        assert proc.poll() is None, "the run finished before it could be killed"
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    kill_after_first_step([sys.executable, "-c", CODE, *args], env, steps)
     # the old field is untouched and readable: info, query and the field itself
     np.testing.assert_array_equal(np.load(path / "language" / "latents.npy"), old)
     assert json.loads((path / "scene.json").read_text())["language"] == old_meta["language"]

@@ -25,8 +25,14 @@ Python 3.13): wheels for both, per platform; Blender installs the ones matching 
   playing it on the timeline do not need torch; the add-on's preferences install it (CPU or CUDA
   build) into the extension's own site-packages (:mod:`fourlegs_addon.torch_install`); a
   platform-specific build can bundle a torch wheel the user provides with ``--extra-wheel``.
-- not bundled: ``numba`` (+ llvmlite, ~40 MB per platform). It only speeds up the CPU splat the lift
-  uses (:mod:`fourlegs_engine.render.cpu_kernels`); without it the engine takes the torch path.
+- bundled: ``numba`` + ``llvmlite`` (the fused CPU splat/blend kernels of
+  :mod:`fourlegs_engine.render.cpu_kernels`, which the render engine, the viewport and the lift take when
+  numba imports; ~45-65 MB per platform and Python, llvmlite being most of it). numba 0.68.1 (llvmlite
+  0.50.0) accepts numpy 1.22 - 2.5, which holds Blender 5.0's numpy 1.26 and the numpy 2.2 - 2.5 the
+  Python 3.13 Blenders ship (bpy 5.2 requires numpy >= 2.2, < 3); its Linux wheels are manylinux_2_28,
+  the glibc Blender >= 4.2 requires. macos-x64 has no numba wheel after 0.62.1 (llvmlite 0.45.1, numpy
+  1.22 - 2.3): that platform gets those; Intel Macs end with Blender 4.5 (Python 3.11, numpy 1.26). Where
+  numba refuses Blender's numpy at import (an ImportError), the engine takes its torch path.
 - not needed inside Blender: numpy (Blender ships it), matplotlib (the panel draws the s_t curve
   itself), OpenEXR (Blender writes EXR).
 
@@ -56,9 +62,9 @@ PYTHON_VERSIONS = ("3.11", "3.13")
 #: Blender platform -> pip ``--platform`` tags (newest first; pip takes any matching wheel)
 PLATFORM_TAGS = {
     "windows-x64": ["win_amd64"],
-    "linux-x64": ["manylinux_2_17_x86_64", "manylinux2014_x86_64"],
+    "linux-x64": ["manylinux_2_28_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64"],
     "macos-arm64": ["macosx_12_0_arm64", "macosx_11_0_arm64"],
-    "macos-x64": ["macosx_10_14_x86_64", "macosx_10_13_x86_64", "macosx_10_12_x86_64", "macosx_10_9_x86_64"],
+    "macos-x64": ["macosx_10_15_x86_64", "macosx_10_14_x86_64", "macosx_10_13_x86_64", "macosx_10_12_x86_64", "macosx_10_9_x86_64"],
 }
 #: bundled dependencies per Python version (requirement specifiers); everything the add-on imports
 #: inside Blender except numpy (Blender ships it) and torch (installed from the add-on's preferences)
@@ -66,9 +72,28 @@ DEPENDENCIES_BY_PYTHON = {
     "3.11": ("scipy==1.13.1", "plyfile>=1.0", "tqdm>=4.60", "safetensors>=0.4"),
     "3.13": ("scipy==1.16.3", "plyfile>=1.0", "tqdm>=4.60", "safetensors>=0.4"),
 }
+#: numba and its llvmlite (same pins for both Pythons), per Blender platform; see the module docstring
+NUMBA = ("numba==0.68.1", "llvmlite==0.50.0")
+NUMBA_BY_PLATFORM = {"macos-x64": ("numba==0.62.1", "llvmlite==0.45.1")}
+
+
+def requirements(python_version: str, platform: str) -> tuple[str, ...]:
+    """The requirement specifiers bundled for one Blender Python version and platform."""
+    return DEPENDENCIES_BY_PYTHON[python_version] + NUMBA_BY_PLATFORM.get(platform, NUMBA)
+
+
+def _distribution(requirement: str) -> str:
+    return re.split(r"[=<>!~ ]", requirement)[0].lower().replace("-", "_")
+
+
 #: the distribution names, as wheel files spell them
-DEPENDENCIES = tuple(dict.fromkeys(re.split(r"[=<>!~ ]", r)[0].lower().replace("-", "_")
-                                   for reqs in DEPENDENCIES_BY_PYTHON.values() for r in reqs))
+DEPENDENCIES = tuple(dict.fromkeys(_distribution(r) for py in PYTHON_VERSIONS for plat in PLATFORM_TAGS
+                                   for r in requirements(py, plat)))
+#: distribution -> the versions pinned (``==``) for it on some platform and Python; a cached wheel of
+#: another version is not bundled
+PINNED_VERSIONS = {d: {r.split("==", 1)[1] for py in PYTHON_VERSIONS for plat in PLATFORM_TAGS
+                       for r in requirements(py, plat) if "==" in r and _distribution(r) == d}
+                   for d in DEPENDENCIES}
 #: add-on modules that run only outside Blender (the build itself, the ``fourlegs`` CLI registration)
 NOT_IN_BLENDER = ("build.py", "commands.py")
 
@@ -119,14 +144,14 @@ def pip_download_command(dest: str | Path, platform: str, python_version: str,
 
 def fetch_wheels(dest: str | Path, platforms: Iterable[str] = tuple(PLATFORM_TAGS),
                  python_versions: Iterable[str] = PYTHON_VERSIONS) -> list[Path]:
-    """Download the binary wheels of :data:`DEPENDENCIES_BY_PYTHON` for each Blender platform and
-    Python version with pip (PyPI). Wheels named alike for several targets (pure-Python, abi3) are
-    downloaded once."""
+    """Download the binary wheels of :func:`requirements` for each Blender platform and Python version
+    with pip (PyPI). Wheels named alike for several targets (pure-Python, abi3) are downloaded once, and
+    none already in ``dest`` again."""
     dest = Path(dest)
     dest.mkdir(parents=True, exist_ok=True)
     for python_version in python_versions:
         for platform in platforms:
-            cmd = pip_download_command(dest, platform, python_version, DEPENDENCIES_BY_PYTHON[python_version])
+            cmd = pip_download_command(dest, platform, python_version, requirements(python_version, platform))
             proc = subprocess.run(cmd, capture_output=True, text=True)
             if proc.returncode != 0:
                 raise BuildError(f"pip could not download wheels for {platform}, Python {python_version}:\n"
@@ -134,29 +159,51 @@ def fetch_wheels(dest: str | Path, platforms: Iterable[str] = tuple(PLATFORM_TAG
     return sorted(dest.glob("*.whl"))
 
 
+def _wheel_tags(wheel: str | Path) -> Optional[tuple[str, set[tuple[str, str, str]]]]:
+    """(distribution, {(python, abi, platform) tags}) of a wheel file name; None when it is not one."""
+    parts = Path(wheel).name[:-len(".whl")].split("-")
+    if len(parts) not in (5, 6):
+        return None
+    py, abi, plat = (set(p.split(".")) for p in parts[-3:])
+    return parts[0].lower(), {(a, b, c) for a in py for b in abi for c in plat}
+
+
+def _accepted_tags(python_version: str, platform: str) -> set[tuple[str, str, str]]:
+    """The wheel tags Blender's Python ``python_version`` installs on ``platform``."""
+    major, minor = python_version.split(".")
+    cp = f"cp{major}{minor}"
+    accepted = {("py3", "none", "any"), (f"py{major}{minor}", "none", "any")}
+    for ptag in PLATFORM_TAGS[platform]:
+        accepted |= {(cp, cp, ptag)} | {(f"cp3{m}", "abi3", ptag) for m in range(2, int(minor) + 1)}
+    return accepted
+
+
+def serves(wheel: str | Path, platforms: Iterable[str], python_versions: Iterable[str] = PYTHON_VERSIONS) -> bool:
+    """Whether a wheel installs on one of ``platforms`` under one of ``python_versions``."""
+    parsed = _wheel_tags(wheel)
+    return parsed is not None and any(parsed[1] & _accepted_tags(py, plat)
+                                      for py in python_versions for plat in platforms)
+
+
 def missing_wheels(wheels: Iterable[Path], platforms: Iterable[str] = tuple(PLATFORM_TAGS),
                    python_versions: Iterable[str] = PYTHON_VERSIONS) -> list[str]:
     """``"name (platform, Python x.y)"`` for every dependency without a wheel installable there."""
-    parsed = []
-    for wheel in wheels:
-        parts = Path(wheel).name[:-len(".whl")].split("-")
-        if len(parts) not in (5, 6):
-            continue
-        py, abi, plat = (set(p.split(".")) for p in parts[-3:])
-        parsed.append((parts[0].lower(), {(a, b, c) for a in py for b in abi for c in plat}))
+    parsed = [t for t in map(_wheel_tags, wheels) if t is not None]
     out = []
     for python_version in python_versions:
-        major, minor = python_version.split(".")
-        cp = f"cp{major}{minor}"
         for platform in platforms:
-            accepted = set()
-            for ptag in PLATFORM_TAGS[platform]:
-                accepted |= {(cp, cp, ptag), ("py3", "none", "any"), (f"py{major}{minor}", "none", "any")}
-                accepted |= {(f"cp3{m}", "abi3", ptag) for m in range(2, int(minor) + 1)}
-            for dep in DEPENDENCIES:
+            accepted = _accepted_tags(python_version, platform)
+            for dep in dict.fromkeys(map(_distribution, requirements(python_version, platform))):
                 if not any(name == dep and tags & accepted for name, tags in parsed):
                     out.append(f"{dep} ({platform}, Python {python_version})")
     return out
+
+
+def is_bundled(wheel: str | Path) -> bool:
+    """Whether a wheel file is one of the dependencies, in a pinned version where its version is pinned."""
+    name, version = Path(wheel).name.split("-")[:2]
+    dist = name.lower()
+    return dist in DEPENDENCIES and (not PINNED_VERSIONS[dist] or version in PINNED_VERSIONS[dist])
 
 
 def manifest_with_wheels(text: str, wheel_names: Sequence[str]) -> str:
@@ -211,9 +258,28 @@ def engine_wheel(dest_dir: str | Path) -> Path:
     return wheel
 
 
-def stage(dest: str | Path, wheels: Iterable[str | Path] = (), manifest: Optional[Path] = None) -> Path:
+def check_platforms(platforms: Sequence[str]) -> None:
+    """BuildError unless ``platforms`` is a non-empty list of Blender platforms this build knows."""
+    unknown = sorted(set(platforms) - set(PLATFORM_TAGS))
+    if unknown or not platforms:
+        raise BuildError(f"unknown platform(s) {', '.join(unknown) or 'none given'} (one or more of "
+                         f"{', '.join(PLATFORM_TAGS)})")
+
+
+def manifest_for_platforms(text: str, platforms: Sequence[str]) -> str:
+    """The manifest with its ``platforms = [...]`` list replaced by ``platforms``."""
+    check_platforms(platforms)
+    line = "platforms = [" + ", ".join(f'"{p}"' for p in platforms) + "]"
+    out, count = re.subn(r"^platforms\s*=\s*\[[^\]]*\]", line, text, flags=re.M)
+    if count != 1:
+        raise BuildError(f"{MANIFEST_NAME} has no single `platforms = [...]` list to restrict")
+    return out
+
+
+def stage(dest: str | Path, wheels: Iterable[str | Path] = (), manifest: Optional[Path] = None,
+          platforms: Optional[Sequence[str]] = None) -> Path:
     """Assemble the extension's source directory at ``dest`` (must not exist): the add-on, the engine
-    wheel and ``wheels``, with the manifest listing every wheel."""
+    wheel and ``wheels``, with the manifest listing every wheel (and only ``platforms``, when given)."""
     dest = Path(dest)
     manifest = manifest or REPO_ROOT / MANIFEST_NAME
     if not manifest.is_file():
@@ -227,14 +293,16 @@ def stage(dest: str | Path, wheels: Iterable[str | Path] = (), manifest: Optiona
             raise BuildError(f"{wheel}: not a wheel file")
         shutil.copy2(wheel, dest / "wheels" / wheel.name)
         names.append(wheel.name)
-    (dest / MANIFEST_NAME).write_text(manifest_with_wheels(manifest.read_text(encoding="utf-8"), names),
-                                      encoding="utf-8")
+    text = manifest.read_text(encoding="utf-8")
+    if platforms is not None:
+        text = manifest_for_platforms(text, platforms)
+    (dest / MANIFEST_NAME).write_text(manifest_with_wheels(text, names), encoding="utf-8")
     return dest
 
 
 def build(output_dir: str | Path, *, wheels_dir: Optional[str | Path] = None, fetch: bool = False,
           extra_wheels: Iterable[str | Path] = (), with_wheels: bool = True, split_platforms: bool = False,
-          overwrite: bool = False) -> list[Path]:
+          platforms: Optional[Sequence[str]] = None, overwrite: bool = False) -> list[Path]:
     """Build the extension zip(s) into ``output_dir``; returns their paths.
 
     Args:
@@ -245,25 +313,30 @@ def build(output_dir: str | Path, *, wheels_dir: Optional[str | Path] = None, fe
         with_wheels: False builds without dependency wheels (the user's Blender Python must provide
             them), e.g. for offline tests.
         split_platforms: one zip per platform, each with only its own wheels.
+        platforms: build for these Blender platforms only (default: every one of :data:`PLATFORM_TAGS`);
+            only their wheels are needed and bundled.
     """
     from fourlegs_engine.paths import cache_dir
 
+    if platforms is not None:
+        check_platforms(platforms)
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     wheels: list[Path] = []
     if with_wheels:
         wdir = Path(wheels_dir) if wheels_dir else cache_dir() / "extension-wheels"
+        targets = tuple(platforms) if platforms is not None else tuple(PLATFORM_TAGS)
         if fetch:
-            fetch_wheels(wdir)
+            fetch_wheels(wdir, platforms=targets)
         wheels = sorted(wdir.glob("*.whl")) if wdir.is_dir() else []
-        wheels = [w for w in wheels if w.name.split("-")[0].lower() in DEPENDENCIES]
-        missing = missing_wheels(wheels)
+        wheels = [w for w in wheels if is_bundled(w) and serves(w, targets)]
+        missing = missing_wheels(wheels, platforms=targets)
         if missing:
             raise BuildError(f"dependency wheels missing in {wdir}: {', '.join(missing)} (pass --fetch-wheels "
                              "to download them from PyPI, or --no-wheels to build without them)")
     wheels += [Path(w) for w in extra_wheels]
     with tempfile.TemporaryDirectory(prefix="fourlegs-ext-") as tmp:
-        src = stage(Path(tmp) / "src", wheels)
+        src = stage(Path(tmp) / "src", wheels, platforms=platforms)
         validate(src)
         out_tmp = Path(tmp) / "out"
         out_tmp.mkdir()

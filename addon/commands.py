@@ -25,14 +25,17 @@ def register(subparsers) -> None:
     be = subparsers.add_parser("build-extension", help="build the Blender extension zip (add-on + engine + wheels)")
     be.add_argument("-o", "--output", required=True, help="output directory for the zip(s)")
     be.add_argument("--fetch-wheels", action="store_true",
-                    help="download the dependency wheels (scipy, plyfile, tqdm, safetensors; cp311 + cp313; 4 platforms) "
-                         "from PyPI")
+                    help="download the dependency wheels (scipy, plyfile, tqdm, safetensors, numba, llvmlite; "
+                         "cp311 + cp313; 4 platforms) from PyPI")
     be.add_argument("--wheels-dir", default=None, help="where dependency wheels are (default <cache>/extension-wheels)")
     be.add_argument("--no-wheels", action="store_true",
                     help="bundle no dependency wheels (Blender's Python must provide torch, scipy, tqdm)")
     be.add_argument("--extra-wheel", action="append", default=[], metavar="WHL",
                     help="bundle this wheel too (e.g. a torch CPU wheel for one platform); repeatable")
     be.add_argument("--split-platforms", action="store_true", help="one zip per platform")
+    be.add_argument("--platform", action="append", default=None, dest="platforms", metavar="PLATFORM",
+                    help="build for this Blender platform only (windows-x64, linux-x64, macos-arm64, macos-x64); "
+                         "repeatable; default: all four")
     be.add_argument("--overwrite", action="store_true", help="replace existing zips")
     be.set_defaults(func=run_build_extension)
 
@@ -85,7 +88,8 @@ def run_build_extension(args: argparse.Namespace) -> int:
     try:
         zips = build.build(args.output, wheels_dir=args.wheels_dir, fetch=args.fetch_wheels,
                            extra_wheels=args.extra_wheel, with_wheels=not args.no_wheels,
-                           split_platforms=args.split_platforms, overwrite=args.overwrite)
+                           split_platforms=args.split_platforms, platforms=args.platforms,
+                           overwrite=args.overwrite)
     except build.BuildError as exc:
         raise InputError(str(exc), field="build-extension") from None
     for z in zips:

@@ -19,20 +19,29 @@ from fourlegs_addon import build  # noqa: E402
 
 
 def test_pip_download_asks_for_each_python_and_platform(tmp_path):
-    cmd = build.pip_download_command(tmp_path, "macos-x64", "3.13", build.DEPENDENCIES_BY_PYTHON["3.13"])
+    cmd = build.pip_download_command(tmp_path, "macos-x64", "3.13", build.requirements("3.13", "macos-x64"))
     assert cmd[cmd.index("--python-version") + 1] == "3.13" and "--only-binary=:all:" in cmd
     assert "macosx_10_14_x86_64" in cmd and "scipy==1.16.3" in cmd and "plyfile>=1.0" in cmd
+    # numba's last macOS x86-64 wheels; the other platforms get the release accepting numpy 1.22 - 2.5
+    assert "numba==0.62.1" in cmd and "llvmlite==0.45.1" in cmd
+    assert "numba==0.68.1" in build.requirements("3.11", "linux-x64")
+    assert "manylinux_2_28_x86_64" in build.pip_download_command(tmp_path, "linux-x64", "3.11", ["numba"])
     assert set(build.PYTHON_VERSIONS) == {"3.11", "3.13"}
-    assert {"scipy", "plyfile", "tqdm", "safetensors"} <= set(build.DEPENDENCIES)
+    assert {"scipy", "plyfile", "tqdm", "safetensors", "numba", "llvmlite"} <= set(build.DEPENDENCIES)
 
 
 def _complete_wheel_set() -> list[str]:
+    """The file names ``fetch_wheels`` downloads (PyPI's, as of numba 0.68.1 / scipy 1.16.3)."""
     names = ["plyfile-1.1.5-py3-none-any.whl", "tqdm-4.70.1-py3-none-any.whl"]
     for plat in ("win_amd64", "manylinux_2_17_x86_64.manylinux2014_x86_64", "macosx_12_0_arm64",
                  "macosx_10_13_x86_64"):
         names.append(f"safetensors-0.8.0-cp310-abi3-{plat}.whl")
         names.append(f"scipy-1.16.3-cp313-cp313-{plat.replace('10_13', '10_14')}.whl")
         names.append(f"scipy-1.13.1-cp311-cp311-{plat.replace('10_13', '10_9')}.whl")
+    for cp in ("cp311", "cp313"):
+        for plat in ("win_amd64", "manylinux_2_27_x86_64.manylinux_2_28_x86_64", "macosx_12_0_arm64"):
+            names += [f"numba-0.68.1-{cp}-{cp}-{plat}.whl", f"llvmlite-0.50.0-{cp}-{cp}-{plat}.whl"]
+        names += [f"numba-0.62.1-{cp}-{cp}-macosx_10_15_x86_64.whl", f"llvmlite-0.45.1-{cp}-{cp}-macosx_10_15_x86_64.whl"]
     return names
 
 
@@ -43,9 +52,35 @@ def test_missing_wheels_names_the_platform_and_python():
     assert build.missing_wheels([Path(n) for n in without]) == ["scipy (windows-x64, Python 3.13)"]
     without = [n for n in names if not n.startswith("plyfile")]
     assert len(build.missing_wheels([Path(n) for n in without])) == 8  # 4 platforms x 2 Pythons
+    without = [n for n in names if not n.startswith("llvmlite-0.45.1")]
+    assert build.missing_wheels([Path(n) for n in without]) == ["llvmlite (macos-x64, Python 3.11)",
+                                                               "llvmlite (macos-x64, Python 3.13)"]
     # a cp311 wheel does not serve Python 3.13
     cp311_only = [n for n in names if "cp313" not in n]
     assert "scipy (linux-x64, Python 3.13)" in build.missing_wheels([Path(n) for n in cp311_only])
+    # one platform's build needs only that platform's wheels
+    linux = [n for n in names if "manylinux" in n or n.endswith("none-any.whl")]
+    assert build.missing_wheels([Path(n) for n in linux], platforms=["linux-x64"]) == []
+    assert [n for n in names if build.serves(n, ["linux-x64"])] == linux
+
+
+def test_only_the_pinned_versions_are_bundled():
+    """A wheel of another numba (or scipy) left in the cache by an older build is not bundled."""
+    assert build.is_bundled("numba-0.68.1-cp313-cp313-win_amd64.whl")
+    assert build.is_bundled("numba-0.62.1-cp311-cp311-macosx_10_15_x86_64.whl")
+    assert not build.is_bundled("numba-0.61.2-cp311-cp311-win_amd64.whl")
+    assert not build.is_bundled("scipy-1.14.0-cp311-cp311-win_amd64.whl")
+    assert build.is_bundled("plyfile-9.9-py3-none-any.whl")  # not pinned: any version
+    assert not build.is_bundled("torch-2.13.0-cp311-cp311-win_amd64.whl")
+
+
+def test_a_one_platform_build_declares_only_that_platform(tmp_path):
+    src = build.stage(tmp_path / "src", platforms=["linux-x64"])
+    build.validate(src)
+    manifest = (src / "blender_manifest.toml").read_text()
+    assert 'platforms = ["linux-x64"]' in manifest and "windows-x64" not in manifest
+    with pytest.raises(build.BuildError, match="unknown platform.*linux-arm64"):
+        build.build(tmp_path / "out", platforms=["linux-arm64"])
 
 
 @pytest.fixture(scope="module")
@@ -149,35 +184,94 @@ def test_import_and_playback_without_torch(tmp_path, probe_wheel_dir):
     assert out["bad"][0] is False and out["bad"][1].startswith("pip failed: ERROR")
 
 
-def test_installed_zip_carries_plyfile_and_the_scipy_of_its_python(tmp_path):
+#: sitecustomize for the child Blender: numba and llvmlite import only from the Blender user folder (the
+#: extension's site-packages), never from the test's own environment
+EXTENSION_ONLY_NUMBA = """
+import importlib.machinery, os, sys
+
+class ExtensionOnlyNumba:
+    def find_spec(self, name, path=None, target=None):
+        if name not in ("numba", "llvmlite"):
+            return None
+        user = os.environ["BLENDER_USER_RESOURCES"]
+        spec = importlib.machinery.PathFinder.find_spec(name, [p for p in sys.path if p.startswith(user)])
+        if spec is None:
+            raise ModuleNotFoundError(f"No module named {name!r} in the extension", name=name)
+        return spec
+
+sys.meta_path.insert(0, ExtensionOnlyNumba())
+"""
+
+
+def test_installed_zip_carries_plyfile_numba_and_the_scipy_of_its_python(tmp_path):
     """With the real dependency wheels (``fourlegs build-extension --fetch-wheels`` leaves them in the
-    cache): the linux zip installs offline and Blender installs the wheels of its own Python."""
+    cache): the linux-x64 zip installs offline and Blender installs the wheels of its own Python; the
+    bundled numba imports against Blender's numpy and compiles, and where torch is present the render
+    engine blends through numba's kernels."""
     from fourlegs_engine.paths import cache_dir
 
-    wheels = sorted((cache_dir() / "extension-wheels").glob("*.whl"))
-    if build.missing_wheels(wheels):
-        pytest.skip("dependency wheels not downloaded (run: fourlegs build-extension --fetch-wheels)")
-    zips = build.build(tmp_path / "ext", split_platforms=True)
-    linux = [z for z in zips if "linux" in z.name][0]
+    wheels = [w for w in sorted((cache_dir() / "extension-wheels").glob("*.whl")) if build.is_bundled(w)]
+    if build.missing_wheels(wheels, platforms=["linux-x64"]):
+        pytest.skip("linux-x64 dependency wheels not downloaded (run: fourlegs build-extension --fetch-wheels "
+                    "--platform linux-x64)")
+    zips = build.build(tmp_path / "ext", platforms=["linux-x64"])
+    assert len(zips) == 1
     import zipfile
-    names = zipfile.ZipFile(linux).namelist()
+    names = zipfile.ZipFile(zips[0]).namelist()
     assert any(n.startswith("wheels/plyfile-") for n in names)
     assert any("cp311-cp311-manylinux" in n for n in names) and any("cp313-cp313-manylinux" in n for n in names)
+    assert not [n for n in names if "win_amd64" in n or "macosx" in n]
+    assert {n.split("/")[1].split("-")[0] for n in names if n.startswith("wheels/")} >= {"numba", "llvmlite"}
+    shim = tmp_path / "shim"
+    shim.mkdir()
+    (shim / "sitecustomize.py").write_text(EXTENSION_ONLY_NUMBA)
+    bundle = tmp_path / "bundle"
+    from fourlegs_engine.scene import write_bundle
+    write_bundle(tiny_scene(T=2, N=64), bundle)
     script = textwrap.dedent(f"""
         import json, sys, bpy
-        res = bpy.ops.extensions.package_install_files(filepath={str(linux)!r}, repo="user_default",
+        import numpy as np
+        res = bpy.ops.extensions.package_install_files(filepath={str(zips[0])!r}, repo="user_default",
                                                         enable_on_install=True)
-        site = bpy.utils.extension_path_user("bl_ext.user_default.fourlegs_highlights")
-        print("RESULT" + json.dumps({{"install": sorted(res), "python": "%d.%d" % sys.version_info[:2]}}))
+        out = {{"install": sorted(res), "python": "%d.%d" % sys.version_info[:2], "numpy": np.__version__}}
+        import numba, llvmlite
+        out["numba"] = [numba.__version__, numba.__file__, llvmlite.__file__]
+        out["jit_sum"] = float(numba.njit(lambda a: (a * a).sum())(np.arange(5.0)))
+        try:
+            import torch
+        except ImportError:
+            torch = None
+        if torch is not None:
+            from fourlegs_engine.render import cpu_kernels
+            calls = []
+            blend = cpu_kernels.blend_tiles
+            cpu_kernels.blend_tiles = lambda *a, **k: calls.append(1) or blend(*a, **k)
+            bpy.ops.fourlegs.import_scene(filepath={str(bundle / "scene.json")!r})
+            scene = bpy.context.scene
+            scene.render.engine = "FOURLEGS_SPLATS"
+            scene.camera = next(o for o in scene.objects if o.type == "CAMERA")
+            scene.render.resolution_x, scene.render.resolution_y = 32, 24
+            out["render"] = sorted(bpy.ops.render.render())
+            out["numba_blends"] = len(calls)
+            out["kernels_available"] = cpu_kernels.available()
+        print("RESULT" + json.dumps(out))
     """)
-    env = child_env(BLENDER_USER_RESOURCES=str(tmp_path / "blender-user"))
+    user = tmp_path / "blender-user"
+    env = child_env(BLENDER_USER_RESOURCES=str(user), PYTHONPATH=str(shim))
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300,
                           cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     out = json.loads([l for l in proc.stdout.splitlines() if l.startswith("RESULT")][-1][len("RESULT"):])
     assert out["install"] == ["FINISHED"]
-    site = next((tmp_path / "blender-user").glob("extensions/.local/lib/python*/site-packages"))
+    site = next(user.glob("extensions/.local/lib/python*/site-packages"))
     installed = {p.name for p in site.iterdir()}
     scipy_version = {"3.11": "1.13.1", "3.13": "1.16.3"}[out["python"]]
     assert f"scipy-{scipy_version}.dist-info" in installed and "plyfile.py" in installed
     assert len([n for n in installed if n.startswith("scipy-")]) == 1  # only its own Python's scipy
+    numba_version, numba_file, llvmlite_file = out["numba"]
+    assert numba_version == build.NUMBA[0].split("==")[1]
+    assert numba_file.startswith(str(site)) and llvmlite_file.startswith(str(site))
+    assert out["jit_sum"] == 30.0
+    if "render" in out:  # the Python 3.13 job runs without torch
+        assert out["render"] == ["FINISHED"] and out["kernels_available"]
+        assert out["numba_blends"] >= 1

@@ -507,7 +507,8 @@ _RENDERS: list[video.RenderJob] = []
 
 class FOURLEGS_OT_render_video(bpy.types.Operator):
     """Render the timeline through the 4-LEGS Splats engine and the compositor to a video or image sequence
-    (one frame per timer tick, so the UI stays responsive; Esc or Cancel stops it)"""
+    (one frame per timer tick, the MP4 encoded in a background process, so the UI stays responsive; Esc
+    or Cancel stops it)"""
 
     bl_idname = "fourlegs.render_video"
     bl_label = "Render Video"
@@ -545,7 +546,8 @@ class FOURLEGS_OT_render_video(bpy.types.Operator):
             return {"RUNNING_MODAL"}
         # background mode has no event loop: render every frame here
         while self._advance(context):
-            pass
+            if self._job.encoding:
+                threading.Event().wait(0.05)
         return self._end(context)
 
     def _advance(self, context) -> bool:
@@ -560,8 +562,12 @@ class FOURLEGS_OT_render_video(bpy.types.Operator):
         except BaseException as exc:
             self._error = "cancelled" if isinstance(exc, KeyboardInterrupt) else _err(exc)
             return False
-        props.progress = job.done / job.total
-        props.status = f"rendering frame {min(job.done + 1, job.total)}/{job.total}" if more else "encoding"
+        if job.encoder is None:
+            props.progress = job.done / job.total
+            props.status = f"rendering frame {min(job.done + 1, job.total)}/{job.total}" if more else "writing"
+        else:  # the MP4 encodes in a child process: the last tenth of the bar
+            props.progress = 0.9 + 0.1 * job.encoder.encoded / job.total
+            props.status = f"encoding the MP4: frame {job.encoder.encoded}/{job.total}"
         if self._timer is not None:
             context.window_manager.progress_update(job.done)
         return more

@@ -16,6 +16,7 @@ from typing import Callable, Iterator, Optional, Sequence
 import bpy
 
 from . import compositor, render_engine
+from .encode import EncodeProcess, configure_output, sequencer_scene
 
 FORMATS = ("MP4", "PNG", "EXR")
 
@@ -24,39 +25,6 @@ class OutputExists(FileExistsError):
     def __init__(self, path: Path):
         super().__init__(f"{path}: already exists (pass overwrite=True / --overwrite to replace it)")
         self.path = path
-
-
-def configure_output(scene: bpy.types.Scene, fmt: str, quality: str = "HIGH") -> None:
-    """Set the scene's output format: 'MP4' (H.264), 'PNG' (8-bit RGB) or 'EXR' (half float, multilayer)."""
-    settings = scene.render.image_settings
-    has_media_type = hasattr(settings, "media_type")  # Blender 5.0
-    if fmt == "MP4":
-        if has_media_type:
-            settings.media_type = "VIDEO"  # must precede file_format on 5.0
-        settings.file_format = "FFMPEG"
-        ff = scene.render.ffmpeg
-        ff.format = "MPEG4"
-        ff.codec = "H264"
-        ff.constant_rate_factor = quality
-        ff.ffmpeg_preset = "GOOD"
-        ff.audio_codec = "NONE"
-        settings.color_mode = "RGB"
-    elif fmt == "PNG":
-        if has_media_type:
-            settings.media_type = "IMAGE"
-        settings.file_format = "PNG"
-        settings.color_mode = "RGB"
-        settings.color_depth = "8"
-    elif fmt == "EXR":
-        if has_media_type:
-            settings.media_type = "MULTI_LAYER_IMAGE"
-        else:
-            settings.file_format = "OPEN_EXR_MULTILAYER"
-        settings.color_depth = "16"
-        settings.exr_codec = "ZIP"
-    else:
-        raise ValueError(f"unknown output format {fmt!r} (one of {', '.join(FORMATS)})")
-    scene.render.use_file_extension = True
 
 
 @contextlib.contextmanager
@@ -235,48 +203,43 @@ def render_frames(scene: bpy.types.Scene, frames_dir: str | Path, *,
     return out
 
 
-def encode_mp4(frames: Sequence[Path], output: str | Path, *, fps: int, fps_base: float = 1.0,
-               overwrite: bool = False) -> Path:
-    """Encode PNG frames to an H.264 MP4 with Blender's FFmpeg (through a temporary sequencer scene)."""
-    if not frames:
-        raise ValueError("no frames to encode")
+def check_frames(frames: Sequence[Path]) -> None:
+    """Raise an incomplete-write error naming the first frame that is not a complete PNG of the first
+    one's size (a damaged frame would reach FFmpeg, or Blender's image loader, as garbage)."""
     first_size = None
-    for path in frames:  # a damaged frame would reach FFmpeg (or Blender's image loader) as garbage
+    for path in frames:
         problem = _engine_api().image_file_problem(path, first_size)
         if problem is not None:
             raise _engine_api().incomplete_write_error(path, problem)
         if first_size is None:
             first_size = _png_size(path)
-    first = bpy.data.images.load(str(frames[0]), check_existing=False)
-    width, height = first.size
-    bpy.data.images.remove(first)
-    encoder = bpy.data.scenes.new("4-LEGS Encode")
+
+
+def encode_mp4(frames: Sequence[Path], output: str | Path, *, fps: int, fps_base: float = 1.0,
+               overwrite: bool = False) -> Path:
+    """Encode PNG frames to an H.264 MP4 with Blender's FFmpeg (through a temporary sequencer scene), in
+    this process (it blocks: Render Video encodes in a child process instead, see :class:`RenderJob`)."""
+    if not frames:
+        raise ValueError("no frames to encode")
+    check_frames(frames)
+    encoder = sequencer_scene(frames, fps=fps, fps_base=fps_base)
     try:
-        editor = encoder.sequence_editor_create()
-        strips = editor.strips if hasattr(editor, "strips") else editor.sequences  # 5.0 renamed it
-        strip = strips.new_image(name="frames", filepath=str(frames[0]), channel=1, frame_start=1)
-        for path in frames[1:]:
-            strip.elements.append(Path(path).name)
-        encoder.frame_start, encoder.frame_end = 1, len(frames)
-        render = encoder.render
-        render.resolution_x, render.resolution_y, render.resolution_percentage = width, height, 100
-        render.fps, render.fps_base = int(fps), float(fps_base)
-        encoder.view_settings.view_transform = "Standard"
-        encoder.view_settings.look = "None"
-        render.use_sequencer = True
         return render_animation(encoder, output, fmt="MP4", overwrite=overwrite)
     finally:
         bpy.data.scenes.remove(encoder)
 
 
 class RenderJob:
-    """Render the frame range one frame per :meth:`step`, so a modal operator can keep the UI responsive.
+    """Render the frame range one frame per :meth:`step`, then encode the MP4 in a child process while
+    :meth:`step` only looks whether it is done, so a modal operator keeps the UI responsive throughout.
 
     Frames go to a temporary sibling directory of ``output`` (``frame_####.png``/``.exr``, each written
-    under a temporary name and checked complete before it is renamed); :meth:`finish` encodes them to
-    the MP4 (or moves the sequence directory onto ``output``) and :meth:`cancel` removes them, so
-    neither a cancelled nor a failed render leaves anything at ``output``. The scene's output path,
-    compositing switch and current frame are restored by both.
+    under a temporary name and checked complete before it is renamed). For an MP4, once every frame is
+    rendered the scene's settings are restored and :class:`~.encode.EncodeProcess` encodes them into
+    that directory; :meth:`finish` checks the movie (one file, every frame in it) and renames it onto
+    ``output`` (a sequence: the directory itself). :meth:`cancel` stops the encoder and removes the
+    directory, so neither a cancelled nor a failed render leaves anything at ``output``. The scene's
+    output path, compositing switch and current frame are restored by both.
     """
 
     def __init__(self, scene: bpy.types.Scene, output: str | Path, *, fmt: str = "MP4", overwrite: bool = False):
@@ -289,6 +252,7 @@ class RenderJob:
         self.output.parent.mkdir(parents=True, exist_ok=True)
         self.frames = list(range(scene.frame_start, scene.frame_end + 1))
         self.written: list[Path] = []
+        self.encoder: Optional[EncodeProcess] = None
         self._saved = (scene.render.filepath, scene.render.use_compositing, scene.frame_current)
         self._composite = compositing_frames(scene)
         self._size = _output_size(scene)
@@ -304,12 +268,26 @@ class RenderJob:
     def done(self) -> int:
         return len(self.written)
 
+    @property
+    def encoding(self) -> bool:
+        """True while the MP4 encoder runs."""
+        return self.encoder is not None and self.encoder.poll()
+
     def step(self) -> bool:
-        """Render the next frame; True while frames remain. Raises (after :meth:`cancel`) on failure."""
+        """Render the next frame, or (MP4, every frame rendered) start the encoder, or look whether it is
+        done; True while work remains. Raises (after :meth:`cancel`) on failure."""
         try:
             if self.done < self.total:
                 self._render(self.frames[self.done])
-            return self.done < self.total
+                return self.done < self.total or self.fmt == "MP4"
+            if self.fmt != "MP4":
+                return False
+            if self.encoder is None:
+                self._restore()
+                check_frames(self.written)
+                self.encoder = EncodeProcess(self.written, self.tmp / "movie", fps=self.scene.render.fps,
+                                             fps_base=self.scene.render.fps_base)
+            return self.encoder.poll()
         except BaseException:
             self.cancel()
             raise
@@ -333,24 +311,40 @@ class RenderJob:
         self.written.append(target)
 
     def finish(self) -> Path:
-        """Write the output from the rendered frames (every frame must be done); returns its path."""
+        """Write the output from the rendered frames (every frame must be done; an MP4 encoder still
+        running is waited for); returns its path."""
         if self.done < self.total:
             raise RuntimeError(f"only {self.done} of {self.total} frames rendered")
         try:
             self._restore()
             if self.fmt == "MP4":
-                encode_mp4(self.written, self.output, fps=self.scene.render.fps,
-                           fps_base=self.scene.render.fps_base, overwrite=self.overwrite)
+                while self.step():
+                    self.encoder.wait()
+                movie = self.encoder.result()
+                if movie.stat().st_size == 0:
+                    raise _engine_api().incomplete_write_error(self.output, "the movie file is empty")
+                frames = movie_frame_count(movie)
+                if frames != self.total:
+                    raise _engine_api().incomplete_write_error(
+                        self.output, f"the movie holds {frames} of {self.total} frames")
+                if self.output.exists():
+                    self.output.unlink() if self.output.is_file() else shutil.rmtree(self.output)
+                movie.replace(self.output)
             else:
                 if self.output.exists():
                     self.output.unlink() if self.output.is_file() else shutil.rmtree(self.output)
                 self.tmp.replace(self.output)
             return self.output
+        except BaseException:
+            self.cancel()
+            raise
         finally:
             shutil.rmtree(self.tmp, ignore_errors=True)
 
     def cancel(self) -> None:
-        """Stop: remove the frames rendered so far and restore the scene's settings."""
+        """Stop: end the encoder, remove the frames rendered so far and restore the scene's settings."""
+        if self.encoder is not None:
+            self.encoder.cancel()
         self._restore()
         shutil.rmtree(self.tmp, ignore_errors=True)
 

@@ -2,6 +2,8 @@
 frames), the compositor's desaturation in the final image, and the video writer."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -231,10 +233,10 @@ def test_render_job_renders_one_frame_per_step_and_cancel_leaves_nothing(highlig
     assert scene.frame_current == 2 and scene.render.image_settings.file_format == "FFMPEG"
 
     job = video.RenderJob(scene, tmp_path / "clip.mp4")
-    steps = 0
+    for n in range(1, 5):  # one frame per step; the encoder starts on the step after the last frame
+        assert job.step() and job.done == n and job.encoder is None
     while job.step():
-        steps += 1
-    assert steps == 3 and job.done == 4
+        time.sleep(0.01)
     out = job.finish()
     assert video.movie_frame_count(out) == 4
     assert [p.name for p in tmp_path.iterdir()] == ["clip.mp4"]
@@ -246,6 +248,63 @@ def test_render_job_renders_one_frame_per_step_and_cancel_leaves_nothing(highlig
         pass
     frames = seq.finish()
     assert sorted(p.name for p in frames.iterdir()) == [f"frame_{i:04d}.png" for i in range(1, 5)]
+
+
+def test_mp4_encodes_in_a_child_process_while_each_step_returns_within_a_second(highlight, bl, tmp_path):
+    """Render Video's timer ticks during the encode: each step returns at once (the child encodes), the
+    encoder's progress counts up to every frame, and the movie appears complete, only at the end."""
+    from fourlegs_addon import video
+
+    scene, _, _ = highlight
+    scene.frame_end = 6
+    job = video.RenderJob(scene, tmp_path / "clip.mp4")
+    while job.encoder is None:
+        assert job.step()
+    child = job.encoder._proc
+    ticks, progress = [], []
+    while True:
+        t0 = time.perf_counter()
+        more = job.step()
+        ticks.append(time.perf_counter() - t0)
+        progress.append(job.encoder.encoded)
+        if not more:
+            break
+        assert not (tmp_path / "clip.mp4").exists()
+        time.sleep(0.01)  # the modal timer's interval
+    assert max(ticks) < 1.0 and len(ticks) > 10  # control came back many times while the child encoded
+    assert child.returncode == 0 and progress == sorted(progress) and progress[-1] == 6
+    out = job.finish()
+    assert video.movie_frame_count(out) == 6 and [p.name for p in tmp_path.iterdir()] == ["clip.mp4"]
+
+
+def test_cancel_during_the_encode_ends_the_child_and_leaves_nothing(highlight, bl, tmp_path):
+    from fourlegs_addon import video
+
+    scene, _, _ = highlight
+    scene.frame_end = 3
+    job = video.RenderJob(scene, tmp_path / "clip.mp4")
+    while job.encoder is None:
+        job.step()
+    assert job.encoding
+    job.cancel()
+    assert job.encoder._proc.returncode is not None and not job.encoding
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_failed_encode_is_one_line_and_leaves_nothing(highlight, bl, tmp_path):
+    from fourlegs_addon import video
+
+    scene, _, _ = highlight
+    scene.frame_end = 2
+    job = video.RenderJob(scene, tmp_path / "clip.mp4")
+    while job.encoder is None:
+        job.step()
+    job.encoder.wait()
+    for movie in job.encoder.out_dir.glob("movie_*.mp4"):
+        movie.unlink()  # as if the encoder had written nothing
+    with pytest.raises(RuntimeError, match="encoding the MP4 failed"):
+        job.finish()
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_render_video_operator_cancel_button_stops_it_between_frames(highlight, bl, tmp_path):

@@ -89,10 +89,18 @@ class _QueryJob:
         if stage:
             self.stage = f"localizing: {stage}"
 
+    def on_open_progress(self, fraction: float, stage: str) -> None:
+        """The engine's progress callback while it opens (text encoder, field, reference phrases, codebook):
+        0-20% of the bar; raises :class:`Cancelled` once the user cancelled, between those steps."""
+        if self.cancelled:
+            raise _cancelled_error()("the query was cancelled")
+        self.progress = 0.2 * fraction
+        self.stage = f"opening the query engine: {stage}"
+
     def run(self) -> None:
         try:
-            self.stage, self.progress = "opening the language field", 0.05
-            self.engine = querying.open_query_engine(self.scene, encoder=self.encoder)
+            self.stage, self.progress = "opening the query engine", 0.0
+            self.engine = querying.open_query_engine(self.scene, encoder=self.encoder, progress=self.on_open_progress)
             if self.cancelled:
                 return
             self.stage, self.progress = "localizing in time and space", 0.2
@@ -166,6 +174,10 @@ class _JobModal:
         while not job.done:  # background mode has no event loop
             threading.Event().wait(0.05)
         self._stop(context)
+        if job.cancelled:
+            props.running, props.status = False, "cancelled"
+            self.report({"WARNING"}, "4-LEGS query cancelled")
+            return {"CANCELLED"}
         return self._finish(context)
 
     def _failed(self, context, label: str) -> bool:
@@ -309,11 +321,14 @@ class _RankJob(_QueryJob):
         from fourlegs_engine import api
 
         try:
+            def cancel_point(fraction: float, stage: str) -> None:
+                if self.cancelled:
+                    raise api.Cancelled("cancelled")
+
             def opener(scene):
                 def open_engine():
-                    if self.cancelled:
-                        raise api.Cancelled("cancelled")
-                    return querying.open_query_engine(scene, encoder=self.encoder)
+                    cancel_point(0.0, "")  # also where the engine is already open
+                    return querying.open_query_engine(scene, encoder=self.encoder, progress=cancel_point)
                 return open_engine
 
             scored = [0]

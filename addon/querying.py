@@ -6,7 +6,7 @@ The text encoder is chosen as the ``fourlegs`` commands choose it (:class:`fourl
 """
 from __future__ import annotations
 
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 _ENGINES: dict[int, Any] = {}
 
@@ -35,17 +35,20 @@ def default_options() -> Any:
     return api.QueryOptions(spatial="fast")
 
 
-def open_query_engine(scene: Any, options: Optional[Any] = None, encoder: Optional[Any] = None) -> Any:
+def open_query_engine(scene: Any, options: Optional[Any] = None, encoder: Optional[Any] = None,
+                      progress: Optional[Callable[[float, str], None]] = None) -> Any:
     """A ``QueryEngine`` for ``scene`` with ``options`` (QueryOptions; None: :func:`default_options`) and the
     text encoder ``encoder`` (EncoderConfig) names; cached per scene object when ``options`` is None.
-    InputError if the scene has no language field."""
+    InputError if the scene has no language field. ``progress(fraction, stage)`` is called between the
+    steps of opening (see :func:`fourlegs_engine.api.open_query_engine`); an exception it raises (the
+    user cancelled) stops the opening there, and nothing is cached."""
     from fourlegs_engine import api
 
     key = id(scene)
     if options is None and key in _ENGINES:
         return _ENGINES[key]
     engine = api.open_query_engine(scene, options=options if options is not None else default_options(),
-                                   encoder_config=encoder or api.EncoderConfig())
+                                   encoder_config=encoder or api.EncoderConfig(), progress=progress)
     if options is None:
         _ENGINES[key] = engine
     return engine

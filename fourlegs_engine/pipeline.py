@@ -172,11 +172,16 @@ def ensure_language_field(scene: "Scene", encoder: Any = None, *, encoder_config
 
 
 def open_query_engine(scene: "Scene", encoder: Any = None, *, options: Optional[QueryOptions] = None,
-                      encoder_config: EncoderConfig = EncoderConfig(), **engine_kwargs: Any) -> "QueryEngine":
+                      encoder_config: EncoderConfig = EncoderConfig(),
+                      progress: Optional[Callable[[float, str], None]] = None, **engine_kwargs: Any) -> "QueryEngine":
     """A :class:`~fourlegs_engine.query.engine.QueryEngine` on ``scene``'s language field.
 
     ``encoder`` (default: built from ``encoder_config``) must be the one the field was distilled with;
     ``engine_kwargs`` are the engine's ``codebook`` / ``codebook_dir``. InputError if the scene has no field.
+    With ``progress(fraction, stage)`` the engine is opened ready to answer: the text encoder loaded, the
+    field opened, the reference phrases embedded and (codebook path) the codebook loaded or built, with
+    the callback called between these steps and between the codebook's timestep chunks; an exception it
+    raises (e.g. :class:`~fourlegs_engine.errors.Cancelled`) stops the opening and propagates.
     """
     from .language.field import LanguageField
     from .query.engine import QueryEngine
@@ -184,8 +189,19 @@ def open_query_engine(scene: "Scene", encoder: Any = None, *, options: Optional[
     if not has_language_field(scene):
         raise InputError("the scene has no distilled language field: run `fourlegs highlight` on it once (or "
                          "the language stages: extract, train-ae, distill)", file=scene.root, field="language")
+    if progress is None:
+        encoder = encoder if encoder is not None else text_encoder(scene, encoder_config)
+        return QueryEngine(scene, LanguageField.open(scene.root), encoder, options, **engine_kwargs)
+    progress(0.0, "loading the text encoder")
     encoder = encoder if encoder is not None else text_encoder(scene, encoder_config)
-    return QueryEngine(scene, LanguageField.open(scene.root), encoder, options, **engine_kwargs)
+    progress(0.3, "opening the language field")
+    engine = QueryEngine(scene, LanguageField.open(scene.root), encoder, options, **engine_kwargs)
+    progress(0.5, "embedding the reference phrases")
+    engine.reference_embeddings()
+    if engine.path == "codebook":
+        engine.load_codebook(progress=lambda f, stage: progress(0.6 + 0.4 * f, stage))
+    progress(1.0, "engine ready")
+    return engine
 
 
 @dataclass(frozen=True)

@@ -234,6 +234,42 @@ def test_cancel_stops_the_query_inside_the_temporal_pass(bl, monkeypatch):
     assert 0.2 <= job.progress < 0.9 and job.stage == "localizing: scoring timesteps"
 
 
+def test_cancel_stops_the_query_while_the_engine_opens(bl, tmp_path, monkeypatch):
+    """Cancel pressed while Run Query opens the engine (text encoder loaded, field not yet opened): the
+    opening stops there, nothing is cached or stored, and the operator ends cancelled without an error."""
+    from _blender_helpers import language_bundle
+
+    from fourlegs_addon import importer, operators, querying
+    from fourlegs_engine.language.field import LanguageField
+
+    path = language_bundle(tmp_path / "bundle")
+    bl.ops.fourlegs.import_scene(filepath=str(path / "scene.json"))
+    obj = bl.context.scene.fourlegs.splat_object
+    props = bl.context.scene.fourlegs
+    props.query = "red cube"
+    opened, stages = [], []
+    real_open = LanguageField.open.__func__
+    monkeypatch.setattr(LanguageField, "open", classmethod(lambda cls, *a, **k: opened.append(1) or real_open(cls, *a, **k)))
+    real_progress = operators._QueryJob.on_open_progress
+
+    def cancel_when_the_field_opens(job, fraction, stage):
+        stages.append(stage)
+        if stage == "opening the language field":
+            operators.cancel_all()  # what the Cancel button does
+        real_progress(job, fraction, stage)
+
+    monkeypatch.setattr(operators._QueryJob, "on_open_progress", cancel_when_the_field_opens)
+    querying._ENGINES.clear()
+    assert bl.ops.fourlegs.run_query() == {"CANCELLED"}
+    assert stages == ["loading the text encoder", "opening the language field"] and opened == []
+    assert querying._ENGINES == {} and importer.source_key(obj) not in operators._LOCALIZERS
+    assert not props.running and props.status == "cancelled" and not props.found and len(props.segments) == 0
+
+    monkeypatch.setattr(operators._QueryJob, "on_open_progress", real_progress)
+    assert bl.ops.fourlegs.run_query() == {"FINISHED"}  # nothing left half-open: the next run works
+    assert opened == [1] and props.found and (props.segment_start, props.segment_end) == (1, 4)
+
+
 def _ranked_bundle(path, label, active):
     from _blender_helpers import language_bundle
 

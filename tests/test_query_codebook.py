@@ -270,3 +270,38 @@ def test_members_index_lists_each_codes_gaussians(tmp_path):
     assert legacy.members is None
     np.testing.assert_array_equal(np.sort(legacy.members_with_codes(np.array([5]))[0]),
                                   np.flatnonzero(codes.reshape(-1) == 5))
+
+
+def test_opening_an_engine_reports_its_steps_and_a_cancel_stops_the_codebook_build(tmp_path):
+    """api.open_query_engine(progress=): encoder, field, reference phrases, codebook (training, then every
+    chunk of timesteps assigned); a Cancelled raised by the callback stops the build with nothing stored,
+    and the next opening builds the same codebook an uninterrupted build makes."""
+    from _blender_helpers import language_bundle
+
+    from fourlegs_engine import api
+
+    path = language_bundle(tmp_path / "bundle", T=6, N=200)
+    scene = api.open_scene(path)
+    options = api.QueryOptions(path="codebook", codebook_size=4)
+    seen = []
+
+    def cancel_at_assignment(fraction, stage):
+        seen.append((fraction, stage))
+        if stage.endswith("assigning"):
+            raise api.Cancelled("cancelled")
+
+    with pytest.raises(api.Cancelled):
+        api.open_query_engine(scene, options=options, progress=cancel_at_assignment)
+    assert [s for _, s in seen] == ["loading the text encoder", "opening the language field",
+                                    "embedding the reference phrases", "codebook K=4: training",
+                                    "codebook K=4: assigning"]
+    assert not list((path / "language").glob("*_4.np*"))  # nothing stored
+    seen.clear()
+    engine = api.open_query_engine(scene, options=options, progress=lambda f, s: seen.append((f, s)))
+    fractions = [f for f, _ in seen]
+    assert fractions == sorted(fractions) and seen[-1] == (1.0, "engine ready")
+    assert ("codebook K=4: assigned 6/6 timesteps" in [s for _, s in seen])
+    assert engine.stats["codebook_load"] == 1 and (path / "language" / "codebook_4.npz").is_file()
+    reference = cb.build_codebook(np.asarray(engine.latents), 4)
+    np.testing.assert_array_equal(np.asarray(engine.codebook.codes), reference.codes)
+    assert engine.stats["codebook_load"] == 1  # opened ready: the query does not load it again

@@ -26,7 +26,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 import torch
@@ -301,7 +301,8 @@ def sample_latents(latents, size: int, seed: int = 0) -> torch.Tensor:
 
 
 def build_codebook(latents, k: int, *, out_dir: Optional[Path] = None, seed: int = 0, sample_size: Optional[int] = None,
-                   iters: int = 10, progress: bool = False) -> Codebook:
+                   iters: int = 10, progress: bool = False,
+                   on_progress: Optional[Callable[[float, str], None]] = None) -> Codebook:
     """K-means the (T,N,d) latents into ``k`` codes and assign every Gaussian at every timestep.
 
     Args:
@@ -309,7 +310,11 @@ def build_codebook(latents, k: int, *, out_dir: Optional[Path] = None, seed: int
         k: number of codes (<= 2**31).
         out_dir: where to store ``codebook_k.npz`` and ``codes_k.npy`` (None: keep in memory).
         sample_size: training sample (default min(T*N, clip(16 k, 50k, 400k))).
+        progress: a tqdm bar over the assignment.
+        on_progress: ``(fraction, stage)`` before the training and after each assigned chunk of
+            timesteps; an exception it raises stops the build before anything is stored.
     """
+    report = on_progress or (lambda fraction, stage: None)
     if k < 1:
         raise InputError(f"codebook size must be >= 1, got {k}", field="codebook")
     T, N, d = (int(s) for s in latents.shape)
@@ -317,8 +322,10 @@ def build_codebook(latents, k: int, *, out_dir: Optional[Path] = None, seed: int
     if sample_size is None:
         sample_size = int(min(M, min(max(16 * k, 50_000), 400_000)))
     torch.manual_seed(seed)
+    report(0.0, f"codebook K={k}: training")
     sample = sample_latents(latents, max(1, sample_size), seed) if M else torch.zeros(0, d)
     coarse, fine = train(sample, k, num_points=M, seed=seed, iters=iters)
+    report(0.3, f"codebook K={k}: assigning")
     code_dtype = np.uint16 if k <= 65536 else np.int32
     codes_path = None if out_dir is None else Path(out_dir) / f"codes_{k}.npy"
     hist = np.zeros((T, k), dtype=np.int32)
@@ -337,6 +344,7 @@ def build_codebook(latents, k: int, *, out_dir: Optional[Path] = None, seed: int
             hist[t] = np.bincount(c[i], minlength=k)
         if progress:
             steps.update(t1 - t0)  # type: ignore[attr-defined]
+        report(0.3 + 0.7 * t1 / T, f"codebook K={k}: assigned {t1}/{T} timesteps")
     if progress:
         steps.close()  # type: ignore[attr-defined]
     meta = {"version": CODEBOOK_VERSION, "k": k, "levels": [int(coarse.shape[0]), k // int(coarse.shape[0])],

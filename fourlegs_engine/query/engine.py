@@ -248,9 +248,15 @@ class QueryEngine:
     # ------------------------------------------------------------------ codebook
     @property
     def codebook(self) -> Codebook:
+        return self.load_codebook()
+
+    def load_codebook(self, progress: Optional[Callable[[float, str], None]] = None) -> Codebook:
+        """The codebook, loaded or (first use) built and stored; a build calls ``progress(fraction,
+        stage)`` between its steps, and an exception it raises stops the build with nothing stored."""
         if self._codebook is None:
             self.stats["codebook_load"] += 1
-            self._codebook = ensure_codebook(self.latents, self.codebook_size, self.codebook_dir)
+            self._codebook = ensure_codebook(self.latents, self.codebook_size, self.codebook_dir,
+                                             on_progress=progress)
         return self._codebook
 
     def _codes_scores(self, query: str) -> torch.Tensor:

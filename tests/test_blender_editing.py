@@ -219,3 +219,33 @@ def test_dense_eased_dolly_becomes_a_few_bezier_keys_on_the_planned_path(bl):
         position = convert.blender_to_opencv_c2w(np.array(cam.matrix_world))[:3, 3]
         worst = max(worst, float(np.abs(position - np.asarray(key["c2w"])[:3, 3]).max()))
     assert worst <= 1.5e-3
+
+
+def test_generate_asks_before_replacing_a_generated_highlight(bl, tmp_path):
+    """Generate Highlight's invoke: on a scene without a highlight it generates at once; on one with a
+    generated highlight it asks first (Blender's confirm popup; nothing is replaced until confirmed)."""
+    import json
+    import types
+
+    from fourlegs_addon import keyframes, operators
+
+    plan_file = tmp_path / "plan.json"
+    plan_file.write_text(json.dumps(hand_plan(desaturate=True)))
+    _generate(bl)
+    # the real operator through Blender's own invoke: the confirm's arguments are ones this Blender takes
+    # (without a window Blender confirms by itself)
+    assert bl.ops.fourlegs.generate_highlight("INVOKE_DEFAULT", plan_file=str(plan_file)) == {"FINISHED"}
+
+    asked, executed = [], []
+    window_manager = types.SimpleNamespace(
+        invoke_confirm=lambda op, event, **kw: asked.append(kw) or {"RUNNING_MODAL"})
+    context = types.SimpleNamespace(scene=bl.context.scene, window_manager=window_manager)
+    op = types.SimpleNamespace(execute=lambda ctx: executed.append(1) or {"FINISHED"})
+    assert keyframes.has_generated(bl.context.scene)
+    assert operators.FOURLEGS_OT_generate_highlight.invoke(op, context, None) == {"RUNNING_MODAL"}
+    assert executed == [] and asked[0]["title"] == "Replace the highlight?" and "edits" in asked[0]["message"]
+    bl.ops.wm.read_factory_settings(use_empty=True)
+    context.scene = bl.context.scene
+    assert not keyframes.has_generated(bl.context.scene)
+    assert operators.FOURLEGS_OT_generate_highlight.invoke(op, context, None) == {"FINISHED"}
+    assert executed == [1] and len(asked) == 1

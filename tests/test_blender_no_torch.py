@@ -184,14 +184,14 @@ def test_import_and_playback_without_torch(tmp_path, probe_wheel_dir):
     assert out["bad"][0] is False and out["bad"][1].startswith("pip failed: ERROR")
 
 
-#: sitecustomize for the child Blender: numba and llvmlite import only from the Blender user folder (the
-#: extension's site-packages), never from the test's own environment
+#: sitecustomize for the child Blender: the bundled dependencies import only from the Blender user folder
+#: (the extension's site-packages), never from the test's own environment
 EXTENSION_ONLY_NUMBA = """
 import importlib.machinery, os, sys
 
 class ExtensionOnlyNumba:
     def find_spec(self, name, path=None, target=None):
-        if name not in ("numba", "llvmlite"):
+        if name not in ("numba", "llvmlite", "plyfile", "scipy"):
             return None
         user = os.environ["BLENDER_USER_RESOURCES"]
         spec = importlib.machinery.PathFinder.find_spec(name, [p for p in sys.path if p.startswith(user)])
@@ -227,7 +227,9 @@ def test_installed_zip_carries_plyfile_numba_and_the_scipy_of_its_python(tmp_pat
     (shim / "sitecustomize.py").write_text(EXTENSION_ONLY_NUMBA)
     bundle = tmp_path / "bundle"
     from fourlegs_engine.scene import write_bundle
+    from fourlegs_engine.scene.ply import write_ply_scene
     write_bundle(tiny_scene(T=2, N=64), bundle)
+    write_ply_scene(tiny_scene(T=3, N=48), tmp_path / "ply")
     script = textwrap.dedent(f"""
         import json, sys, bpy
         import numpy as np
@@ -237,6 +239,10 @@ def test_installed_zip_carries_plyfile_numba_and_the_scipy_of_its_python(tmp_pat
         import numba, llvmlite
         out["numba"] = [numba.__version__, numba.__file__, llvmlite.__file__]
         out["jit_sum"] = float(numba.njit(lambda a: (a * a).sum())(np.arange(5.0)))
+        import plyfile, scipy
+        out["plyfile"], out["scipy"] = plyfile.__file__, [scipy.__version__, scipy.__file__]
+        out["ply_import"] = sorted(bpy.ops.fourlegs.import_scene(filepath={str(tmp_path / "ply")!r}))
+        out["ply_points"] = len(bpy.context.scene.fourlegs.splat_object.data.vertices)
         try:
             import torch
         except ImportError:
@@ -246,6 +252,8 @@ def test_installed_zip_carries_plyfile_numba_and_the_scipy_of_its_python(tmp_pat
             calls = []
             blend = cpu_kernels.blend_tiles
             cpu_kernels.blend_tiles = lambda *a, **k: calls.append(1) or blend(*a, **k)
+            for o in list(bpy.data.objects):  # the PLY scene's objects
+                bpy.data.objects.remove(o)
             bpy.ops.fourlegs.import_scene(filepath={str(bundle / "scene.json")!r})
             scene = bpy.context.scene
             scene.render.engine = "FOURLEGS_SPLATS"
@@ -272,6 +280,9 @@ def test_installed_zip_carries_plyfile_numba_and_the_scipy_of_its_python(tmp_pat
     assert numba_version == build.NUMBA[0].split("==")[1]
     assert numba_file.startswith(str(site)) and llvmlite_file.startswith(str(site))
     assert out["jit_sum"] == 30.0
+    # a PLY sequence imports through the extension's own plyfile
+    assert out["plyfile"].startswith(str(site)) and out["ply_import"] == ["FINISHED"] and out["ply_points"] == 48
+    assert out["scipy"][0] == scipy_version and out["scipy"][1].startswith(str(site))
     if "render" in out:  # the Python 3.13 job runs without torch
         assert out["render"] == ["FINISHED"] and out["kernels_available"]
         assert out["numba_blends"] >= 1

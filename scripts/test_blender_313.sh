@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The Blender 5.1+ line: bpy 5.2 on Python 3.13, WITHOUT PyTorch (Blender's Python has none until the
-# add-on's preferences install it). Covers the extension's build and offline install, registration,
-# PLY import and timeline playback, the PyTorch installer, keyframes, markers, the orbit rig and the
-# compositor; what needs torch (query, render) is covered by the Python 3.11 / bpy 5.0 suite.
+# add-on's preferences install it). Covers the extension's build and offline install (its numba compiling
+# against bpy 5.2's numpy 2.x, its plyfile and scipy), registration, PLY import and timeline playback,
+# the PyTorch installer, the MP4 encoder process, keyframes, markers, the orbit rig and the compositor;
+# what needs torch (query, render) is covered by the Python 3.11 / bpy 5.0 suite.
 # Usage: scripts/test_blender_313.sh [pytest args]; PYTHON313 overrides the interpreter.
 set -euo pipefail
 cd "$(dirname "$0")/.."

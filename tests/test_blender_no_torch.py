@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from _blender_helpers import REPO, child_env, tiny_scene
+from _blender_helpers import REPO, bl, bpy_addon, child_env, tiny_scene  # noqa: F401
 
 pytestmark = pytest.mark.blender
 pytest.importorskip("bpy")
@@ -286,3 +286,33 @@ def test_installed_zip_carries_plyfile_numba_and_the_scipy_of_its_python(tmp_pat
     if "render" in out:  # the Python 3.13 job runs without torch
         assert out["render"] == ["FINISHED"] and out["kernels_available"]
         assert out["numba_blends"] >= 1
+
+
+def test_encode_process_writes_every_frame_in_a_child_process(bl, tmp_path):
+    """The MP4 encoder Render Video starts (no torch needed): a child process encodes the PNG frames while
+    this process keeps running; it reports each frame, and the movie holds every one of them."""
+    import time
+
+    import numpy as np
+
+    from fourlegs_addon import encode, video
+
+    frames = []
+    for i in range(5):
+        image = bl.data.images.new(f"frame{i}", 32, 24)
+        image.pixels.foreach_set(np.tile(np.float32([i / 4, 0.5, 1 - i / 4, 1.0]), 32 * 24))
+        image.filepath_raw, image.file_format = str(tmp_path / f"frame_{i + 1:04d}.png"), "PNG"
+        image.save()
+        frames.append(tmp_path / f"frame_{i + 1:04d}.png")
+    job = encode.EncodeProcess(frames, tmp_path / "movie", fps=12)
+    polls = 0
+    t0 = time.perf_counter()
+    while job.poll():
+        polls += 1
+        time.sleep(0.01)
+    assert polls > 5 and time.perf_counter() - t0 < 120  # the caller ran while the child encoded
+    movie = job.result()
+    assert movie.parent == tmp_path / "movie" and movie.suffix == ".mp4" and job.encoded == 5
+    assert video.movie_frame_count(movie) == 5
+    with pytest.raises(ValueError, match="no frames"):
+        encode.EncodeProcess([], tmp_path / "none", fps=12)

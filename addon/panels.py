@@ -120,7 +120,7 @@ class FOURLEGS_PT_render(_SidebarSubPanel, bpy.types.Panel):
         layout.prop(props, "output_format")
         layout.prop(props, "output_path")
         layout.prop(props, "overwrite")
-        if props.running and props.status.startswith(("rendering", "encoding")):
+        if props.running and props.status.startswith(("rendering", "encoding", "writing")):
             row = layout.row(align=True)
             row.progress(factor=props.progress, type="BAR", text=props.status)
             row.operator("fourlegs.cancel_query", text="", icon="CANCEL")

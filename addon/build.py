@@ -27,7 +27,7 @@ Python 3.13): wheels for both, per platform; Blender installs the ones matching 
   platform-specific build can bundle a torch wheel the user provides with ``--extra-wheel``.
 - bundled: ``numba`` + ``llvmlite`` (the fused CPU splat/blend kernels of
   :mod:`fourlegs_engine.render.cpu_kernels`, which the render engine, the viewport and the lift take when
-  numba imports; ~45-65 MB per platform and Python, llvmlite being most of it). numba 0.68.1 (llvmlite
+  numba imports; 43-64 MB per platform and Python, llvmlite being most of it). numba 0.68.1 (llvmlite
   0.50.0) accepts numpy 1.22 - 2.5, which holds Blender 5.0's numpy 1.26 and the numpy 2.2 - 2.5 the
   Python 3.13 Blenders ship (bpy 5.2 requires numpy >= 2.2, < 3); its Linux wheels are manylinux_2_28,
   the glibc Blender >= 4.2 requires. macos-x64 has no numba wheel after 0.62.1 (llvmlite 0.45.1, numpy
@@ -64,7 +64,8 @@ PLATFORM_TAGS = {
     "windows-x64": ["win_amd64"],
     "linux-x64": ["manylinux_2_28_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64"],
     "macos-arm64": ["macosx_12_0_arm64", "macosx_11_0_arm64"],
-    "macos-x64": ["macosx_10_15_x86_64", "macosx_10_14_x86_64", "macosx_10_13_x86_64", "macosx_10_12_x86_64", "macosx_10_9_x86_64"],
+    "macos-x64": ["macosx_10_15_x86_64", "macosx_10_14_x86_64", "macosx_10_13_x86_64", "macosx_10_12_x86_64",
+                  "macosx_10_9_x86_64"],
 }
 #: bundled dependencies per Python version (requirement specifiers); everything the add-on imports
 #: inside Blender except numpy (Blender ships it) and torch (installed from the add-on's preferences)

@@ -50,7 +50,8 @@ SITECUSTOMIZE = {
 CHILD = textwrap.dedent("""
     import json, statistics, sys, time
     import bpy
-    zip_path, scene_arg, width, height, repeats = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
+    zip_path, scene_arg = sys.argv[1], sys.argv[2]
+    width, height, repeats = (int(v) for v in sys.argv[3:6])
     res = bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
     assert "FINISHED" in res, res
     pkg = sys.modules["bl_ext.user_default.fourlegs_highlights"]
@@ -66,7 +67,8 @@ CHILD = textwrap.dedent("""
     bl_scene = bpy.context.scene
     bl_scene.camera = sorted((o for o in bl_scene.objects if o.type == "CAMERA"), key=lambda o: o.name)[0]
     bl_scene.render.engine = "FOURLEGS_SPLATS"
-    bl_scene.render.resolution_x, bl_scene.render.resolution_y, bl_scene.render.resolution_percentage = width, height, 100
+    bl_scene.render.resolution_x, bl_scene.render.resolution_y = width, height
+    bl_scene.render.resolution_percentage = 100
     blends = [0]
     blend = cpu_kernels.blend_tiles
     def counted(*a, **k):

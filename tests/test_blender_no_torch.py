@@ -41,7 +41,8 @@ def _complete_wheel_set() -> list[str]:
     for cp in ("cp311", "cp313"):
         for plat in ("win_amd64", "manylinux_2_27_x86_64.manylinux_2_28_x86_64", "macosx_12_0_arm64"):
             names += [f"numba-0.68.1-{cp}-{cp}-{plat}.whl", f"llvmlite-0.50.0-{cp}-{cp}-{plat}.whl"]
-        names += [f"numba-0.62.1-{cp}-{cp}-macosx_10_15_x86_64.whl", f"llvmlite-0.45.1-{cp}-{cp}-macosx_10_15_x86_64.whl"]
+        names += [f"numba-0.62.1-{cp}-{cp}-macosx_10_15_x86_64.whl",
+                  f"llvmlite-0.45.1-{cp}-{cp}-macosx_10_15_x86_64.whl"]
     return names
 
 

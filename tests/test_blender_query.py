@@ -249,7 +249,8 @@ def test_cancel_stops_the_query_while_the_engine_opens(bl, tmp_path, monkeypatch
     props.query = "red cube"
     opened, stages = [], []
     real_open = LanguageField.open.__func__
-    monkeypatch.setattr(LanguageField, "open", classmethod(lambda cls, *a, **k: opened.append(1) or real_open(cls, *a, **k)))
+    monkeypatch.setattr(LanguageField, "open",
+                        classmethod(lambda cls, *a, **k: opened.append(1) or real_open(cls, *a, **k)))
     real_progress = operators._QueryJob.on_open_progress
 
     def cancel_when_the_field_opens(job, fraction, stage):

@@ -133,7 +133,13 @@ class EncodeProcess:
 
     def wait(self, timeout: Optional[float] = None) -> None:
         self._proc.wait(timeout)
+        self._close()
+
+    def _close(self) -> None:
+        """After the child exited: let the reader take its last lines, then close the pipe."""
         self._reader.join(5.0)
+        if not self._reader.is_alive():
+            self._proc.stdout.close()
 
     def result(self) -> Path:
         """The movie the finished child wrote; RuntimeError (with the child's last error line) if it failed."""
@@ -156,7 +162,7 @@ class EncodeProcess:
             except subprocess.TimeoutExpired:
                 self._proc.kill()
                 self._proc.wait()
-        self._reader.join(5.0)
+        self._close()
 
 
 def main(argv: Sequence[str]) -> None:

@@ -30,10 +30,14 @@ RELEVANCY_ATTR = "splat_relevancy"
 RELEVANCY_RGB_ATTR = "splat_relevancy_rgb"
 RADIUS_ATTR = "splat_radius"
 OPACITY_ATTR = "splat_opacity"
+FOREGROUND_ATTR = "splat_foreground"  # boolean, only when the scene marks its foreground (e.g. a fitted capture)
 NODE_GROUP_NAME = "4-LEGS Splats"
 MODIFIER_NAME = "4-LEGS Splats"
 CAMERA_COLLECTION_SUFFIX = " Cameras"
 RADIUS_SIGMAS = 1.5  # instance radius = 1.5 x the geometric-mean standard deviation of the Gaussian
+# Calibrated cameras have fx and fy a fraction of a percent apart; Blender cannot write a multilayer EXR with
+# non-square pixels, so such cameras get square pixels and the geometric-mean focal length.
+SQUARE_PIXEL_TOLERANCE = 0.01
 
 # source key -> Scene (engine object, arrays memory-mapped); relevancy per source: (N,) or (T,N)
 _SCENES: dict[str, Any] = {}
@@ -145,6 +149,9 @@ def import_scene(context_scene: bpy.types.Scene, scene: Any, *, source: str | No
     _set_attr(mesh, RADIUS_ATTR, "FLOAT", "value", radius.astype(np.float32))
     opacity = 1.0 / (1.0 + np.exp(-np.clip(np.asarray(g.opacity_logits, dtype=np.float64), -60, 60)))
     _set_attr(mesh, OPACITY_ATTR, "FLOAT", "value", opacity.astype(np.float32))
+    if g.foreground is not None:
+        mesh.attributes.new(FOREGROUND_ATTR, "BOOLEAN", "POINT").data.foreach_set(
+            "value", np.asarray(g.foreground, dtype=bool))
     _set_attr(mesh, RGB_ATTR, "FLOAT_COLOR", "color", _rgba(g.rgb(0)))
     _set_attr(mesh, RELEVANCY_ATTR, "FLOAT", "value", np.zeros(n, np.float32))
     _set_attr(mesh, RELEVANCY_RGB_ATTR, "FLOAT_COLOR", "color", _rgba(np.zeros((n, 3), np.float32)))
@@ -250,8 +257,22 @@ def apply_camera(cam_obj: bpy.types.Object, c2w_opencv: np.ndarray, K: np.ndarra
     data.clip_start, data.clip_end = near, far
 
 
+def near_square_pixels(K: np.ndarray, tolerance: float = SQUARE_PIXEL_TOLERANCE) -> np.ndarray:
+    """(3,3) ``K`` with fx = fy = sqrt(fx*fy) when they differ by at most ``tolerance`` (relative), else ``K``."""
+    K = np.asarray(K, dtype=np.float64)
+    fx, fy = K[0, 0], K[1, 1]
+    if fx <= 0 or fy <= 0 or abs(fx / fy - 1.0) > tolerance:
+        return K
+    out = K.copy()
+    out[0, 0] = out[1, 1] = math.sqrt(fx * fy)
+    return out
+
+
 def import_cameras(context_scene: bpy.types.Scene, scene: Any, collection: bpy.types.Collection) -> list:
-    """The scene's cameras at timestep 0 (train, then test) as Blender cameras in a child collection."""
+    """The scene's cameras at timestep 0 (train, then test) as Blender cameras in a child collection.
+
+    The render's pixel aspect is the first camera's (one value per Blender scene); nearly square pixels
+    become square (:func:`near_square_pixels`)."""
     cams = scene.cameras.cameras(0, "all") if scene.cameras.num_timesteps else []
     if not cams:
         return []
@@ -263,12 +284,12 @@ def import_cameras(context_scene: bpy.types.Scene, scene: Any, collection: bpy.t
         obj = bpy.data.objects.new(cam.name or f"cam{i:02d}", data)
         obj["fourlegs_camera"] = cam.name or f"cam{i:02d}"
         sub.objects.link(obj)
-        apply_camera(obj, cam.c2w, cam.K, cam.width, cam.height, cam.near, min(cam.far, 1000.0))
+        apply_camera(obj, cam.c2w, near_square_pixels(cam.K), cam.width, cam.height, cam.near, min(cam.far, 1000.0))
         out.append(obj)
     render = context_scene.render
     render.resolution_x, render.resolution_y = cams[0].width, cams[0].height
     render.resolution_percentage = 100
-    lens = convert.intrinsics_to_blender(cams[0].K, cams[0].width, cams[0].height)
+    lens = convert.intrinsics_to_blender(near_square_pixels(cams[0].K), cams[0].width, cams[0].height)
     render.pixel_aspect_x, render.pixel_aspect_y = lens.pixel_aspect_x, lens.pixel_aspect_y
     if context_scene.camera is None:
         context_scene.camera = out[0]

@@ -153,6 +153,7 @@ def bench_real_scene(scene_path: str, *, viewport_frames: int = 3, viewport_size
         if frame in (2, T // 2 + 1, T, 1):
             worst = max(worst, float(np.abs(_evaluated_positions(obj) - np.asarray(g.means[frame - 1])).max()))
     scrub_mem = memory_mb()
+    reset_peak_memory()
     # half-way frames (slow motion): two timesteps blended per frame
     bl_scene.frame_set(1)
     half = []
@@ -181,7 +182,8 @@ def bench_real_scene(scene_path: str, *, viewport_frames: int = 3, viewport_size
                                                 near=cam_obj.data.clip_start, far=cam_obj.data.clip_end)
             draws.append({"timestep": int(t), "s": time.perf_counter() - wall0, "cpu_s": time.process_time() - cpu0,
                           "coverage": float(rgba[..., 3].mean())})
-    viewport = {"region": list(viewport_size), "image": list(render_engine.viewport_size(*viewport_size)),
+    viewport = {"peak_rss_mb": memory_mb().get("peak") if peak_reset else None, "region": list(viewport_size),
+                "image": list(render_engine.viewport_size(*viewport_size)),
                 "camera": cam_obj.name if cam_obj else None, "first_draw": first,
                 "draws": draws}
     return {"scene": str(scene_path), "gaussians": N, "timesteps": T,
@@ -212,9 +214,9 @@ def bench_render(scene_path: Optional[str], width: int, height: int, frames: int
     with tempfile.TemporaryDirectory() as tmp:
         for i, t in enumerate(timesteps):
             bl_scene.fourlegs.timestep = float(t)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             bpy.ops.render.render()
-            t_blender = time.perf_counter() - t0
+            t_blender, c_blender = time.perf_counter() - t0, time.process_time() - c0
             exr = Path(tmp) / f"{i}.exr"
             bl_scene.render.image_settings.media_type = "MULTI_LAYER_IMAGE"
             bpy.data.images["Render Result"].save_render(str(exr))
@@ -225,13 +227,13 @@ def bench_render(scene_path: Optional[str], width: int, height: int, frames: int
                         combined = np.asarray(ch.pixels, np.float32)[..., :3]
             camera = render_engine.scene_camera(bl_scene, bpy.context.evaluated_depsgraph_get(), width, height)
             frame = scene.gaussians.at(int(t))
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             with torch.no_grad():
                 direct = rasterize(frame.means, frame.rotations, frame.log_scales, frame.opacity_logits, camera,
                                    colors=frame.colors, outputs=("rgb", "alpha", "depth"))["rgb"].numpy()
-            t_direct = time.perf_counter() - t0
+            t_direct, c_direct = time.perf_counter() - t0, time.process_time() - c0
             rows.append({"timestep": int(t), "blender_s": t_blender, "direct_s": t_direct,
-                         "overhead_s": t_blender - t_direct,
+                         "overhead_s": t_blender - t_direct, "blender_cpu_s": c_blender, "direct_cpu_s": c_direct,
                          "max_abs_diff": float(np.abs(combined - convert.srgb_to_linear(direct)).max())})
     return rows
 
@@ -317,11 +319,14 @@ def print_real_scene(real: dict[str, Any]) -> None:
           f"{i['anon_after_mb']:>14.0f} {i['file_after_mb']:>7.0f} {sc['median_s']:>13.4f} {sc['p95_s']:>7.4f} "
           f"{half:>9} {sc['max_abs_position_error']:>14.1e}")
     if vp["first_draw"]:
-        print(f"viewport first draw (rasterizer warm-up): {vp['first_draw']['s']:.3f} s "
+        print(f"viewport first draw (imports torch, warms the rasterizer up): {vp['first_draw']['s']:.3f} s "
               f"({vp['first_draw']['cpu_s']:.2f} CPU s)")
     for d in vp["draws"]:
         print(f"viewport draw {vp['image'][0]}x{vp['image'][1]} through {vp['camera']} at t={d['timestep']}: "
               f"{d['s']:.3f} s ({d['cpu_s']:.2f} CPU s), coverage {d['coverage']:.2f}")
+    if vp["peak_rss_mb"] is not None:
+        print(f"peak RSS: import {peak} MB, scrubbing every frame {sc['peak_rss_mb']:.0f} MB, "
+              f"viewport draws {vp['peak_rss_mb']:.0f} MB")
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -346,10 +351,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     print(f"import {imp['gaussians']:,} Gaussians: {imp['import_s']:.3f} s; timestep switch {imp['timestep_switch_s']:.3f} s")
     if args.scene:
         print_real_scene(result["real_scene"])
-    print(f"{'timestep':>8} {'blender s':>10} {'direct s':>9} {'overhead s':>10} {'max|diff|':>10}")
+    print(f"{'timestep':>8} {'blender s':>10} {'direct s':>9} {'overhead s':>10} {'blender CPU s':>13} "
+          f"{'direct CPU s':>12} {'max|diff|':>10}")
     for r in result["render"]:
         print(f"{r['timestep']:>8} {r['blender_s']:>10.3f} {r['direct_s']:>9.3f} {r['overhead_s']:>10.3f} "
-              f"{r['max_abs_diff']:>10.2e}")
+              f"{r['blender_cpu_s']:>13.2f} {r['direct_cpu_s']:>12.2f} {r['max_abs_diff']:>10.2e}")
     from fourlegs_engine import fileio
 
     if args.json:

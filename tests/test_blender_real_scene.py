@@ -11,24 +11,36 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 import _fit_helpers as fh
 from _blender_helpers import bl, bpy_addon, tiny_scene  # noqa: F401
 from fourlegs_engine.fit import FitOptions, fit_capture
-from fourlegs_engine.scene import Camera, CameraRig, write_bundle
+from fourlegs_engine.scene import Camera, CameraRig, GaussianSequence, Scene, write_bundle
 from fourlegs_engine.scene.bundle import load_bundle
 from fourlegs_engine.scene.gaussians import quaternions_need_normalizing
 
 #: the smallest fit that still runs every stage of the fitter (first timestep with densification, a tracked one)
-TINY_FIT = FitOptions(resolution_scale=0.5, first_iterations=6, iterations=2, init_background=300,
+TINY_FIT = FitOptions(resolution_scale=0.5, first_iterations=3, iterations=1, init_background=300,
                       background_stride=8, voxel=0.1, max_gaussians=800)
 
 
 @pytest.fixture(scope="module")
 def fitted_bundle(tmp_path_factory) -> Path:
-    capture = fh.write_capture(tmp_path_factory.mktemp("capture"), num_timesteps=2)
-    out = tmp_path_factory.mktemp("fit") / "scene"
-    fit_capture(capture, out, TINY_FIT, progress=False)
+    """A 2-timestep bundle written by ``fit_capture`` from the synthetic capture (one torch thread: a
+    fraction of the CPU time when the cores are shared)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        capture = fh.write_capture(tmp_path_factory.mktemp("capture"), num_timesteps=2)
+        out = tmp_path_factory.mktemp("fit") / "scene"
+        fit_capture(capture, out, TINY_FIT, progress=False)
+    finally:
+        torch.set_num_threads(threads)
     return out
 
 
@@ -151,6 +163,18 @@ def test_quaternion_check_at_the_tolerance_edges(norm, needs):
     assert quaternions_need_normalizing(q) is needs
 
 
+@settings(max_examples=60, deadline=None)
+@given(hnp.arrays(np.float32, hnp.array_shapes(min_dims=2, max_dims=3, min_side=1, max_side=6).map(lambda s: s + (4,)),
+                  elements=st.floats(-3.0, 3.0, width=32)),
+       st.floats(0.0, 2.0))
+def test_quaternion_check_matches_the_float64_norms(q, scale):
+    """The float32 squared-norm check answers as the float64 norm |‖q‖ - 1| > 1e-3 would."""
+    q = q * np.float32(scale)
+    norms = np.linalg.norm(q.astype(np.float64), axis=-1)
+    assume(np.abs(np.abs(norms - 1.0) - 1e-3).min() > 1e-5)  # not on the tolerance itself
+    assert quaternions_need_normalizing(q) is bool((np.abs(norms - 1.0) > 1e-3).any())
+
+
 def _resident_file_mb() -> float:
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith("RssFile:"):
@@ -166,14 +190,11 @@ def test_loading_a_long_bundle_leaves_its_validated_timesteps_unmapped(tmp_path)
     means = rng.normal(size=(T, N, 3)).astype(np.float32)
     rotations = rng.normal(size=(T, N, 4))
     rotations = (rotations / np.linalg.norm(rotations, axis=-1, keepdims=True)).astype(np.float32)
-    scene = tiny_scene(T=2, N=4)
-    from fourlegs_engine.scene import GaussianSequence, Scene
-
     g = GaussianSequence(means=means, rotations=rotations, log_scales=np.full((N, 3), -3.0, np.float32),
                          opacity_logits=np.zeros(N, np.float32), colors=np.full((N, 3), 0.5, np.float32))
     write_bundle(Scene(gaussians=g, cameras=CameraRig(), name="long"), tmp_path / "long")
     expected_last = means[-1].copy()
-    del means, rotations, g, scene
+    del means, rotations, g
     before = _resident_file_mb()
     loaded = load_bundle(tmp_path / "long")
     grown = _resident_file_mb() - before

@@ -366,10 +366,24 @@ def heat_rgb(values: np.ndarray) -> np.ndarray:
     return stops[lo[:, 0]] * (1 - w) + stops[lo[:, 0] + 1] * w
 
 
+HEAT_TABLE_SIZE = 4096  # heat colours looked up at 1/4095 steps of relevancy: below one 8-bit level apart
+_HEAT_TABLE: list[np.ndarray] = []
+
+
+def heat_rgba(values: np.ndarray) -> np.ndarray:
+    """(N,) relevancy -> (N,4) scene-linear RGBA heat colours, i.e. ``_rgba(heat_rgb(values))`` read from a
+    table of :data:`HEAT_TABLE_SIZE` entries (one lookup per point: it runs on every frame change)."""
+    if not _HEAT_TABLE:
+        _HEAT_TABLE.append(_rgba(heat_rgb(np.linspace(0.0, 1.0, HEAT_TABLE_SIZE))))
+    v = np.clip(np.nan_to_num(np.asarray(values, dtype=np.float32)), 0.0, 1.0)
+    index = (v * np.float32(HEAT_TABLE_SIZE - 1) + np.float32(0.5)).astype(np.intp)
+    return _HEAT_TABLE[0][index]
+
+
 def _write_relevancy(mesh: bpy.types.Mesh, values: np.ndarray) -> None:
     values = np.clip(np.nan_to_num(np.asarray(values, dtype=np.float32)), 0.0, 1.0)
     _set_attr(mesh, RELEVANCY_ATTR, "FLOAT", "value", values)
-    _set_attr(mesh, RELEVANCY_RGB_ATTR, "FLOAT_COLOR", "color", _rgba(heat_rgb(values)))
+    _set_attr(mesh, RELEVANCY_RGB_ATTR, "FLOAT_COLOR", "color", heat_rgba(values))
 
 
 def set_relevancy(obj: bpy.types.Object, relevancy: np.ndarray, *, show: bool = True) -> None:

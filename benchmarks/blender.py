@@ -162,9 +162,23 @@ def bench_real_scene(scene_path: str, *, viewport_frames: int = 3, viewport_size
         bl_scene.fourlegs.timestep = float(t)
         bpy.context.evaluated_depsgraph_get()
         half.append(time.perf_counter() - wall0)
+    # after a query: the (T,N) relevancy is stored and its heat colours are rewritten on every frame too
+    relevancy = np.random.default_rng(0).uniform(size=(T, N)).astype(np.float32)
+    importer.set_relevancy(obj, relevancy)
+    with_relevancy, with_relevancy_cpu = [], []
+    for frame in list(range(2, T + 1)) + [1]:
+        wall0, cpu0 = time.perf_counter(), time.process_time()
+        bl_scene.frame_set(frame)
+        bpy.context.evaluated_depsgraph_get()
+        with_relevancy.append(time.perf_counter() - wall0)
+        with_relevancy_cpu.append(time.process_time() - cpu0)
+    importer.show_relevancy(obj, False)
+    importer._RELEVANCY.pop(importer.source_key(obj), None)
     scrub = {"frames": len(wall), "median_s": float(np.median(wall)), "p95_s": float(np.percentile(wall, 95)),
              "max_s": float(np.max(wall)), "median_cpu_s": float(np.median(cpu)), "per_frame_s": wall,
              "fractional_median_s": float(np.median(half)) if half else None,
+             "with_relevancy_median_s": float(np.median(with_relevancy)),
+             "with_relevancy_median_cpu_s": float(np.median(with_relevancy_cpu)),
              "max_abs_position_error": worst, "peak_rss_mb": scrub_mem.get("peak") if peak_reset else None}
 
     cam_obj = next((o for o in bl_scene.objects if o.type == "CAMERA"), None)
@@ -313,11 +327,12 @@ def print_real_scene(real: dict[str, Any]) -> None:
     peak = "-" if i["peak_rss_mb"] is None else f"{i['peak_rss_mb']:.0f}"
     print(f"real scene {real['scene']}: N={real['gaussians']:,} T={real['timesteps']}")
     print(f"{'import s':>9} {'cpu s':>6} {'RSS before MB':>13} {'peak RSS MB':>11} {'after: anon MB':>14} "
-          f"{'file MB':>7} {'scrub s/frame':>13} {'p95':>7} {'half-step':>9} {'max|pos-means|':>14}")
+          f"{'file MB':>7} {'scrub s/frame':>13} {'p95':>7} {'half-step':>9} {'+relevancy':>10} {'max|pos-means|':>14}")
     half = "-" if sc["fractional_median_s"] is None else f"{sc['fractional_median_s']:.4f}"
     print(f"{i['import_s']:>9.3f} {i['import_cpu_s']:>6.2f} {i['rss_before_mb']:>13.0f} {peak:>11} "
           f"{i['anon_after_mb']:>14.0f} {i['file_after_mb']:>7.0f} {sc['median_s']:>13.4f} {sc['p95_s']:>7.4f} "
-          f"{half:>9} {sc['max_abs_position_error']:>14.1e}")
+          f"{half:>9} {sc['with_relevancy_median_s']:>10.4f} {sc['max_abs_position_error']:>14.1e}")
+    print(f"CPU s per frame: scrub {sc['median_cpu_s']:.5f}, with relevancy {sc['with_relevancy_median_cpu_s']:.5f}")
     if vp["first_draw"]:
         print(f"viewport first draw (imports torch, warms the rasterizer up): {vp['first_draw']['s']:.3f} s "
               f"({vp['first_draw']['cpu_s']:.2f} CPU s)")

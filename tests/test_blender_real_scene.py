@@ -103,6 +103,7 @@ def test_bench_real_scene_measures_the_fitted_scene(bpy_addon, fitted_bundle):
     scrub = result["scrub"]
     assert scrub["frames"] == means.shape[0] and scrub["max_abs_position_error"] == 0.0
     assert 0 < scrub["median_s"] <= scrub["max_s"] and result["import"]["import_s"] > 0
+    assert scrub["with_relevancy_median_s"] > 0 and scrub["fractional_median_s"] > 0
     draw = result["viewport"]["draws"][0]
     assert result["viewport"]["image"] == [64, 48] and 0.05 < draw["coverage"] <= 1.0  # the scene is in view
 
@@ -200,3 +201,18 @@ def test_loading_a_long_bundle_leaves_its_validated_timesteps_unmapped(tmp_path)
     grown = _resident_file_mb() - before
     assert grown < 16.0, f"{grown:.0f} MB of the 71 MB bundle stayed resident after loading"
     np.testing.assert_array_equal(loaded.gaussians.means[-1], expected_last)  # still readable after unmapping
+
+
+@pytest.mark.blender
+@settings(max_examples=40, deadline=None)
+@given(hnp.arrays(np.float32, st.integers(1, 300), elements=st.floats(-0.5, 1.5, width=32) | st.just(math.nan)))
+def test_heat_table_matches_the_heat_ramp(bpy_addon, values):
+    """The per-frame heat colours (a table lookup) are the heat ramp's to well under one 8-bit level."""
+    from fourlegs_addon import importer
+
+    direct = importer._rgba(importer.heat_rgb(values))
+    looked_up = importer.heat_rgba(values)
+    assert looked_up.shape == (len(values), 4) and looked_up.dtype == np.float32
+    np.testing.assert_allclose(looked_up, direct, atol=1e-3)
+    np.testing.assert_array_equal(importer.heat_rgba(np.float32([0.0, 1.0])),
+                                  importer._rgba(importer.heat_rgb(np.float32([0.0, 1.0]))))

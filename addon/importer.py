@@ -325,6 +325,10 @@ def update_object(obj: bpy.types.Object, t: float) -> bool:
     mesh.attributes["position"].data.foreach_set("vector", blend_timestep(g.means, t).ravel())
     if g.colors is not None and g.colors.ndim == 3:
         _set_attr(mesh, RGB_ATTR, "FLOAT_COLOR", "color", _rgba(blend_timestep(g.colors, t)))
+    from fourlegs_engine.scene.gaussians import release_mapped_pages
+
+    for arr in (g.means, g.colors):  # scrubbing every timestep does not leave the whole file resident
+        release_mapped_pages(arr)
     rel = _RELEVANCY.get(source_key(obj))
     if rel is not None and rel.ndim == 2:
         _write_relevancy(mesh, blend_timestep(rel[:, :, None], t)[:, 0])

@@ -182,13 +182,16 @@ def bench_real_scene(scene_path: str, *, viewport_frames: int = 3, viewport_size
              "max_abs_position_error": worst, "peak_rss_mb": scrub_mem.get("peak") if peak_reset else None}
 
     cam_obj = next((o for o in bl_scene.objects if o.type == "CAMERA"), None)
-    draws, first = [], None
+    draws, first, draw_base = [], None, None
     if cam_obj is not None:
         view, window = _view_from_camera(cam_obj, *viewport_size)
         wall0, cpu0 = time.perf_counter(), time.process_time()  # the first draw also warms the rasterizer up
         render_engine.viewport_image(bl_scene, view, window, *viewport_size, near=cam_obj.data.clip_start,
                                      far=cam_obj.data.clip_end)
-        first = {"s": time.perf_counter() - wall0, "cpu_s": time.process_time() - cpu0}
+        first = {"s": time.perf_counter() - wall0, "cpu_s": time.process_time() - cpu0,
+                 "peak_rss_mb": memory_mb().get("peak") if peak_reset else None}
+        draw_base = memory_mb().get("rss")
+        reset_peak_memory()
         for t in np.linspace(0, T - 1, max(1, viewport_frames)).round().astype(int):
             bl_scene.fourlegs.timestep = float(t)
             wall0, cpu0 = time.perf_counter(), time.process_time()
@@ -196,7 +199,8 @@ def bench_real_scene(scene_path: str, *, viewport_frames: int = 3, viewport_size
                                                 near=cam_obj.data.clip_start, far=cam_obj.data.clip_end)
             draws.append({"timestep": int(t), "s": time.perf_counter() - wall0, "cpu_s": time.process_time() - cpu0,
                           "coverage": float(rgba[..., 3].mean())})
-    viewport = {"peak_rss_mb": memory_mb().get("peak") if peak_reset else None, "region": list(viewport_size),
+    viewport = {"rss_before_draws_mb": draw_base, "peak_rss_mb": memory_mb().get("peak") if peak_reset else None,
+                "region": list(viewport_size),
                 "image": list(render_engine.viewport_size(*viewport_size)),
                 "camera": cam_obj.name if cam_obj else None, "first_draw": first,
                 "draws": draws}
@@ -308,6 +312,8 @@ def build_parser(p: Optional[argparse.ArgumentParser] = None) -> argparse.Argume
                    help="with --scene: timesteps at which the Rendered-shading viewport is drawn")
     p.add_argument("--resolution", default="640x360", help="render resolution WIDTHxHEIGHT (default 640x360)")
     p.add_argument("--frames", type=int, default=3, help="frames (timesteps spread over the scene) to render")
+    p.add_argument("--threads", type=int, default=0,
+                   help="torch CPU threads (default 0: torch's choice); 1 gives repeatable CPU seconds on shared cores")
     p.add_argument("--json", default=None, help="write the measurements here")
     p.add_argument("--plot", default=None, help="write a bar chart (PNG) here")
     return p
@@ -315,7 +321,7 @@ def build_parser(p: Optional[argparse.ArgumentParser] = None) -> argparse.Argume
 
 def forward_argv(args: argparse.Namespace) -> list[str]:
     out = ["--gaussians", str(args.gaussians), "--resolution", args.resolution, "--frames", str(args.frames),
-           "--viewport-frames", str(args.viewport_frames)]
+           "--viewport-frames", str(args.viewport_frames), "--threads", str(args.threads)]
     for flag, value in (("--scene", args.scene), ("--json", args.json), ("--plot", args.plot)):
         if value is not None:
             out += [flag, str(value)]
@@ -334,14 +340,15 @@ def print_real_scene(real: dict[str, Any]) -> None:
           f"{half:>9} {sc['with_relevancy_median_s']:>10.4f} {sc['max_abs_position_error']:>14.1e}")
     print(f"CPU s per frame: scrub {sc['median_cpu_s']:.5f}, with relevancy {sc['with_relevancy_median_cpu_s']:.5f}")
     if vp["first_draw"]:
-        print(f"viewport first draw (imports torch, warms the rasterizer up): {vp['first_draw']['s']:.3f} s "
+        print(f"viewport first draw (one-time: torch import unless --threads, rasterizer warm-up): {vp['first_draw']['s']:.3f} s "
               f"({vp['first_draw']['cpu_s']:.2f} CPU s)")
     for d in vp["draws"]:
         print(f"viewport draw {vp['image'][0]}x{vp['image'][1]} through {vp['camera']} at t={d['timestep']}: "
               f"{d['s']:.3f} s ({d['cpu_s']:.2f} CPU s), coverage {d['coverage']:.2f}")
     if vp["peak_rss_mb"] is not None:
-        print(f"peak RSS: import {peak} MB, scrubbing every frame {sc['peak_rss_mb']:.0f} MB, "
-              f"viewport draws {vp['peak_rss_mb']:.0f} MB")
+        print(f"peak RSS: import {peak} MB, scrubbing every frame {sc['peak_rss_mb']:.0f} MB, first viewport draw "
+              f"{vp['first_draw']['peak_rss_mb']:.0f} MB, later draws {vp['peak_rss_mb']:.0f} MB "
+              f"(from {vp['rss_before_draws_mb']:.0f} MB)")
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -351,6 +358,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from fourlegs_addon import registration
 
     registration.register()
+    if args.threads > 0:
+        import torch
+
+        torch.set_num_threads(args.threads)
     width, height = (int(v) for v in args.resolution.lower().split("x"))
     result: dict[str, Any] = {}
     if args.scene:  # first, so the import's memory is measured in a process that has loaded nothing else

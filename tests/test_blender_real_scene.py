@@ -183,24 +183,49 @@ def _resident_file_mb() -> float:
     raise AssertionError("no RssFile line")
 
 
-@pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="resident memory is read from /proc (Linux)")
-def test_loading_a_long_bundle_leaves_its_validated_timesteps_unmapped(tmp_path):
-    """Loading reads every timestep (finite values, unit quaternions); those pages do not stay resident."""
-    T, N = 64, 40_000  # means 30 MB + rotations 41 MB
+LINUX_PROC = pytest.mark.skipif(not Path("/proc/self/status").is_file(),
+                                reason="resident memory is read from /proc (Linux)")
+
+
+@pytest.fixture(scope="module")
+def long_bundle(tmp_path_factory) -> Path:
+    """64 timesteps x 40,000 Gaussians: means 30 MB + rotations 41 MB on disk."""
+    T, N = 64, 40_000
     rng = np.random.default_rng(0)
-    means = rng.normal(size=(T, N, 3)).astype(np.float32)
-    rotations = rng.normal(size=(T, N, 4))
-    rotations = (rotations / np.linalg.norm(rotations, axis=-1, keepdims=True)).astype(np.float32)
+    means = rng.standard_normal((T, N, 3), dtype=np.float32)
+    rotations = rng.standard_normal((T, N, 4), dtype=np.float32)
+    rotations /= np.linalg.norm(rotations, axis=-1, keepdims=True)
     g = GaussianSequence(means=means, rotations=rotations, log_scales=np.full((N, 3), -3.0, np.float32),
                          opacity_logits=np.zeros(N, np.float32), colors=np.full((N, 3), 0.5, np.float32))
-    write_bundle(Scene(gaussians=g, cameras=CameraRig(), name="long"), tmp_path / "long")
-    expected_last = means[-1].copy()
-    del means, rotations, g
+    return write_bundle(Scene(gaussians=g, cameras=CameraRig(), name="long"), tmp_path_factory.mktemp("long") / "b")
+
+
+@LINUX_PROC
+def test_loading_a_long_bundle_leaves_its_validated_timesteps_unmapped(long_bundle):
+    """Loading reads every timestep (finite values, unit quaternions); those pages do not stay resident."""
     before = _resident_file_mb()
-    loaded = load_bundle(tmp_path / "long")
+    loaded = load_bundle(long_bundle)
     grown = _resident_file_mb() - before
     assert grown < 16.0, f"{grown:.0f} MB of the 71 MB bundle stayed resident after loading"
+    expected_last = np.fromfile(long_bundle / "means.npy", np.float32)[-40_000 * 3:].reshape(-1, 3)
     np.testing.assert_array_equal(loaded.gaussians.means[-1], expected_last)  # still readable after unmapping
+
+
+@LINUX_PROC
+@pytest.mark.blender
+def test_scrubbing_every_timestep_does_not_keep_them_all_resident(bl, long_bundle):
+    from fourlegs_addon import importer
+
+    assert bl.ops.fourlegs.import_scene(filepath=str(long_bundle)) == {"FINISHED"}
+    scene = bl.context.scene
+    obj = scene.fourlegs.splat_object
+    means = importer.engine_scene_for(obj).gaussians.means
+    before = _resident_file_mb()
+    for t in range(means.shape[0]):
+        scene.fourlegs.timestep = float(t)
+    grown = _resident_file_mb() - before
+    assert grown < 8.0, f"{grown:.0f} MB of the 30 MB of means stayed resident after scrubbing"
+    np.testing.assert_array_equal(_positions(obj.data), means[-1])
 
 
 @pytest.mark.blender

@@ -47,6 +47,8 @@ _MISSING: dict[str, str] = {}
 # source key -> callable(t: int) -> (N,) relevancy, evaluated lazily per timestep and cached
 _RELEVANCY_PROVIDERS: dict[str, Any] = {}
 _RELEVANCY_CACHE: dict[tuple[str, int], np.ndarray] = {}
+# source key -> bytes of memory-mapped timesteps read since they were last unmapped
+_BYTES_READ: dict[Optional[str], int] = {}
 
 
 # ----------------------------------------------------------------------------- engine-side data
@@ -325,16 +327,27 @@ def update_object(obj: bpy.types.Object, t: float) -> bool:
     mesh.attributes["position"].data.foreach_set("vector", blend_timestep(g.means, t).ravel())
     if g.colors is not None and g.colors.ndim == 3:
         _set_attr(mesh, RGB_ATTR, "FLOAT_COLOR", "color", _rgba(blend_timestep(g.colors, t)))
-    from fourlegs_engine.scene.gaussians import release_mapped_pages
-
-    for arr in (g.means, g.colors):  # scrubbing every timestep does not leave the whole file resident
-        release_mapped_pages(arr)
+    _release_after_reading(source_key(obj), g, 2 if t != int(t) else 1)
     rel = _RELEVANCY.get(source_key(obj))
     if rel is not None and rel.ndim == 2:
         _write_relevancy(mesh, blend_timestep(rel[:, :, None], t)[:, 0])
     mesh.update()
     obj["fourlegs_shown_timestep"] = t
     return True
+
+
+def _release_after_reading(key: Optional[str], g: Any, rows: int) -> None:
+    """Count the per-timestep bytes read from ``g``'s memory-mapped means and colours; every
+    ``gaussians.RELEASE_BYTES`` unmap them, so scrubbing a long scene does not keep every timestep resident
+    (the pages stay in the OS file cache)."""
+    from fourlegs_engine.scene import gaussians
+
+    per_row = sum(a[0].nbytes for a in (g.means, g.colors) if a is not None and a.ndim == 3)
+    _BYTES_READ[key] = _BYTES_READ.get(key, 0) + rows * per_row
+    if _BYTES_READ[key] >= gaussians.RELEASE_BYTES:
+        _BYTES_READ[key] = 0
+        for arr in (g.means, g.colors):
+            gaussians.release_mapped_pages(arr)
 
 
 def update_scene_objects(scene: bpy.types.Scene) -> None:

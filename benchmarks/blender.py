@@ -291,9 +291,11 @@ def write_plot(path: Path, result: dict[str, Any]) -> None:
                        color="C3", zorder=3, label="Rendered viewport draw {}x{}".format(*viewport["image"]))
         i = real["import"]
         peak = "" if i["peak_rss_mb"] is None else f", peak RSS {i['peak_rss_mb']:.0f} MB"
+        shown = [1e3 * v for v in scrub["per_frame_s"]] + [1e3 * d["s"] for d in viewport["draws"]]
+        ax.set_ylim(0.5 * min(shown), 300.0 * max(shown))  # room for the legend above the data
         ax.set_title(f"{Path(real['scene']).name}: N={real['gaussians']:,}, T={real['timesteps']}; "
                      f"import {i['import_s']:.2f} s{peak}", fontsize=9)
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, loc="upper center")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

@@ -4,13 +4,15 @@ The object is a vertex-only mesh filled with ``foreach_set`` (hundreds of thousa
 under a second) whose geometry-nodes modifier turns vertices into point instances (Mesh to Points,
 radius from the ``splat_radius`` attribute, Set Material). The material colours points from the
 ``splat_rgb`` attribute, or from ``splat_relevancy_rgb`` once a query has run. The attribute is not
-named ``color``: Cycles renders an attribute of that name black.
+named ``color``: Cycles renders an attribute of that name black. A scene that marks its foreground (a
+fitted capture) also gets the boolean ``splat_foreground`` attribute (e.g. a geometry-nodes selection).
 
 Time: the mesh shows the scene timestep ``scene.fourlegs.timestep`` (fractional values interpolate
 linearly between neighbouring timesteps); a persistent frame-change handler updates positions and
 colours with ``foreach_set`` whenever the timeline moves. The Gaussians themselves stay on disk
 (memory-mapped) in a per-file cache, re-opened lazily from the object's ``fourlegs_source`` path after
-a .blend is reloaded.
+a .blend is reloaded; timesteps the handler has read are unmapped again every 32 MB, so scrubbing a long
+scene does not keep it all resident.
 """
 from __future__ import annotations
 

@@ -164,6 +164,10 @@ def test_quaternion_check_at_the_tolerance_edges(norm, needs):
     assert quaternions_need_normalizing(q) is needs
 
 
+def test_quaternion_check_of_no_timesteps_is_false():
+    assert quaternions_need_normalizing(np.zeros((0, 5, 4), np.float32)) is False
+
+
 @settings(max_examples=60, deadline=None)
 @given(hnp.arrays(np.float32, hnp.array_shapes(min_dims=2, max_dims=3, min_side=1, max_side=6).map(lambda s: s + (4,)),
                   elements=st.floats(-3.0, 3.0, width=32)),

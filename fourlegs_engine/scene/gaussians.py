@@ -265,6 +265,8 @@ def quaternions_need_normalizing(q: Any, tol: float = 1e-3) -> bool:
     a square that overflows is not finite and so counts as needing normalizing."""
     if q.ndim < 2:
         q = q.reshape(1, -1)
+    if q.shape[0] == 0:
+        return False
     lo, hi = (1.0 - tol) ** 2, (1.0 + tol) ** 2
     release_every = max(1, RELEASE_BYTES // max(1, q[0].nbytes))
     for i in range(q.shape[0]):

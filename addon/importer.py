@@ -40,6 +40,7 @@ RADIUS_SIGMAS = 1.5  # instance radius = 1.5 x the geometric-mean standard devia
 # Calibrated cameras have fx and fy a fraction of a percent apart; Blender cannot write a multilayer EXR with
 # non-square pixels, so such cameras get square pixels and the geometric-mean focal length.
 SQUARE_PIXEL_TOLERANCE = 0.01
+RELEASE_EVERY_BYTES = 1 << 25  # the frame-change handler unmaps the timesteps it read every 32 MB
 
 # source key -> Scene (engine object, arrays memory-mapped); relevancy per source: (N,) or (T,N)
 _SCENES: dict[str, Any] = {}
@@ -340,16 +341,16 @@ def update_object(obj: bpy.types.Object, t: float) -> bool:
 
 def _release_after_reading(key: Optional[str], g: Any, rows: int) -> None:
     """Count the per-timestep bytes read from ``g``'s memory-mapped means and colours; every
-    ``gaussians.RELEASE_BYTES`` unmap them, so scrubbing a long scene does not keep every timestep resident
+    :data:`RELEASE_EVERY_BYTES` unmap them, so scrubbing a long scene does not keep every timestep resident
     (the pages stay in the OS file cache)."""
-    from fourlegs_engine.scene import gaussians
+    from fourlegs_engine import api
 
     per_row = sum(a[0].nbytes for a in (g.means, g.colors) if a is not None and a.ndim == 3)
     _BYTES_READ[key] = _BYTES_READ.get(key, 0) + rows * per_row
-    if _BYTES_READ[key] >= gaussians.RELEASE_BYTES:
+    if _BYTES_READ[key] >= RELEASE_EVERY_BYTES:
         _BYTES_READ[key] = 0
         for arr in (g.means, g.colors):
-            gaussians.release_mapped_pages(arr)
+            api.release_mapped_pages(arr)
 
 
 def update_scene_objects(scene: bpy.types.Scene) -> None:

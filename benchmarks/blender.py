@@ -28,6 +28,8 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
+from fourlegs_engine.errors import InputError
+
 
 def bench_import(n: int, seed: int = 0) -> dict[str, float]:
     import bpy
@@ -124,11 +126,14 @@ def bench_real_scene(scene_path: str, *, viewport_frames: int = 3, viewport_size
     before = memory_mb()
     peak_reset = reset_peak_memory()
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    result = bpy.ops.fourlegs.import_scene(filepath=str(Path(scene_path).resolve()))
+    try:
+        result = bpy.ops.fourlegs.import_scene(filepath=str(Path(scene_path).resolve()))
+    except RuntimeError as exc:  # the operator's one-line report, raised by bpy.ops
+        raise InputError(str(exc).strip().splitlines()[0].removeprefix("Error: ")) from None
     import_s, import_cpu_s = time.perf_counter() - wall0, time.process_time() - cpu0
     after = memory_mb()
     if result != {"FINISHED"}:
-        raise RuntimeError(f"the import operator refused {scene_path}")
+        raise InputError("the import operator refused it (its report is above)", file=scene_path)
     obj = bl_scene.fourlegs.splat_object
     g = importer.engine_scene_for(obj).gaussians
     T, N = g.num_timesteps, g.num_gaussians
@@ -367,7 +372,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     width, height = (int(v) for v in args.resolution.lower().split("x"))
     result: dict[str, Any] = {}
     if args.scene:  # first, so the import's memory is measured in a process that has loaded nothing else
-        real = bench_real_scene(args.scene, viewport_frames=args.viewport_frames)
+        try:
+            real = bench_real_scene(args.scene, viewport_frames=args.viewport_frames)
+        except InputError as exc:
+            print(f"fourlegs bench blender: {exc}", file=sys.stderr)
+            return 2
         result["real_scene"] = real
         result["import"] = {"gaussians": real["gaussians"], "import_s": real["import"]["import_s"],
                             "timestep_switch_s": real["scrub"]["median_s"]}

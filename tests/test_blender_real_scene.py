@@ -219,9 +219,8 @@ def test_loading_a_long_bundle_leaves_its_validated_timesteps_unmapped(long_bund
 @pytest.mark.blender
 def test_scrubbing_every_timestep_does_not_keep_them_all_resident(bl, long_bundle, monkeypatch):
     from fourlegs_addon import importer
-    from fourlegs_engine.scene import gaussians
 
-    monkeypatch.setattr(gaussians, "RELEASE_BYTES", 4 << 20)  # unmapped every 4 MB of the 30 MB read
+    monkeypatch.setattr(importer, "RELEASE_EVERY_BYTES", 4 << 20)  # unmapped every 4 MB of the 30 MB read
 
     assert bl.ops.fourlegs.import_scene(filepath=str(long_bundle)) == {"FINISHED"}
     scene = bl.context.scene

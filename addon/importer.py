@@ -4,13 +4,15 @@ The object is a vertex-only mesh filled with ``foreach_set`` (hundreds of thousa
 under a second) whose geometry-nodes modifier turns vertices into point instances (Mesh to Points,
 radius from the ``splat_radius`` attribute, Set Material). The material colours points from the
 ``splat_rgb`` attribute, or from ``splat_relevancy_rgb`` once a query has run. The attribute is not
-named ``color``: Cycles renders an attribute of that name black.
+named ``color``: Cycles renders an attribute of that name black. A scene that marks its foreground (a
+fitted capture) also gets the boolean ``splat_foreground`` attribute (e.g. a geometry-nodes selection).
 
 Time: the mesh shows the scene timestep ``scene.fourlegs.timestep`` (fractional values interpolate
 linearly between neighbouring timesteps); a persistent frame-change handler updates positions and
 colours with ``foreach_set`` whenever the timeline moves. The Gaussians themselves stay on disk
 (memory-mapped) in a per-file cache, re-opened lazily from the object's ``fourlegs_source`` path after
-a .blend is reloaded.
+a .blend is reloaded; timesteps the handler has read are unmapped again every 32 MB, so scrubbing a long
+scene does not keep it all resident.
 """
 from __future__ import annotations
 
@@ -30,10 +32,15 @@ RELEVANCY_ATTR = "splat_relevancy"
 RELEVANCY_RGB_ATTR = "splat_relevancy_rgb"
 RADIUS_ATTR = "splat_radius"
 OPACITY_ATTR = "splat_opacity"
+FOREGROUND_ATTR = "splat_foreground"  # boolean, only when the scene marks its foreground (e.g. a fitted capture)
 NODE_GROUP_NAME = "4-LEGS Splats"
 MODIFIER_NAME = "4-LEGS Splats"
 CAMERA_COLLECTION_SUFFIX = " Cameras"
 RADIUS_SIGMAS = 1.5  # instance radius = 1.5 x the geometric-mean standard deviation of the Gaussian
+# Calibrated cameras have fx and fy a fraction of a percent apart; Blender cannot write a multilayer EXR with
+# non-square pixels, so such cameras get square pixels and the geometric-mean focal length.
+SQUARE_PIXEL_TOLERANCE = 0.01
+RELEASE_EVERY_BYTES = 1 << 25  # the frame-change handler unmaps the timesteps it read every 32 MB
 
 # source key -> Scene (engine object, arrays memory-mapped); relevancy per source: (N,) or (T,N)
 _SCENES: dict[str, Any] = {}
@@ -43,6 +50,8 @@ _MISSING: dict[str, str] = {}
 # source key -> callable(t: int) -> (N,) relevancy, evaluated lazily per timestep and cached
 _RELEVANCY_PROVIDERS: dict[str, Any] = {}
 _RELEVANCY_CACHE: dict[tuple[str, int], np.ndarray] = {}
+# source key -> bytes of memory-mapped timesteps read since they were last unmapped
+_BYTES_READ: dict[Optional[str], int] = {}
 
 
 # ----------------------------------------------------------------------------- engine-side data
@@ -145,6 +154,9 @@ def import_scene(context_scene: bpy.types.Scene, scene: Any, *, source: str | No
     _set_attr(mesh, RADIUS_ATTR, "FLOAT", "value", radius.astype(np.float32))
     opacity = 1.0 / (1.0 + np.exp(-np.clip(np.asarray(g.opacity_logits, dtype=np.float64), -60, 60)))
     _set_attr(mesh, OPACITY_ATTR, "FLOAT", "value", opacity.astype(np.float32))
+    if g.foreground is not None:
+        mesh.attributes.new(FOREGROUND_ATTR, "BOOLEAN", "POINT").data.foreach_set(
+            "value", np.asarray(g.foreground, dtype=bool))
     _set_attr(mesh, RGB_ATTR, "FLOAT_COLOR", "color", _rgba(g.rgb(0)))
     _set_attr(mesh, RELEVANCY_ATTR, "FLOAT", "value", np.zeros(n, np.float32))
     _set_attr(mesh, RELEVANCY_RGB_ATTR, "FLOAT_COLOR", "color", _rgba(np.zeros((n, 3), np.float32)))
@@ -250,8 +262,22 @@ def apply_camera(cam_obj: bpy.types.Object, c2w_opencv: np.ndarray, K: np.ndarra
     data.clip_start, data.clip_end = near, far
 
 
+def near_square_pixels(K: np.ndarray, tolerance: float = SQUARE_PIXEL_TOLERANCE) -> np.ndarray:
+    """(3,3) ``K`` with fx = fy = sqrt(fx*fy) when they differ by at most ``tolerance`` (relative), else ``K``."""
+    K = np.asarray(K, dtype=np.float64)
+    fx, fy = K[0, 0], K[1, 1]
+    if fx <= 0 or fy <= 0 or abs(fx / fy - 1.0) > tolerance:
+        return K
+    out = K.copy()
+    out[0, 0] = out[1, 1] = math.sqrt(fx * fy)
+    return out
+
+
 def import_cameras(context_scene: bpy.types.Scene, scene: Any, collection: bpy.types.Collection) -> list:
-    """The scene's cameras at timestep 0 (train, then test) as Blender cameras in a child collection."""
+    """The scene's cameras at timestep 0 (train, then test) as Blender cameras in a child collection.
+
+    The render's pixel aspect is the first camera's (one value per Blender scene); nearly square pixels
+    become square (:func:`near_square_pixels`)."""
     cams = scene.cameras.cameras(0, "all") if scene.cameras.num_timesteps else []
     if not cams:
         return []
@@ -263,12 +289,12 @@ def import_cameras(context_scene: bpy.types.Scene, scene: Any, collection: bpy.t
         obj = bpy.data.objects.new(cam.name or f"cam{i:02d}", data)
         obj["fourlegs_camera"] = cam.name or f"cam{i:02d}"
         sub.objects.link(obj)
-        apply_camera(obj, cam.c2w, cam.K, cam.width, cam.height, cam.near, min(cam.far, 1000.0))
+        apply_camera(obj, cam.c2w, near_square_pixels(cam.K), cam.width, cam.height, cam.near, min(cam.far, 1000.0))
         out.append(obj)
     render = context_scene.render
     render.resolution_x, render.resolution_y = cams[0].width, cams[0].height
     render.resolution_percentage = 100
-    lens = convert.intrinsics_to_blender(cams[0].K, cams[0].width, cams[0].height)
+    lens = convert.intrinsics_to_blender(near_square_pixels(cams[0].K), cams[0].width, cams[0].height)
     render.pixel_aspect_x, render.pixel_aspect_y = lens.pixel_aspect_x, lens.pixel_aspect_y
     if context_scene.camera is None:
         context_scene.camera = out[0]
@@ -304,12 +330,27 @@ def update_object(obj: bpy.types.Object, t: float) -> bool:
     mesh.attributes["position"].data.foreach_set("vector", blend_timestep(g.means, t).ravel())
     if g.colors is not None and g.colors.ndim == 3:
         _set_attr(mesh, RGB_ATTR, "FLOAT_COLOR", "color", _rgba(blend_timestep(g.colors, t)))
+    _release_after_reading(source_key(obj), g, 2 if t != int(t) else 1)
     rel = _RELEVANCY.get(source_key(obj))
     if rel is not None and rel.ndim == 2:
         _write_relevancy(mesh, blend_timestep(rel[:, :, None], t)[:, 0])
     mesh.update()
     obj["fourlegs_shown_timestep"] = t
     return True
+
+
+def _release_after_reading(key: Optional[str], g: Any, rows: int) -> None:
+    """Count the per-timestep bytes read from ``g``'s memory-mapped means and colours; every
+    :data:`RELEASE_EVERY_BYTES` unmap them, so scrubbing a long scene does not keep every timestep resident
+    (the pages stay in the OS file cache)."""
+    from fourlegs_engine import api
+
+    per_row = sum(a[0].nbytes for a in (g.means, g.colors) if a is not None and a.ndim == 3)
+    _BYTES_READ[key] = _BYTES_READ.get(key, 0) + rows * per_row
+    if _BYTES_READ[key] >= RELEASE_EVERY_BYTES:
+        _BYTES_READ[key] = 0
+        for arr in (g.means, g.colors):
+            api.release_mapped_pages(arr)
 
 
 def update_scene_objects(scene: bpy.types.Scene) -> None:
@@ -345,10 +386,24 @@ def heat_rgb(values: np.ndarray) -> np.ndarray:
     return stops[lo[:, 0]] * (1 - w) + stops[lo[:, 0] + 1] * w
 
 
+HEAT_TABLE_SIZE = 4096  # heat colours looked up at 1/4095 steps of relevancy: below one 8-bit level apart
+_HEAT_TABLE: list[np.ndarray] = []
+
+
+def heat_rgba(values: np.ndarray) -> np.ndarray:
+    """(N,) relevancy -> (N,4) scene-linear RGBA heat colours, i.e. ``_rgba(heat_rgb(values))`` read from a
+    table of :data:`HEAT_TABLE_SIZE` entries (one lookup per point: it runs on every frame change)."""
+    if not _HEAT_TABLE:
+        _HEAT_TABLE.append(_rgba(heat_rgb(np.linspace(0.0, 1.0, HEAT_TABLE_SIZE))))
+    v = np.clip(np.nan_to_num(np.asarray(values, dtype=np.float32)), 0.0, 1.0)
+    index = (v * np.float32(HEAT_TABLE_SIZE - 1) + np.float32(0.5)).astype(np.intp)
+    return _HEAT_TABLE[0][index]
+
+
 def _write_relevancy(mesh: bpy.types.Mesh, values: np.ndarray) -> None:
     values = np.clip(np.nan_to_num(np.asarray(values, dtype=np.float32)), 0.0, 1.0)
     _set_attr(mesh, RELEVANCY_ATTR, "FLOAT", "value", values)
-    _set_attr(mesh, RELEVANCY_RGB_ATTR, "FLOAT_COLOR", "color", _rgba(heat_rgb(values)))
+    _set_attr(mesh, RELEVANCY_RGB_ATTR, "FLOAT_COLOR", "color", heat_rgba(values))
 
 
 def set_relevancy(obj: bpy.types.Object, relevancy: np.ndarray, *, show: bool = True) -> None:

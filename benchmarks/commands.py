@@ -205,7 +205,8 @@ def _add_viclip(bench_subparsers: Any) -> None:
 
 def _add_blender(bench_subparsers: Any) -> None:
     b = bench_subparsers.add_parser(
-        "blender", help="Blender layer: import seconds (300k Gaussians), per-frame render seconds through Blender "
+        "blender", help="Blender layer: import seconds (300k Gaussians, or --scene: a real scene's import, peak RSS, "
+                        "timeline scrubbing and viewport draws), per-frame render seconds through Blender "
                         "vs the engine directly, and the max pixel difference between the two")
     from . import blender
     blender.build_parser(b)

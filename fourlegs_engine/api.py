@@ -33,6 +33,7 @@ _LAZY = {
     "rasterize": "render",
     "rank_scenes_opening": "query.multiscene",
     "Camera": "scene", "Scene": "scene", "load_scene": "scene",
+    "release_mapped_pages": "scene.gaussians",
     "torch_threads": "threads", "kernel_threads": "threads", "usable_cpu_count": "threads",
     "HighlightJobOptions": "highlight_job", "StageTimer": "highlight_job", "finish_highlight_job": "highlight_job",
     "plan_digest": "highlight_job", "prepare_highlight_job": "highlight_job",
@@ -49,6 +50,7 @@ if TYPE_CHECKING:
     from .query.multiscene import rank_scenes_opening
     from .render import rasterize
     from .scene import Camera, Scene, load_scene
+    from .scene.gaussians import release_mapped_pages
     from .threads import kernel_threads, torch_threads, usable_cpu_count
     from .validate import check_text
 
@@ -72,5 +74,5 @@ __all__ = ["Cancelled", "Camera", "EncoderConfig", "FieldStep", "FourlegsError",
            "ensure_language_field", "finish_highlight_job", "has_language_field", "image_file_problem",
            "incomplete_write_error", "kernel_threads", "language_field_steps", "load_preset", "load_scene",
            "open_query_engine", "open_scene", "plan_digest", "plan_highlight", "plan_needs",
-           "prepare_highlight_job", "print_error", "rank_scenes_opening", "rasterize", "text_encoder",
+           "prepare_highlight_job", "print_error", "rank_scenes_opening", "rasterize", "release_mapped_pages", "text_encoder",
            "torch_threads", "usable_cpu_count", "write_json_atomic"]

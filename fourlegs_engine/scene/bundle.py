@@ -22,7 +22,8 @@ import numpy as np
 from ..errors import InputError
 from ..fileio import atomic_directory, load_npy, read_json, save_npy_atomic, write_json_atomic
 from .camera import CameraRig
-from .gaussians import GaussianSequence, normalize_quaternions_chunked, quaternions_need_normalizing
+from .gaussians import (GaussianSequence, normalize_quaternions_chunked, quaternions_need_normalizing,
+                        release_mapped_pages)
 from .scene import Scene
 
 FORMAT_NAME = "fourlegs-bundle"
@@ -212,6 +213,8 @@ def load_bundle(path: str | Path) -> Scene:
         loaded["rotations"] = normalize_quaternions_chunked(rot, file=str(path / arrays["rotations"]),
                                                             field="rotations")
     g = GaussianSequence(source=str(path), **{k: v for k, v in loaded.items()})
+    for arr in loaded.values():  # validation read every timestep; keep only what is used later resident
+        release_mapped_pages(arr)
     rig = CameraRig.from_dict(meta["cameras"], file=str(meta_file))
     if rig.num_timesteps not in (0, T):
         raise InputError(f"cameras cover {rig.num_timesteps} timesteps but the scene has {T}",

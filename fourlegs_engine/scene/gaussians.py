@@ -260,15 +260,43 @@ class GaussianSequence:
 def quaternions_need_normalizing(q: Any, tol: float = 1e-3) -> bool:
     """True if any quaternion of (…,4) ``q`` is off unit length by more than ``tol`` (or zero).
 
-    Checks one leading slice at a time in float64, so a memory-mapped (T,N,4) array is never copied
-    whole."""
+    Checks one leading slice at a time, so a memory-mapped (T,N,4) array is never copied whole. The
+    squared norms are compared with (1 ± tol)² in float32 (its rounding, ~1e-7, is far below ``tol``);
+    a square that overflows is not finite and so counts as needing normalizing."""
     if q.ndim < 2:
         q = q.reshape(1, -1)
+    if q.shape[0] == 0:
+        return False
+    lo, hi = (1.0 - tol) ** 2, (1.0 + tol) ** 2
+    release_every = max(1, RELEASE_BYTES // max(1, q[0].nbytes))
     for i in range(q.shape[0]):
-        norms = np.linalg.norm(np.asarray(q[i], dtype=np.float64).reshape(-1, 4), axis=-1)
-        if norms.size and (np.abs(norms - 1.0).max() > tol or not np.isfinite(norms).all()):
+        if i % release_every == release_every - 1:
+            release_mapped_pages(q)
+        block = np.asarray(q[i], dtype=np.float32).reshape(-1, 4)
+        if not block.size:
+            continue
+        with np.errstate(over="ignore", invalid="ignore"):
+            squared = np.einsum("ij,ij->i", block, block)
+        if not (np.isfinite(squared).all() and lo <= squared.min() and squared.max() <= hi):
             return True
     return False
+
+
+RELEASE_BYTES = 1 << 25  # whole-file checks of a memory map unmap what they read about every 32 MB
+
+
+def release_mapped_pages(arr: Any) -> None:
+    """Unmap the resident pages of a read-only memory-mapped array from this process (they stay in the
+    OS file cache and are read back on the next access), so validating a whole (T,N,·) file does not
+    leave it all in the process's resident memory. No-op for other arrays or where unsupported."""
+    import mmap
+
+    mapped = getattr(arr, "_mmap", None)
+    if isinstance(mapped, mmap.mmap) and hasattr(mmap, "MADV_DONTNEED") and getattr(arr, "mode", None) == "r":
+        try:
+            mapped.madvise(mmap.MADV_DONTNEED)
+        except (OSError, ValueError):
+            pass
 
 
 def _all_finite(arr: np.ndarray, chunk: int = 1 << 22) -> bool:
@@ -280,6 +308,7 @@ def _all_finite(arr: np.ndarray, chunk: int = 1 << 22) -> bool:
     for s in range(0, arr.shape[0], rows):
         if not np.isfinite(arr[s:s + rows]).all():
             return False
+        release_mapped_pages(arr)
     return True
 
 

@@ -183,9 +183,22 @@ def import_scene(context_scene: bpy.types.Scene, scene: Any, *, source: str | No
     context_scene.frame_start = 1
     context_scene.frame_end = max(1, g.num_timesteps)
     context_scene.render.fps = max(1, int(round(scene.fps)))
+    _key_capture_playback(context_scene, g.num_timesteps)
     use_standard_view(context_scene)
     update_object(obj, float(props.timestep))
     return obj
+
+
+def _key_capture_playback(context_scene: bpy.types.Scene, num_timesteps: int) -> None:
+    """Key the scene time so the timeline plays the capture (frame f shows timestep f - 1), unless the
+    scene time is animated already (a highlight's keys, an editor's own, or an earlier import)."""
+    from . import keyframes
+
+    if num_timesteps < 2 or keyframes.find_fcurve(context_scene, keyframes.TIMESTEP_PATH) is not None:
+        return
+    action = keyframes.ensure_action(context_scene, "Scene Time")
+    keyframes.write_fcurve(context_scene, action, keyframes.TIMESTEP_PATH, 0, [1, num_timesteps],
+                           [0.0, num_timesteps - 1.0], ["LINEAR"] * 2)
 
 
 def _rgba(rgb: np.ndarray) -> np.ndarray:

@@ -76,6 +76,10 @@ def test_keyframed_timestep_follows_the_timeline(bl):
     scene = tiny_scene()
     bl_scene = bl.context.scene
     obj = importer.import_scene(bl_scene, scene)
+    bl_scene.frame_set(3)  # the import keyed the capture's playback: frame f shows timestep f - 1
+    assert bl_scene.fourlegs.timestep == pytest.approx(2.0)
+    np.testing.assert_allclose(_positions(obj), scene.gaussians.means[2], atol=1e-6)
+    bl_scene.animation_data_clear()  # an editor's own keys instead
     for frame, t in ((1, 0.0), (5, 2.0), (9, 2.0)):
         bl_scene.fourlegs.timestep = t
         bl_scene.keyframe_insert("fourlegs.timestep", frame=frame)

@@ -241,3 +241,32 @@ class Framing:
         """Camera distance at which the region's sphere spans ``fill`` of the image's shorter side."""
         half = math.atan(0.5 * min(resolution) / max(float(focal_px), 1e-9))
         return self.region.radius / math.sin(max(half * fill, 1e-6))
+
+    def nearest_clear_position(self, eye: np.ndarray, *, max_elevation_deg: float = 75.0) -> tuple[np.ndarray, bool]:
+        """The position nearest to ``eye`` (turned about the up axis through the centre, raised, or
+        pushed out — smallest change first) that sees the action clearly; ``eye`` itself when it does.
+        Returns (position (3,), whether a clear one was found; else ``eye``)."""
+        eye = np.asarray(eye, dtype=np.float64)
+        if self.path_is_clear(eye[None]):
+            return eye, True
+        ez = self.up / np.linalg.norm(self.up)
+        ex = np.eye(3)[int(np.argmin(np.abs(ez)))]
+        ex = ex - (ex @ ez) * ez
+        ex /= np.linalg.norm(ex)
+        ey = np.cross(ez, ex)
+        r = eye - self.centre
+        az0, h0, z0 = math.atan2(r @ ey, r @ ex), math.hypot(r @ ex, r @ ey), float(r @ ez)
+        d0, el0 = math.hypot(h0, z0), math.atan2(z0, h0)
+        options = []
+        for daz in range(-180, 181, 15):
+            for del_ in (0, 10, 20, 30, 45):
+                for ds in (1.0, 1.15, 1.3):
+                    el = min(el0 + math.radians(del_), math.radians(max_elevation_deg))
+                    options.append((abs(daz) / 90 + del_ / 45 + (ds - 1) * 3, math.radians(daz), el, d0 * ds))
+        options.sort(key=lambda o: o[0])
+        for _, daz, el, d in options:
+            h = d * math.cos(el)
+            p = self.centre + h * math.cos(az0 + daz) * ex + h * math.sin(az0 + daz) * ey + d * math.sin(el) * ez
+            if self.path_is_clear(p[None]):
+                return p, True
+        return eye, False

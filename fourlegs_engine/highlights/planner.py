@@ -180,8 +180,15 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
                 messages.append(f"the action centre lies behind the best view {best_name!r}; that camera is "
                                 "turned round to face it")
             if framing is not None:
-                anchor = Pose(anchor.position, look_at_rotation(anchor.position, centre, up,
-                                                                previous=anchor.rotation))
+                eye, clear = framing.nearest_clear_position(anchor.position)
+                if not clear:
+                    messages.append(f"no viewpoint near the best view {best_name!r} sees the action without "
+                                    "scene Gaussians in the way")
+                elif not np.allclose(eye, anchor.position):
+                    messages.append(f"the best view {best_name!r} sees the action through other scene "
+                                    f"Gaussians; the shots start from the nearest clear viewpoint "
+                                    f"({np.linalg.norm(eye - anchor.position):.2f} m away)")
+                anchor = Pose(eye, look_at_rotation(eye, centre, up, previous=anchor.rotation))
             else:
                 anchor = aim(anchor, centre)
 

@@ -103,13 +103,14 @@ def test_scene_up_comes_from_the_cameras_right_vectors():
 def test_action_region_is_robust_to_stray_relevant_gaussians():
     rng = np.random.default_rng(0)
     pts = rng.normal(0, 0.2, (400, 3))
-    stray = np.array([[5.0, 5.0, 5.0], [-6.0, 0.0, 0.0]])
+    stray = np.array([[5.0, 5.0, 5.0], [-6.0, 0.0, 0.0], [-6.05, 0.0, 0.0], [0.0, -4.0, 1.0]])
     means = np.concatenate([pts, stray])
-    region = action_region(means, np.ones(len(means)), np.full((len(means), 3), 0.01), np.ones(len(means)))
-    assert np.linalg.norm(region.centre) < 0.05
-    reach = np.linalg.norm(pts - region.centre, axis=1)
-    # encloses 95 % of the cluster (plus 3 sigma), far less than the strays' distance
-    assert np.percentile(reach, 94) < region.radius < 1.0
+    region = action_region(means, np.ones(len(means)), np.full((len(means), 3), 0.1), np.ones(len(means)))
+    assert not region.members[400:].any()          # lone relevant Gaussians are not the action
+    assert np.linalg.norm(region.centre) < 0.1
+    reach = np.linalg.norm(pts[region.members[:400]] - region.centre, axis=1)
+    assert region.members[:400].mean() > 0.9
+    assert np.percentile(reach, 95) < region.radius < 1.2
     assert action_region(means, np.zeros(len(means)), np.ones((len(means), 3)), np.ones(len(means))) is None
 
 

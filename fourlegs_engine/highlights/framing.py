@@ -21,6 +21,9 @@ from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 #: Relevancy above which a Gaussian belongs to the action (the paper's threshold).
@@ -34,6 +37,10 @@ MIN_OPACITY = 0.1
 #: A camera position "sees" the action when the Gaussians between it and the action centre hide at
 #: most this fraction of it.
 MAX_OCCLUSION = 0.25
+#: Half-width over depth of the view cone within which a Gaussian near the camera counts for the
+#: near-plane clearance (a half field of view of about 56 degrees, wider than the diagonal of the
+#: presets' lenses).
+NEAR_CONE_SLOPE = 1.5
 #: Mahalanobis radius of a Gaussian's extent (3 sigma).
 SIGMAS = 3.0
 
@@ -90,9 +97,14 @@ class ActionRegion:
 
 
 def action_region(means: np.ndarray, relevancy: np.ndarray, scales: np.ndarray, opacities: np.ndarray, *,
-                  threshold: float = RELEVANT, percentile: float = 95.0, min_members: int = 8
-                  ) -> Optional[ActionRegion]:
+                  threshold: float = RELEVANT, percentile: float = 98.0, min_members: int = 8,
+                  min_share: float = 0.01) -> Optional[ActionRegion]:
     """The region of the relevant Gaussians, or None when fewer than ``min_members`` are relevant.
+
+    A lifted field marks a few scattered Gaussians of the background relevant too (floor and wall
+    patches the 2D evidence spilled onto); they must not widen the shot. The relevant Gaussians are
+    linked into clusters (centres closer than 1.5 times their median size) and only clusters holding
+    at least ``min_share`` of them make the region (all of them when no cluster is that large).
 
     Args:
         means: (N,3) Gaussian centres at the timestep.
@@ -100,19 +112,31 @@ def action_region(means: np.ndarray, relevancy: np.ndarray, scales: np.ndarray, 
         scales: (N,3) standard deviations along the Gaussians' axes.
         opacities: (N,) in [0,1]; Gaussians fainter than :data:`MIN_OPACITY` are not part of the region.
         threshold: relevancy above which a Gaussian is relevant.
-        percentile: the radius encloses this percentage of the relevant Gaussians (stray ones are
-            left out so they do not widen the shot).
+        percentile: the centre is the middle of the per-axis (100 - p)..p percentile box and the radius
+            encloses p percent of the region's Gaussians plus their 3-sigma size.
     """
     means = np.asarray(means, dtype=np.float64)
     rel = np.nan_to_num(np.asarray(relevancy, dtype=np.float64), nan=0.0)
     ok = np.isfinite(means).all(axis=1)
     members = (rel > threshold) & (np.asarray(opacities) >= MIN_OPACITY) & ok
-    if int(members.sum()) < min_members:
+    idx = np.flatnonzero(members)
+    if idx.size < min_members:
         return None
-    pts = means[members]
-    centre = np.median(pts, axis=0)
-    size = SIGMAS * np.asarray(scales, dtype=np.float64)[members].max(axis=1)
-    reach = np.linalg.norm(pts - centre, axis=1) + np.minimum(size, np.percentile(size, percentile))
+    size = np.asarray(scales, dtype=np.float64)[idx].max(axis=1)
+    link = 1.5 * float(np.median(size))
+    pairs = cKDTree(means[idx]).query_pairs(link, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(idx.size, idx.size))
+    _, labels = connected_components(graph, directed=False)
+    counts = np.bincount(labels)
+    keep = counts >= max(min_members, min_share * idx.size)
+    if keep.any():
+        idx, size = idx[keep[labels]], size[keep[labels]]
+        members = np.zeros_like(members)
+        members[idx] = True
+    pts = means[idx]
+    lo, hi = np.percentile(pts, 100.0 - percentile, axis=0), np.percentile(pts, percentile, axis=0)
+    centre = 0.5 * (lo + hi)
+    reach = np.linalg.norm(pts - centre, axis=1) + np.minimum(SIGMAS * size, np.percentile(SIGMAS * size, 95.0))
     radius = float(np.percentile(reach, percentile))
     return ActionRegion(centre=centre, radius=max(radius, 1e-3), members=members)
 
@@ -179,8 +203,10 @@ class Framing:
         finite = np.isfinite(means).all(axis=1)
         solid = (opacities >= MIN_OPACITY) & finite
         reach = SIGMAS * scales.max(axis=1)
-        outside = np.linalg.norm(means - region.centre, axis=1) > region.radius
-        obstacle = solid & ~region.members & outside
+        # Gaussians touching the action (the floor under the feet, a ball in hand) belong to the shot
+        gap, _ = cKDTree(means[region.members]).query(np.where(finite[:, None], means, 0.0), k=1)
+        away = gap > reach + float(np.median(reach[region.members]))
+        obstacle = solid & ~region.members & away
         q = np.asarray(rotations, dtype=np.float64)[obstacle]
         q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
         R = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix() if len(q) else np.zeros((0, 3, 3))
@@ -211,13 +237,30 @@ class Framing:
             out[k] = 1.0 - float(np.prod(1.0 - np.clip(alpha, 0.0, 0.999)))
         return out
 
-    def clearance(self, eyes: np.ndarray) -> np.ndarray:
-        """(K,) distance from each eye (K,3) to the nearest Gaussian's 3-sigma sphere (negative inside)."""
+    def clearance(self, eyes: np.ndarray, target: Optional[np.ndarray] = None) -> np.ndarray:
+        """(K,) distance from each eye (K,3), looking at ``target`` (default: the action centre), to the
+        nearest 3-sigma sphere of a Gaussian that is not wholly behind it and lies within
+        :data:`NEAR_CONE_SLOPE` of its view axis near the camera (where the near plane would cut it);
+        +inf when there is none."""
         eyes = np.atleast_2d(np.asarray(eyes, dtype=np.float64))
+        target = self.centre if target is None else np.asarray(target, dtype=np.float64)
+        out = np.full(len(eyes), np.inf)
         if not len(self.solid_means):
-            return np.full(len(eyes), np.inf)
-        return np.array([float((np.linalg.norm(self.solid_means - e, axis=1) - self.solid_reach).min())
-                         for e in eyes])
+            return out
+        for k, eye in enumerate(eyes):
+            view, n = target - eye, float(np.linalg.norm(target - eye))
+            if n <= 1e-12:
+                out[k] = -np.inf
+                continue
+            rel = self.solid_means - eye
+            depth = rel @ (view / n)
+            dist = np.linalg.norm(rel, axis=1)
+            lateral = np.sqrt(np.maximum(dist * dist - depth * depth, 0.0))
+            reach = self.solid_reach
+            seen = (depth + reach > 0) & (lateral - reach < NEAR_CONE_SLOPE * np.maximum(depth + reach, 0.0))
+            if seen.any():
+                out[k] = float((dist[seen] - reach[seen]).min())
+        return out
 
     def path_problems(self, eyes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(K,) occlusion and (K,) clearance of a path's camera positions."""
@@ -225,7 +268,7 @@ class Framing:
 
     def path_is_clear(self, eyes: np.ndarray) -> bool:
         """Every position sees the action centre (occlusion <= ``max_occlusion``) and keeps every
-        Gaussian's 3-sigma extent beyond the near plane (clearance >= ``near``)."""
+        Gaussian in view beyond the near plane (clearance >= ``near``)."""
         eyes = np.atleast_2d(np.asarray(eyes, dtype=np.float64))
         if (self.clearance(eyes) < self.near).any():
             return False
@@ -234,8 +277,11 @@ class Framing:
     def path_badness(self, eyes: np.ndarray) -> float:
         """How far a path is from clear (0 when :meth:`path_is_clear`): worst occlusion excess plus
         worst near-plane intrusion (metres); used to pick the least bad path when none is clear."""
-        occ, clr = self.path_problems(eyes)
-        return float(max(0.0, (occ - self.max_occlusion).max()) + max(0.0, (self.near - clr).max()))
+        eyes = np.atleast_2d(np.asarray(eyes, dtype=np.float64))
+        clr = self.clearance(eyes)
+        near_bad = float(max(0.0, (self.near - clr).max()))
+        occ = self.occlusion(eyes)
+        return float(max(0.0, (occ - self.max_occlusion).max())) + min(near_bad, 1e3)
 
     def framing_distance(self, focal_px: float, resolution: Sequence[int], *, fill: float = 0.7) -> float:
         """Camera distance at which the region's sphere spans ``fill`` of the image's shorter side."""

@@ -494,6 +494,9 @@ def framed_zoom(p: dict[str, Any], ctx: ShotContext, times: np.ndarray, facts: d
         dist = d0 * (d1 / d0) ** e
         eyes = _spherical_points(c, ex, ey, ez, az, el, dist)
         eyes[0] = start.position if e[0] == 0 else eyes[0]
+        coarse = np.unique(np.linspace(0, len(e) - 1, min(len(e), 9)).round().astype(int))
+        if best is not None and fr.path_badness(eyes[coarse]) > 0:
+            continue
         bad = fr.path_badness(eyes)
         if bad < best_bad:
             best, best_bad, chosen = eyes, bad, (d1, el1, daz)
@@ -538,7 +541,7 @@ def framed_orbit(p: dict[str, Any], ctx: ShotContext, times: np.ndarray, facts: 
 
     Tries the preset's arc at the start's distance and elevation first, then higher elevations, longer
     distances and the opposite direction; the move to the chosen distance/elevation happens over the
-    first third of the arc. When no orbit is clear, the least obstructed one is used (with a message).
+    first sixth of the arc. When no orbit is clear, the least obstructed one is used (with a message).
     """
     fr = ctx.framing
     c, up = fr.centre, ctx.up
@@ -546,32 +549,39 @@ def framed_orbit(p: dict[str, Any], ctx: ShotContext, times: np.ndarray, facts: 
     ez = np.cross(ex, ey)
     d0 = max(math.hypot(h0, z0), 1e-9)
     el0 = math.atan2(z0, h0)
-    d_fit = max(fr.framing_distance(f0, ctx.resolution, fill=0.9), fr.region.radius + fr.near)
     arc = math.radians(p["arc_deg"])
-    ramp = np.clip(e / (1.0 / 3.0), 0.0, 1.0)
+    ramp = np.clip(e / (1.0 / 6.0), 0.0, 1.0)
     ramp = ramp * ramp * (3.0 - 2.0 * ramp)
     candidates = []
-    for sign in (1.0, -1.0):
-        for d_scale in (1.0, 1.15, 1.3):
-            for del_deg in (0, 10, 20, 30, 45, -10):
-                el1 = float(np.clip(el0 + math.radians(del_deg), math.radians(-10), MAX_ELEVATION))
-                d1 = max(d0, d_fit) * d_scale * p["radius_scale"]
-                cost = (sign < 0) * 1.5 + (d_scale - 1.0) * 3 + abs(del_deg) / 30
-                candidates.append((cost, sign, d1, el1))
+    for lens in (1.0, 0.8, 0.65, 0.5):   # a wider lens frames the region from closer in
+        d_fit = max(fr.framing_distance(f0 * lens, ctx.resolution, fill=0.9), fr.region.radius + 2 * fr.near)
+        for sign in (1.0, -1.0):
+            for d_scale in (1.0, 1.15):
+                for del_deg in (0, 15, 30, 45, 60):
+                    el1 = float(min(el0 + math.radians(del_deg), MAX_ELEVATION))
+                    d1 = d_fit * d_scale * p["radius_scale"]
+                    cost = (1.0 - lens) * 4 + (sign < 0) * 1.5 + (d_scale - 1.0) * 3 + abs(del_deg) / 30
+                    candidates.append((cost, sign, d1, el1, lens))
     candidates.sort(key=lambda c_: c_[0])
     best, best_bad, chosen = None, math.inf, None
-    for cost, sign, d1, el1 in candidates:
+    coarse = np.unique(np.linspace(0, len(e) - 1, min(len(e), 13)).round().astype(int))
+    for cost, sign, d1, el1, lens in candidates:
         az = az0 + sign * arc * e
         el = el0 + (el1 - el0) * ramp
         dist = d0 + (d1 - d0) * ramp
         eyes = _spherical_points(c, ex, ey, ez, az, el, dist)
+        if fr.path_badness(eyes[coarse]) > 0:   # cheap look at a few frames first
+            if best is None:
+                best, best_bad, chosen = eyes, fr.path_badness(eyes), (sign, d1, el1, lens)
+            continue
         bad = fr.path_badness(eyes)
         if bad < best_bad:
-            best, best_bad, chosen = eyes, bad, (sign, d1, el1)
+            best, best_bad, chosen = eyes, bad, (sign, d1, el1, lens)
         if bad == 0.0:
             break
     eyes = best
-    sign, d1, el1 = chosen
+    sign, d1, el1, lens = chosen
+    focals = f0 * lens ** ramp
     upright = [_upright(q, c, up) for q in eyes]
     # a start that is not level (e.g. a best view turned by the smallest rotation) is carried along
     # rigidly and levelled over the ramp
@@ -581,8 +591,8 @@ def framed_orbit(p: dict[str, Any], ctx: ShotContext, times: np.ndarray, facts: 
     if best_bad > 0:
         ctx.messages.append("bullet_time: no orbit keeps a clear view of the action on every frame; the least "
                             "obstructed one is used")
-    return ShotPath(poses, np.full(len(poses), f0), times, {
-        **p, **facts, "centre": [float(v) for v in c], "region_radius": fr.region.radius,
+    return ShotPath(poses, focals, times, {
+        **p, **facts, "centre": [float(v) for v in c], "region_radius": fr.region.radius, "lens_scale": lens,
         "radius": float(d1 * math.cos(el1)), "height": float(d1 * math.sin(el1)),
         "arc_deg_used": math.degrees(sign * arc), "elevation_deg": math.degrees(el1), "clear": best_bad == 0.0})
 

@@ -97,13 +97,13 @@ class ActionRegion:
 
 
 def action_region(means: np.ndarray, relevancy: np.ndarray, scales: np.ndarray, opacities: np.ndarray, *,
-                  threshold: float = RELEVANT, percentile: float = 98.0, min_members: int = 8,
+                  threshold: float = RELEVANT, percentile: float = 95.0, min_members: int = 8,
                   min_share: float = 0.01) -> Optional[ActionRegion]:
     """The region of the relevant Gaussians, or None when fewer than ``min_members`` are relevant.
 
     A lifted field marks a few scattered Gaussians of the background relevant too (floor and wall
     patches the 2D evidence spilled onto); they must not widen the shot. The relevant Gaussians are
-    linked into clusters (centres closer than 1.5 times their median size) and only clusters holding
+    linked into clusters (centres closer than 1.5 times their median 3-sigma size) and only clusters holding
     at least ``min_share`` of them make the region (all of them when no cluster is that large).
 
     Args:
@@ -123,7 +123,7 @@ def action_region(means: np.ndarray, relevancy: np.ndarray, scales: np.ndarray, 
     if idx.size < min_members:
         return None
     size = np.asarray(scales, dtype=np.float64)[idx].max(axis=1)
-    link = 1.5 * float(np.median(size))
+    link = 1.5 * SIGMAS * float(np.median(size))
     pairs = cKDTree(means[idx]).query_pairs(link, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(idx.size, idx.size))
     _, labels = connected_components(graph, directed=False)

@@ -202,3 +202,37 @@ def test_near_plane_culls_whole_gaussians_by_their_centre():
     behind = render_frame(_one_gaussian(NEAR_CLIP_M - 0.01, 0.05), cam, outputs=("alpha",))["alpha"]
     assert float(crossing.max()) > 0.9         # drawn, although 3 sigma reach 0.14 m in front of the near plane
     assert float(behind.max()) == 0.0          # centre nearer than the near plane: the whole splat is cut
+
+
+def test_replay_keeps_every_relevant_gaussian_in_colour_in_every_desaturated_frame(planned):
+    """The renderer's relevancy pass (per-Gaussian relevancy rendered like a colour and divided by the
+    coverage, as the add-on's engine does) stays above the compositor's grey ramp (0.6) on every pixel
+    the players cover, at the replay's camera and scene time, on every frame the plan desaturates."""
+    from fourlegs_engine.highlights.preview import frame_at, key_camera
+
+    scene, relevant, plan = planned
+    replay = next(s for s in plan.shots if s.effect == "desaturate_background")
+    rel = torch.as_tensor(relevant.astype(np.float32))[:, None]
+    frames = [f for f in range(replay.frame_start, replay.frame_end + 1) if plan.desaturation_weight(f) > 0]
+    assert len(frames) >= 10
+    covered_total = 0
+    for f in frames:
+        key = replay.camera_keys[f - replay.frame_start]
+        cam = key_camera(key, plan, 160, near=NEAR_CLIP_M)
+        g = frame_at(scene.gaussians, replay.time_keys[f - replay.frame_start].timestep)
+        hw = (cam.height, cam.width)
+        out = render_frame(g, cam, outputs=("alpha", "depth", "features"), features=rel)
+        alpha = out["alpha"].reshape(hw).numpy()
+        relevancy = out["features"].reshape(hw).numpy() / np.maximum(alpha, 1e-3)
+        players_only = GaussianFrame(means=g.means[relevant], rotations=g.rotations[relevant],
+                                     log_scales=g.log_scales[relevant], opacity_logits=g.opacity_logits[relevant],
+                                     colors=g.colors[relevant])
+        mine = render_frame(players_only, cam, outputs=("alpha", "depth"))
+        # pixels where the players are the surface seen (nothing else in front of them)
+        visible = ((mine["alpha"].reshape(hw).numpy() > 0.9)
+                   & (np.abs(out["depth"].reshape(hw).numpy() - mine["depth"].reshape(hw).numpy()) < 0.05))
+        covered_total += int(visible.sum())
+        assert (relevancy[visible] >= 0.6).mean() > 0.97, f"frame {f}"
+        # upright replay camera: the image's x axis is horizontal
+        assert abs(key.pose.rotation[:, 0] @ np.array([0, 0, 1.0])) < 1e-6
+    assert covered_total > 100 * len(frames)

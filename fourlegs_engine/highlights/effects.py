@@ -268,6 +268,14 @@ def _camera_move(p: dict[str, Any], ctx: ShotContext, n: int) -> tuple[list[Pose
     poses = interpolate_poses(ctx.previous, target, w, pivot=ctx.action_centre, up=ctx.up)
     focals = float(ctx.previous_focal) * (target_focal / float(ctx.previous_focal)) ** w
     if ctx.framing is not None and m > 1:
+        # keep looking at the action while swinging round it (a slerp between two views from opposite
+        # sides would look away half-way), level about the scene's up; the previous pose's roll is
+        # carried along and levelled over the swing
+        c = ctx.framing.centre
+        level = [_upright(q.position, c, ctx.up) for q in poses]
+        offset = level[0].T @ ctx.previous.rotation
+        poses = [Pose(q.position, slerp_rotations(R @ offset, R, [wi])[0]) for q, R, wi in zip(poses, level, w)]
+        poses[0] = ctx.previous
         eyes = np.array([q.position for q in poses[:m]])
         if not ctx.framing.path_is_clear(eyes):
             direct = interpolate_poses(ctx.previous, target, w)

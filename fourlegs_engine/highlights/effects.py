@@ -380,7 +380,8 @@ class BulletTime(Effect):
         rel = start.position - centre
         return ShotPath(poses, np.full(n, f0), times, {
             **p, **facts, "centre": [float(v) for v in centre],
-            "radius": float(math.hypot(rel[0], rel[1])), "height": float(rel[2])})
+            "radius": float(math.hypot(rel[0], rel[1])), "height": float(rel[2]),
+            "rigid": bool(np.allclose(ctx.up, [0.0, 0.0, 1.0]))})
 
 
 class DesaturateBackground(Effect):
@@ -601,6 +602,7 @@ def framed_orbit(p: dict[str, Any], ctx: ShotContext, times: np.ndarray, facts: 
                             "obstructed one is used")
     return ShotPath(poses, focals, times, {
         **p, **facts, "centre": [float(v) for v in c], "region_radius": fr.region.radius, "lens_scale": lens,
+        "rigid": False,
         "radius": float(d1 * math.cos(el1)), "height": float(d1 * math.sin(el1)),
         "arc_deg_used": math.degrees(sign * arc), "elevation_deg": math.degrees(el1), "clear": best_bad == 0.0})
 

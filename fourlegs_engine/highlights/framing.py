@@ -180,6 +180,28 @@ class Framing:
     solid_reach: np.ndarray
     near: float = NEAR_CLIP_M
     max_occlusion: float = MAX_OCCLUSION
+    max_height: float = math.inf
+    max_radius: float = math.inf
+
+    def within_rig(self, camera_positions: np.ndarray) -> "Framing":
+        """Keep framed cameras inside the capture rig: no higher above the action centre and no further
+        from its vertical axis than the highest / furthest rig camera (outside the rig lie the dome's
+        back faces and whatever was never reconstructed). Returns self."""
+        rel = np.atleast_2d(np.asarray(camera_positions, dtype=np.float64)) - self.centre
+        if len(rel):
+            up = self.up / np.linalg.norm(self.up)
+            h = rel @ up
+            self.max_height = float(h.max())
+            self.max_radius = float(np.linalg.norm(rel - h[:, None] * up, axis=1).max())
+        return self
+
+    def outside_rig(self, eyes: np.ndarray) -> np.ndarray:
+        """(K,) how far (metres) each eye lies outside the rig's height and radius (0 inside)."""
+        rel = np.atleast_2d(np.asarray(eyes, dtype=np.float64)) - self.centre
+        up = self.up / np.linalg.norm(self.up)
+        h = rel @ up
+        r = np.linalg.norm(rel - h[:, None] * up, axis=1)
+        return np.maximum(h - self.max_height, 0.0) + np.maximum(r - self.max_radius, 0.0)
 
     @property
     def centre(self) -> np.ndarray:
@@ -270,7 +292,7 @@ class Framing:
         """Every position sees the action centre (occlusion <= ``max_occlusion``) and keeps every
         Gaussian in view beyond the near plane (clearance >= ``near``)."""
         eyes = np.atleast_2d(np.asarray(eyes, dtype=np.float64))
-        if (self.clearance(eyes) < self.near).any():
+        if (self.outside_rig(eyes) > 0).any() or (self.clearance(eyes) < self.near).any():
             return False
         return bool((self.occlusion(eyes) <= self.max_occlusion).all())
 
@@ -281,7 +303,15 @@ class Framing:
         clr = self.clearance(eyes)
         near_bad = float(max(0.0, (self.near - clr).max()))
         occ = self.occlusion(eyes)
-        return float(max(0.0, (occ - self.max_occlusion).max())) + min(near_bad, 1e3)
+        return (float(max(0.0, (occ - self.max_occlusion).max())) + min(near_bad, 1e3)
+                + float(self.outside_rig(eyes).max()))
+
+    def fitting_focal(self, distance: float, resolution: Sequence[int], *, fill: float = 0.9) -> float:
+        """Focal length (pixels) at which the region's sphere seen from ``distance`` spans ``fill`` of the
+        image's shorter side (the inverse of :meth:`framing_distance`)."""
+        ratio = min(self.region.radius / max(float(distance), 1e-9), 0.999)
+        half = min(math.asin(ratio) / fill, math.radians(80.0))
+        return 0.5 * min(resolution) / math.tan(half)
 
     def framing_distance(self, focal_px: float, resolution: Sequence[int], *, fill: float = 0.7) -> float:
         """Camera distance at which the region's sphere spans ``fill`` of the image's shorter side."""

@@ -85,6 +85,9 @@ def _framing_at(scene, localizer, query: str, t: int, up: np.ndarray, messages: 
     opacities = 1.0 / (1.0 + np.exp(-np.asarray(g.opacity_logits, dtype=np.float64)))
     framing = Framing.build(np.asarray(g.means[t]), np.asarray(g.rotations[t]), np.exp(log_scales), opacities,
                             rel, up)
+    if framing is not None and scene.cameras.num_timesteps:
+        framing.within_rig(np.array([c.center for c in scene.cameras.cameras(min(t, scene.cameras.num_timesteps - 1),
+                                                                             "all")]))
     if framing is None:
         messages.append(f"no Gaussian is relevant to {query!r} at timestep {t}: the shots follow the best "
                         "view without framing the action region")
@@ -189,6 +192,11 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
                                     f"Gaussians; the shots start from the nearest clear viewpoint "
                                     f"({np.linalg.norm(eye - anchor.position):.2f} m away)")
                 anchor = Pose(eye, look_at_rotation(eye, centre, up, previous=anchor.rotation))
+                fit = framing.fitting_focal(float(np.linalg.norm(eye - centre)), resolution)
+                if fit < anchor_focal:
+                    messages.append(f"the action region does not fit the best view's lens; its lens is widened "
+                                    f"x{fit / anchor_focal:.2f} to show all of it")
+                    anchor_focal = fit
             else:
                 anchor = aim(anchor, centre)
 

@@ -161,6 +161,8 @@ def test_orbit_encloses_the_region_and_turns_about_the_scene_up(planned):
     assert abs(turned[-1] - turned[0]) == pytest.approx(180.0, abs=1e-6)
     # scene time frozen at the peak
     assert {k.timestep for k in orbit.time_keys} == {float(plan.localization["peak"])}
+    # not a rigid turn of the start pose: the add-on must play its keys, not rebuild it as a pivot rig
+    assert orbit.params["rigid"] is False
 
 
 def test_a_rig_with_minus_y_up_orbits_about_y(planned):

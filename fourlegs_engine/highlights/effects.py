@@ -550,7 +550,8 @@ def framed_orbit(p: dict[str, Any], ctx: ShotContext, times: np.ndarray, facts: 
 
     Tries the preset's arc at the start's distance and elevation first, then higher elevations, longer
     distances and the opposite direction; the move to the chosen distance/elevation happens over the
-    first sixth of the arc. When no orbit is clear, the least obstructed one is used (with a message).
+    first sixth of the arc. When no orbit is clear, the preset's (or the least obstructed of those checked
+    on every frame) is used, with a message.
     """
     fr = ctx.framing
     c, up = fr.centre, ctx.up
@@ -598,8 +599,8 @@ def framed_orbit(p: dict[str, Any], ctx: ShotContext, times: np.ndarray, facts: 
     poses = [Pose(q, slerp_rotations(R @ offset, R, [w])[0]) for q, R, w in zip(eyes, upright, ramp)]
     poses[0] = start
     if best_bad > 0:
-        ctx.messages.append("bullet_time: no orbit keeps a clear view of the action on every frame; the least "
-                            "obstructed one is used")
+        ctx.messages.append("bullet_time: no orbit keeps a clear view of the action on every frame; the "
+                            "preset's orbit (or the least obstructed one checked in full) is used")
     return ShotPath(poses, focals, times, {
         **p, **facts, "centre": [float(v) for v in c], "region_radius": fr.region.radius, "lens_scale": lens,
         "rigid": False,

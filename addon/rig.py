@@ -30,7 +30,7 @@ def can_rig(shot: dict[str, Any], centre: Optional[Any]) -> bool:
     p = shot.get("params") or {}
     return (centre is not None and str(shot.get("effect")) == "bullet_time" and "arc_deg" in p
             and p.get("easing", "ease_in_out_sine") == "ease_in_out_sine"
-            and float(p.get("radius_scale", 1.0)) == 1.0 and float(p.get("height_scale", 1.0)) == 1.0
+            and float(p.get("radius_scale", 1.0)) == 1.0 and float(p.get("height_scale", 1.0)) == 1.0 and p.get("rigid", True)
             and int(shot["frame_end"]) > int(shot["frame_start"]) and len(shot["camera_keys"]) >= 1)
 
 

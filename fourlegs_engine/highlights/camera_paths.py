@@ -167,11 +167,12 @@ def slerp_rotations(R0: np.ndarray, R1: np.ndarray, weights: np.ndarray) -> np.n
     return Slerp([0.0, 1.0], rots)(w).as_matrix()
 
 
-def interpolate_poses(start: Pose, end: Pose, weights: np.ndarray, *, pivot: np.ndarray | None = None) -> list[Pose]:
+def interpolate_poses(start: Pose, end: Pose, weights: np.ndarray, *, pivot: np.ndarray | None = None,
+                      up: np.ndarray = WORLD_UP) -> list[Pose]:
     """Poses blending ``start`` into ``end`` at ``weights`` (0 -> start, 1 -> end).
 
     Orientation: slerp. Position: straight line, or — with a ``pivot`` (the action centre) — in
-    cylindrical coordinates about the vertical axis through the pivot (angle the short way round,
+    cylindrical coordinates about the line through the pivot along ``up`` (angle the short way round,
     radius and height linear), so the camera swings around the action instead of cutting through it.
     """
     w = np.clip(np.asarray(weights, dtype=np.float64).reshape(-1), 0.0, 1.0)
@@ -180,17 +181,25 @@ def interpolate_poses(start: Pose, end: Pose, weights: np.ndarray, *, pivot: np.
         pos = start.position[None] + w[:, None] * (end.position - start.position)[None]
     else:
         c = np.asarray(pivot, dtype=np.float64)
+        ez, n_up = _unit(np.asarray(up, dtype=np.float64))
+        if n_up <= _EPS:
+            ez = WORLD_UP
+        ex = np.eye(3)[int(np.argmin(np.abs(ez)))]
+        ex, _ = _unit(ex - (ex @ ez) * ez)
+        ey = np.cross(ez, ex)
         r0, r1 = start.position - c, end.position - c
-        rad0, rad1 = math.hypot(r0[0], r0[1]), math.hypot(r1[0], r1[1])
+        x0, y0, z0 = r0 @ ex, r0 @ ey, r0 @ ez
+        x1, y1, z1 = r1 @ ex, r1 @ ey, r1 @ ez
+        rad0, rad1 = math.hypot(x0, y0), math.hypot(x1, y1)
         if rad0 <= 1e-6 or rad1 <= 1e-6:  # on the axis: the angle is undefined, go straight
             pos = start.position[None] + w[:, None] * (end.position - start.position)[None]
         else:
-            a0, a1 = math.atan2(r0[1], r0[0]), math.atan2(r1[1], r1[0])
+            a0, a1 = math.atan2(y0, x0), math.atan2(y1, x1)
             da = (a1 - a0 + math.pi) % (2 * math.pi) - math.pi
             ang = a0 + w * da
             rad = rad0 + w * (rad1 - rad0)
-            z = r0[2] + w * (r1[2] - r0[2])
-            pos = c[None] + np.stack([rad * np.cos(ang), rad * np.sin(ang), z], axis=1)
+            z = z0 + w * (z1 - z0)
+            pos = c[None] + (rad * np.cos(ang))[:, None] * ex + (rad * np.sin(ang))[:, None] * ey + z[:, None] * ez
     return [Pose(p, R) for p, R in zip(pos, rots)]
 
 

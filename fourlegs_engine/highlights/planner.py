@@ -19,9 +19,10 @@ from typing import Any, Optional, Protocol, Sequence
 import numpy as np
 
 from ..errors import InputError
-from .camera_paths import Pose, aim
+from .camera_paths import Pose, aim, look_at_rotation
 from .effects import (LOCALIZATION_NEEDS, NEED_ACTION_CENTRE, NEED_BEST_VIEW, NEED_TEMPORAL, ShotContext,
                       get_effect)
+from .framing import Framing, scene_up
 from .plan import CameraKey, HighlightPlan, Shot, TimeKey, merge_ranges
 from .presets import Preset, ShotSpec
 
@@ -68,6 +69,29 @@ def _find_camera(scene, name: str, t: int):
             return cam
     names = ", ".join(c.name or f"camera{i:02d}" for i, c in enumerate(cams))
     raise InputError(f"no camera named {name!r} in scene {scene.name!r} (cameras: {names})", field="camera")
+
+
+def _framing_at(scene, localizer, query: str, t: int, up: np.ndarray, messages: list[str]) -> Optional[Framing]:
+    """The action region and obstacles at timestep ``t`` from the localizer's per-Gaussian relevancy
+    (None, with a message, when the localizer cannot give it or nothing is relevant there)."""
+    relevancy_of = getattr(localizer, "gaussian_relevancy", None)
+    g = getattr(scene, "gaussians", None)
+    if relevancy_of is None or g is None:
+        return None
+    t = min(max(int(t), 0), int(g.num_timesteps) - 1)
+    rel = relevancy_of(query, t)
+    rel = np.asarray(rel.detach().cpu().numpy() if hasattr(rel, "detach") else rel, dtype=np.float64).reshape(-1)
+    log_scales = np.asarray(g.log_scales[t] if np.ndim(g.log_scales) == 3 else g.log_scales, dtype=np.float64)
+    opacities = 1.0 / (1.0 + np.exp(-np.asarray(g.opacity_logits, dtype=np.float64)))
+    framing = Framing.build(np.asarray(g.means[t]), np.asarray(g.rotations[t]), np.exp(log_scales), opacities,
+                            rel, up)
+    if framing is not None and scene.cameras.num_timesteps:
+        framing.within_rig(np.array([c.center for c in scene.cameras.cameras(min(t, scene.cameras.num_timesteps - 1),
+                                                                             "all")]))
+    if framing is None:
+        messages.append(f"no Gaussian is relevant to {query!r} at timestep {t}: the shots follow the best "
+                        "view without framing the action region")
+    return framing
 
 
 def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Preset, *,
@@ -141,7 +165,15 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
             messages.append(f"shot {spec.name!r} ({spec.effect}) left out: {', '.join(missing)} could not be "
                             "determined")
 
-    # The anchor camera: the best view, turned onto the action centre (§6.1) when it is known.
+    up = scene_up(scene.cameras.cameras(0, "all") if scene.cameras.num_timesteps else [])
+    framing = None
+    if centre is not None and specs and any(NEED_ACTION_CENTRE in needs for _, needs in specs):
+        framing = _framing_at(scene, localizer, query, view_t, up, messages)
+        if framing is not None:
+            centre = framing.centre
+
+    # The anchor camera: the best view, turned onto the action centre (§6.1) when it is known; with the
+    # action region known, turned level (upright about the scene's up) onto the region's centre.
     anchor, anchor_focal = None, None
     if best_name is not None:
         cam = _find_camera(scene, str(best_name), view_t)
@@ -150,7 +182,23 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
             if anchor.depth_of(centre) <= 0:
                 messages.append(f"the action centre lies behind the best view {best_name!r}; that camera is "
                                 "turned round to face it")
-            anchor = aim(anchor, centre)
+            if framing is not None:
+                eye, clear = framing.nearest_clear_position(anchor.position)
+                if not clear:
+                    messages.append(f"no viewpoint near the best view {best_name!r} sees the action without "
+                                    "scene Gaussians in the way")
+                elif not np.allclose(eye, anchor.position):
+                    messages.append(f"the best view {best_name!r} sees the action through other scene "
+                                    f"Gaussians; the shots start from the nearest clear viewpoint "
+                                    f"({np.linalg.norm(eye - anchor.position):.2f} m away)")
+                anchor = Pose(eye, look_at_rotation(eye, centre, up, previous=anchor.rotation))
+                fit = framing.fitting_focal(float(np.linalg.norm(eye - centre)), resolution)
+                if fit < anchor_focal:
+                    messages.append(f"the action region does not fit the best view's lens; its lens is widened "
+                                    f"x{fit / anchor_focal:.2f} to show all of it")
+                    anchor_focal = fit
+            else:
+                anchor = aim(anchor, centre)
 
     def camera_pose(name: str) -> tuple[Pose, float]:
         cam = _find_camera(scene, name, view_t)
@@ -173,7 +221,8 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
     for spec, _ in specs:
         ctx = ShotContext(num_timesteps=T, scene_fps=float(scene.fps), output_fps=out_fps, segment=segment,
                           peak=peak, action_centre=centre, anchor=anchor, anchor_focal=anchor_focal,
-                          previous=prev_pose, previous_focal=prev_focal, camera_pose=camera_pose)
+                          previous=prev_pose, previous_focal=prev_focal, camera_pose=camera_pose, up=up,
+                          framing=framing, resolution=resolution)
         effect = get_effect(spec.effect)
         path = effect.build(spec.params, ctx)
         messages.extend(f"{spec.name}: {m}" if not m.startswith(spec.name) else m for m in ctx.messages)
@@ -226,6 +275,10 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
         "best_view": None if best_name is None else str(best_name),
         "t": view_t if (best_name is not None or centre is not None) else None,
         "computed": sorted(need, key=LOCALIZATION_NEEDS.index),
+        "up": [float(v) for v in up],
+        "action_region": None if framing is None else {
+            "centre": [float(v) for v in framing.centre], "radius": float(framing.region.radius),
+            "gaussians": int(framing.region.members.sum())},
     }
     plan = HighlightPlan(
         scene={"name": scene.name, "path": None if scene.root is None else str(scene.root),

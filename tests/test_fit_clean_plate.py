@@ -116,3 +116,12 @@ def test_fitted_background_has_the_wall_colour_where_the_occluder_stood(moving_o
     assert hidden_without > 1.1 * open_without, errors
     assert hidden_with < 1.05 * open_with, errors
     assert hidden_with < 0.9 * hidden_without, errors
+
+
+def test_cli_flag_sets_the_clean_plate_samples():
+    from fourlegs_engine.cli import build_parser
+    from fourlegs_engine.fit.commands import options_from_args
+
+    args = build_parser().parse_args(["fit", "ds", "-o", "out", "--clean-plate-samples", "5"])
+    assert options_from_args(args).clean_plate_samples == 5
+    assert options_from_args(build_parser().parse_args(["fit", "ds", "-o", "out"])).clean_plate_samples == 0

@@ -49,7 +49,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--init-background", type=int, default=None, help="cap on initial background points")
     p.add_argument("--no-densify", action="store_true", help="no clone/split/prune in the first timestep")
     p.add_argument("--clean-plate-samples", type=int, default=None,
-                   help="timesteps whose background pixels make each camera's clean plate (0: none; default 8)")
+                   help="timesteps whose background pixels make each camera's clean plate, the first timestep's "
+                   "background target (default 0: none)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--overwrite", action="store_true", help="replace SCENE / restart a partial fit with other options")

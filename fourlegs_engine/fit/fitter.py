@@ -7,10 +7,10 @@ Per timestep, in order:
   per-camera colour correction) with densification (clone small / split large Gaussians whose
   screen-space gradient is high, prune transparent and huge ones). Loss: image 0.8·L1 + 0.2·D-SSIM on
   the colour-corrected render (``exp(cam_m)·img + cam_c``) plus the same on the rendered segmentation
-  colours (foreground red, background blue) against the masks, and an L1 term on the background
-  Gaussians rendered alone against each camera's clean plate (:mod:`.clean_plate`: the median of its
-  background pixels over timesteps spread across the fitted range), which also seeds background
-  points where the people hide the background at the first timestep.
+  colours (foreground red, background blue) against the masks; optionally (``clean_plate_samples``) an
+  L1 term on the background Gaussians rendered alone against each camera's clean plate
+  (:mod:`.clean_plate`: the median of its background pixels over timesteps spread across the fitted
+  range), whose pixels also seed background points where the people hide it at the first timestep.
 * later timesteps: start from a constant-velocity forecast of centres and rotations; optimize only the
   foreground centres and rotations (colours, opacities, scales, colour correction fixed) under the
   image and segmentation losses plus local rigidity, rotation similarity and long-term isometry over
@@ -68,7 +68,8 @@ class FitOptions:
         densify: clone/split/prune during the first timestep.
         clean_plate_samples: timesteps (spread over the fitted range) whose background pixels make each
             training camera's clean plate, the target of the background-only render at the first
-            timestep and the source of background points hidden by the people there (0: neither).
+            timestep and the source of background points hidden by the people there (0: neither; off by
+            default: no gain measured on the Panoptic capture, docs/benchmarks_fit.md).
         grad_threshold: densify Gaussians whose mean screen-space gradient (NDC units, as in 3DGS)
             exceeds this.
         knn: neighbours per foreground Gaussian for the priors.
@@ -92,7 +93,7 @@ class FitOptions:
     voxel: float = 0.02
     background_stride: int = 6
     densify: bool = True
-    clean_plate_samples: int = 8
+    clean_plate_samples: int = 0
     grad_threshold: float = 0.0002
     knn: int = 20
     knn_lambda: float = 2000.0

@@ -654,7 +654,8 @@ def _initial_model(frames: _Frames, cameras: list[Camera], opts: FitOptions, dev
 def _add_hidden_background(cloud, cameras: list[Camera], frames: _Frames, masks: list[np.ndarray],
                            opts: FitOptions) -> None:
     """Append background points, coloured by the clean plates, for the pixels the first timestep's masks
-    hide but the plates know (cast onto the same dome/floor proxy as the other background points)."""
+    hide but the plates know (cast onto the same dome/floor proxy as the other background points; not
+    counted against ``init_background``)."""
     hidden = [np.where((m >= 0.5) & k[..., 0].cpu().numpy().astype(bool), 0.0, 1.0)
               for m, k in zip(masks, frames.plate_known)]
     plates = [p.cpu().numpy() for p in frames.plates]

@@ -28,7 +28,7 @@ PRESET_RUNS = {
     "long": {"first_iterations": 600, "iterations": 60, "max_gaussians": 120_000, "init_background": 60_000},
 }
 INT_KNOBS = ("first_iterations", "iterations", "max_gaussians", "init_foreground", "init_background",
-             "background_stride", "knn", "seed")
+             "background_stride", "knn", "seed", "clean_plate_samples")
 FLOAT_KNOBS = ("resolution_scale", "lr_means", "lr_means_later", "lr_colors", "lr_scales", "lr_opacities",
                "lr_rotations", "lr_rotations_later", "lr_camera", "voxel", "grad_threshold")
 

@@ -48,6 +48,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--init-foreground", type=int, default=None, help="cap on initial visual-hull points")
     p.add_argument("--init-background", type=int, default=None, help="cap on initial background points")
     p.add_argument("--no-densify", action="store_true", help="no clone/split/prune in the first timestep")
+    p.add_argument("--clean-plate-samples", type=int, default=None,
+                   help="timesteps whose background pixels make each camera's clean plate, the first timestep's "
+                   "background target (default 0: none)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--overwrite", action="store_true", help="replace SCENE / restart a partial fit with other options")
@@ -67,7 +70,8 @@ def options_from_args(args: argparse.Namespace):
         kw["timesteps"] = parse_timesteps(args.timesteps)
     if args.cameras is not None:
         kw["cameras"] = parse_cameras(args.cameras)
-    for name in ("first_iterations", "iterations", "max_gaussians", "init_foreground", "init_background"):
+    for name in ("first_iterations", "iterations", "max_gaussians", "init_foreground", "init_background",
+                 "clean_plate_samples"):
         if getattr(args, name) is not None:
             kw[name] = getattr(args, name)
     return FitOptions(**kw)

@@ -7,7 +7,10 @@ Per timestep, in order:
   per-camera colour correction) with densification (clone small / split large Gaussians whose
   screen-space gradient is high, prune transparent and huge ones). Loss: image 0.8·L1 + 0.2·D-SSIM on
   the colour-corrected render (``exp(cam_m)·img + cam_c``) plus the same on the rendered segmentation
-  colours (foreground red, background blue) against the masks.
+  colours (foreground red, background blue) against the masks; optionally (``clean_plate_samples``) an
+  L1 term on the background Gaussians rendered alone against each camera's clean plate
+  (:mod:`.clean_plate`: the median of its background pixels over timesteps spread across the fitted
+  range), whose pixels also seed background points where the people hide it at the first timestep.
 * later timesteps: start from a constant-velocity forecast of centres and rotations; optimize only the
   foreground centres and rotations (colours, opacities, scales, colour correction fixed) under the
   image and segmentation losses plus local rigidity, rotation similarity and long-term isometry over
@@ -40,7 +43,8 @@ from ..scene.camera import Camera, CameraRig
 from ..scene.gaussians import GaussianSequence, quaternion_to_matrix
 from ..scene.scene import Scene
 from .dataset import Capture
-from .init import initial_cloud
+from .clean_plate import CleanPlates, clean_plates, sample_timesteps
+from .init import background_proxy, initial_cloud
 from .losses import Priors, image_loss, psnr
 
 WORK_VERSION = 1
@@ -62,11 +66,15 @@ class FitOptions:
         init_foreground, init_background: caps on the initial hull / background points.
         voxel: visual-hull voxel side (m). background_stride: pixel stride of the background proxy samples.
         densify: clone/split/prune during the first timestep.
+        clean_plate_samples: timesteps (spread over the fitted range) whose background pixels make each
+            training camera's clean plate, the target of the background-only render at the first
+            timestep and the source of background points hidden by the people there (0: neither; off by
+            default: no gain measured on the Panoptic capture, docs/benchmarks_fit.md).
         grad_threshold: densify Gaussians whose mean screen-space gradient (NDC units, as in 3DGS)
             exceeds this.
         knn: neighbours per foreground Gaussian for the priors.
         knn_lambda: neighbour weight exp(−λ d²) (d in metres).
-        weights: loss weights (im, seg, rigid, rot, iso, floor).
+        weights: loss weights (im, seg, rigid, rot, iso, floor, plate).
         lr_means: centre learning rate as a fraction of the scene radius (first timestep).
         lr_means_later: the same for later timesteps (fewer steps than the paper, so larger).
         lr_colors, lr_rotations, lr_opacities, lr_scales, lr_camera: Adam learning rates.
@@ -85,11 +93,12 @@ class FitOptions:
     voxel: float = 0.02
     background_stride: int = 6
     densify: bool = True
+    clean_plate_samples: int = 0
     grad_threshold: float = 0.0002
     knn: int = 20
     knn_lambda: float = 2000.0
     weights: dict[str, float] = field(default_factory=lambda: {
-        "im": 1.0, "seg": 3.0, "rigid": 4.0, "rot": 4.0, "iso": 2.0, "floor": 2.0})
+        "im": 1.0, "seg": 3.0, "rigid": 4.0, "rot": 4.0, "iso": 2.0, "floor": 2.0, "plate": 1.0})
     lr_means: float = 0.00016
     lr_means_later: float = 0.0016
     lr_colors: float = 0.01
@@ -104,6 +113,8 @@ class FitOptions:
     def check(self) -> "FitOptions":
         if not 0 < self.resolution_scale <= 4:
             raise InputError(f"must be in (0, 4], got {self.resolution_scale}", field="resolution_scale")
+        if int(self.clean_plate_samples) < 0:
+            raise InputError(f"must be 0 or more, got {self.clean_plate_samples}", field="clean_plate_samples")
         for name in ("first_iterations", "iterations", "max_gaussians", "init_foreground", "init_background",
                      "knn", "background_stride"):
             if int(getattr(self, name)) < (0 if name.endswith("iterations") else 1):
@@ -150,6 +161,12 @@ class _Frames:
                 m = torch.from_numpy(capture.load_mask("train", t, c, size)).to(device)[..., None]
                 seg.append(torch.cat([m, torch.zeros_like(m), 1.0 - m], dim=-1))
             self.masks = seg
+        self.plates: list[torch.Tensor] | None = None
+        self.plate_known: list[torch.Tensor] | None = None
+
+    def add_clean_plates(self, plates: CleanPlates, device) -> None:
+        self.plates = [torch.from_numpy(p).to(device) for p in plates.images]
+        self.plate_known = [torch.from_numpy(k).to(device)[..., None].to(torch.float32) for k in plates.known]
 
 
 @dataclass
@@ -231,6 +248,8 @@ def _fit_first(model: _Model, frames: _Frames, cameras: list[Camera], opts: FitO
         loss = w["im"] * image_loss(rgb, frames.images[c])
         if frames.masks is not None:
             loss = loss + w["seg"] * image_loss(out["features"], frames.masks[c])
+        if frames.plates is not None and w.get("plate", 0.0) > 0:
+            loss = loss + w["plate"] * _plate_loss(cur, cam, c, frames)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if opts.densify and it < dens_stop:
@@ -257,6 +276,15 @@ def _fit_first(model: _Model, frames: _Frames, cameras: list[Camera], opts: FitO
                            params["log_scales"].detach(), params["opacity_logits"].detach(),
                            params["colors"].detach().clamp(0, 1), model.foreground, cam_m.detach(), cam_c.detach())
     return out_model, last_psnr
+
+
+def _plate_loss(model: _Model, cam: Camera, c: int, frames: _Frames) -> torch.Tensor:
+    """Mean L1 between the colour-corrected render of the background Gaussians alone and camera ``c``'s
+    clean plate, over the pixels the plate knows."""
+    bg_idx = torch.nonzero(~model.foreground).squeeze(1)
+    rgb = _correct(render_views(model, cam, with_seg=False, subset=bg_idx)["rgb"], model, c)
+    known = frames.plate_known[c]
+    return ((rgb - frames.plates[c]).abs() * known).sum() / (3 * known.sum()).clamp_min(1.0)
 
 
 def _accumulate_screen_grad(means: torch.Tensor, cam: Camera, accum: torch.Tensor, count: torch.Tensor) -> None:
@@ -547,6 +575,9 @@ def _run(capture: Capture, steps: range, cams_idx: list[int], cameras: list[Came
         report(FitEvent("timestep", a, train_psnr=history.get(str(a), float("nan")), resumed=True))
     else:
         frames = _Frames(capture, a, cams_idx, size, device)
+        if capture.has_masks and opts.clean_plate_samples > 0:
+            frames.add_clean_plates(clean_plates(capture, cams_idx, sample_timesteps(steps, opts.clean_plate_samples),
+                                                 size), device)
         model, floor_y = _initial_model(frames, cameras, opts, device)
         model, last = _fit_first(model, frames, cameras, opts, scene_radius, _generator(opts.seed, a), report, a)
         _save_npz(static_path, log_scales=_np(model.log_scales), opacity_logits=_np(model.opacity_logits),
@@ -577,7 +608,7 @@ def _run(capture: Capture, steps: range, cams_idx: list[int], cameras: list[Came
             _save_npz(path, means=_np(m), rotations=_np(r))
             z = _load_npz(path)
             cur = (torch.from_numpy(z["means"]).to(device), torch.from_numpy(z["rotations"]).to(device))
-            history[str(t)] = last
+            history[str(t)] = last if math.isfinite(last) else None  # no step taken (iterations=0)
             write_json_atomic(history_path, history)
             report(FitEvent("timestep", t, train_psnr=last))
         prev2, prev = prev, cur
@@ -600,6 +631,8 @@ def _initial_model(frames: _Frames, cameras: list[Camera], opts: FitOptions, dev
     masks = [m[..., 0].cpu().numpy() for m in frames.masks] if frames.masks is not None else None
     cloud = initial_cloud(cameras, images, masks, voxel=opts.voxel, bg_stride=opts.background_stride,
                           max_foreground=opts.init_foreground, max_background=opts.init_background, seed=opts.seed)
+    if frames.plates is not None and masks is not None:
+        _add_hidden_background(cloud, cameras, frames, masks, opts)
     N = cloud.points.shape[0]
     if N == 0:
         raise InputError("the initialisation produced no points (empty masks and images?)", field="dataset")
@@ -616,3 +649,20 @@ def _initial_model(frames: _Frames, cameras: list[Camera], opts: FitOptions, dev
         cam_m=torch.zeros(len(cameras), 3, dtype=f32, device=device),
         cam_c=torch.zeros(len(cameras), 3, dtype=f32, device=device))
     return model, cloud.floor_y
+
+
+def _add_hidden_background(cloud, cameras: list[Camera], frames: _Frames, masks: list[np.ndarray],
+                           opts: FitOptions) -> None:
+    """Append background points, coloured by the clean plates, for the pixels the first timestep's masks
+    hide but the plates know (cast onto the same dome/floor proxy as the other background points; not
+    counted against ``init_background``)."""
+    hidden = [np.where((m >= 0.5) & k[..., 0].cpu().numpy().astype(bool), 0.0, 1.0)
+              for m, k in zip(masks, frames.plate_known)]
+    plates = [p.cpu().numpy() for p in frames.plates]
+    pts, col, scl = background_proxy(cameras, plates, hidden, stride=opts.background_stride,
+                                     dome_center=cloud.dome_center, dome_radius=cloud.dome_radius,
+                                     floor_y=cloud.floor_y)
+    cloud.points = np.concatenate([cloud.points, pts])
+    cloud.colors = np.concatenate([cloud.colors, col]).astype(np.float32)
+    cloud.scales = np.concatenate([cloud.scales, scl])
+    cloud.foreground = np.concatenate([cloud.foreground, np.zeros(len(pts), bool)])

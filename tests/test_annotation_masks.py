@@ -98,9 +98,15 @@ def test_bad_inputs_give_one_clear_error(tmp_path):
     small = write_masks(tmp_path / "small", {(c.name, t): np.ones((9, 16), bool) for c in cams for t in range(2)})
     with pytest.raises(InputError, match="mask is 16x9, camera 'cam00' images are 32x18"):
         extract_features(scene, AnnotationMaskEncoder({"a person": small}))
-    partial = write_masks(tmp_path / "partial", {(c.name, 0): np.ones((18, 32), bool) for c in cams})
-    with pytest.raises(InputError, match="timestep 1 is missing"):
-        extract_features(scene, AnnotationMaskEncoder({"a person": partial}))
+    (tmp_path / "none" / cams[0].name).mkdir(parents=True)
+    (tmp_path / "none" / cams[0].name / "notes.txt").write_text("no masks here")
+    with pytest.raises(InputError, match=r"no mask of 'a person' for any of the 3 training cameras at timesteps 0\.\.1"):
+        extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "none"}))
+    # two phrases annotated in disjoint views: no view is labelled for both, so none may vote
+    first = write_masks(tmp_path / "first", {(cams[0].name, t): np.ones((18, 32), bool) for t in range(2)})
+    second = write_masks(tmp_path / "second", {(cams[1].name, t): np.ones((18, 32), bool) for t in range(2)})
+    with pytest.raises(InputError, match="no camera-timestep has the masks of every phrase .'a person': 2, 'a ball': 2"):
+        extract_features(scene, AnnotationMaskEncoder({"a person": first, "a ball": second}))
     for spec in ("a person", "=folder", "a person=", ["a=x", "A =y"]):
         with pytest.raises(InputError, match="--masks"):
             mask_pairs([spec] if isinstance(spec, str) else spec)
@@ -147,3 +153,79 @@ def test_real_masks_extract_on_real_cameras(tmp_path):
     assert cos_person.max() > 0.95 and cos_background.max() > 0.99
     assert (cos_background > 0.99).mean() > 0.3  # people fill a small part of each view
     assert time.perf_counter() - start < 60
+
+
+def test_views_without_masks_give_no_evidence_and_do_not_vote(tmp_path, capsys):
+    """Masks for two of the three training cameras: the third camera's feature rows are zero, and the field
+    lifted from the full rig equals the one lifted from a rig of the two annotated cameras only."""
+    from fourlegs_engine.language.autoencoder import ENCODER_FILE, load_encoder
+    from fourlegs_engine.language.distill import DistillConfig, distill_timestep
+    from fourlegs_engine.language.extract import camera_layouts
+    from fourlegs_engine.scene.bundle import write_bundle
+    from fourlegs_engine.scene.camera import CameraRig
+    from fourlegs_engine.scene.scene import Scene
+
+    full = load_bundle(micro_bundle(tmp_path / "full", T=2))
+    masks = person_masks(full, tmp_path / "masks")
+    cams = full.cameras.cameras(0, "train")
+    import shutil
+    shutil.rmtree(tmp_path / "masks" / cams[1].name)       # camera 1 never annotated
+    (tmp_path / "masks" / cams[2].name / "000001.png").unlink()  # camera 2 annotated at t=0 only
+    assert main(["language", str(full.root), "--no-progress", "--encoder", "masks", "--masks",
+                 f"a person={tmp_path / 'masks'}", "--epochs", "1", "--samples", "2048"]) == 0
+    out = capsys.readouterr().out
+    assert "'a person' 3/6" in out and "3/6 annotated for every phrase" in out
+    feats = [feature_store(full).load(t).astype(np.float32) for t in range(2)]
+    layouts, offsets = camera_layouts(full, 0, feature_store(full).config["ratios"])
+    rows = [slice(o, o + l.num_crops) for o, l in zip(offsets, layouts)]
+    for t in range(2):
+        assert np.all(feats[t][rows[1]] == 0)                                   # no evidence
+        assert np.allclose(np.linalg.norm(feats[t][rows[0]], axis=1), 1, atol=2e-3)
+        assert np.allclose(np.linalg.norm(feats[t][rows[2]], axis=1), 1, atol=2e-3)  # t=1: the tube's t=0 frame
+
+    # the same two annotated cameras as the whole training rig
+    sub = Scene(gaussians=full.gaussians, cameras=CameraRig.static([cams[0], cams[2]], [], 2), name="micro")
+    sub = load_bundle(write_bundle(sub, tmp_path / "sub"))
+    extract_features(sub, AnnotationMaskEncoder({"a person": tmp_path / "masks"}))
+    for t in range(2):
+        sub_feats = feature_store(sub).load(t).astype(np.float32)
+        assert np.array_equal(sub_feats, np.concatenate([feats[t][rows[0]], feats[t][rows[2]]]))
+    encoder = load_encoder(Path(full.root) / ENCODER_FILE)
+    for mode in ("lift", "lift+refine"):
+        config = DistillConfig(mode=mode, iterations=3).check()
+        for t in range(2):
+            a, _ = distill_timestep(full, t, encoder, feature_store(full), config)
+            b, _ = distill_timestep(sub, t, encoder, feature_store(sub), config)
+            assert np.isfinite(a).all() and np.abs(a).sum() > 0
+            np.testing.assert_allclose(a, b, atol=1e-5)
+
+    # the field lifted from two annotated views still finds the person from the held-out camera
+    field = load_bundle(full.root)
+    engine = open_query_engine(field)
+    test_cam = field.cameras.cameras(0, "test")[0]
+    rel = engine.relevancy_map("a person", test_cam, 0, outputs=("relevancy",))["relevancy"]
+    gt = masks[(test_cam.name, 0)]
+    assert average_precision(rel.ravel(), gt.ravel()) > 0.7
+
+
+def test_no_view_with_evidence_leaves_zero_latents(tmp_path):
+    """A timestep no annotated frame reaches (its tube holds none) gets zero latents, like Gaussians no
+    training camera sees; the timesteps with evidence are lifted."""
+    from fourlegs_engine.language.autoencoder import ENCODER_FILE, load_encoder
+    from fourlegs_engine.language.distill import DistillConfig, distill_timestep
+
+    scene = load_bundle(micro_bundle(tmp_path / "scene", T=6))
+    cams = scene.cameras.cameras(0, "train")
+    write_masks(tmp_path / "masks", {(c.name, 0): render_label_coverage(scene, c, 0)[1].numpy() > 0.5 for c in cams})
+    extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "masks"}))
+    store = feature_store(scene)
+    assert np.abs(store.load(3).astype(np.float32)).sum() > 0        # tube t-4..t+3, clipped to 0..5, holds t=0
+    assert not np.any(store.load(5).astype(np.float32))              # tube 1..8 holds no annotated frame
+    train_autoencoder(scene, AETrainConfig(epochs=1, samples=1024, heldout_samples=128, batch_size=256))
+    encoder = load_encoder(Path(scene.root) / ENCODER_FILE)
+    for mode in ("lift", "optimize"):
+        config = DistillConfig(mode=mode, iterations=2).check()
+        latents, timing = distill_timestep(scene, 5, encoder, store, config)
+        assert latents.shape == (scene.num_gaussians, 128) and not np.any(latents)
+    latents, _ = distill_timestep(scene, 0, encoder, store, DistillConfig(mode="lift").check())
+    assert np.isfinite(latents).all() and np.abs(latents).sum() > 0

@@ -185,6 +185,11 @@ def open_query_engine(scene: "Scene", encoder: Any = None, *, options: Optional[
         raise InputError("the scene has no distilled language field: run `fourlegs highlight` on it once (or "
                          "the language stages: extract, train-ae, distill)", file=scene.root, field="language")
     encoder = encoder if encoder is not None else text_encoder(scene, encoder_config)
+    recorded = (scene.language or {}).get("encoder")
+    if recorded and getattr(encoder, "name", recorded) != recorded:
+        raise InputError(f"the field was distilled with the {recorded!r} encoder, the query would encode text with "
+                         f"{encoder.name!r}: leave --encoder out (auto) or pass --encoder {recorded}",
+                         file=scene.root, field="--encoder")
     return QueryEngine(scene, LanguageField.open(scene.root), encoder, options, **engine_kwargs)
 
 

@@ -229,3 +229,27 @@ def test_no_view_with_evidence_leaves_zero_latents(tmp_path):
         assert latents.shape == (scene.num_gaussians, 128) and not np.any(latents)
     latents, _ = distill_timestep(scene, 0, encoder, store, DistillConfig(mode="lift").check())
     assert np.isfinite(latents).all() and np.abs(latents).sum() > 0
+
+
+def test_query_reads_the_recorded_encoder_and_accepts_the_same_flags(tmp_path, capsys):
+    """`fourlegs query` on a mask-distilled field: no encoder flags needed (the field records its encoder);
+    the flags of `fourlegs language` give the same answer; another encoder is one clear line."""
+    import json
+
+    bundle = micro_bundle(tmp_path / "scene", T=2)
+    person_masks(load_bundle(bundle), tmp_path / "masks")
+    flags = ["--encoder", "masks", "--masks", f"a person={tmp_path / 'masks'}"]
+    assert main(["language", str(bundle), "--no-progress", *flags, "--epochs", "1", "--samples", "2048"]) == 0
+    capsys.readouterr()
+    answers = []
+    for i, extra in enumerate(([], flags)):
+        out = tmp_path / f"q{i}.json"
+        assert main(["query", str(bundle), "a person", "--json", str(out), "--scale", "0.5", *extra]) == 0
+        answers.append(json.loads(out.read_text()))
+    assert answers[0]["temporal"] == answers[1]["temporal"] and answers[0]["best_view"] == answers[1]["best_view"]
+    scores = np.asarray(answers[0]["temporal"]["scores"])
+    assert scores.shape == (2,) and np.isfinite(scores).all()
+    capsys.readouterr()
+    assert main(["query", str(bundle), "a person", "--encoder", "simulated"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'masks' encoder" in err[0] and "--encoder" in err[0]

@@ -164,6 +164,8 @@ def ensure_language_field(scene: "Scene", encoder: Any = None, *, encoder_config
               f"distilling ({mode}) — once per scene", file=sys.stderr)
     with report("extract features"):
         extract_features(scene, encoder, progress=progress)
+    if progress and hasattr(encoder, "evidence_line"):  # annotation masks: which views vote
+        print(encoder.evidence_line(), file=sys.stderr)
     with report("train autoencoder"):
         train_autoencoder(scene, progress=progress)
     with report(f"distil ({mode})"):

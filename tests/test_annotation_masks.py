@@ -322,3 +322,40 @@ def test_readme_own_capture_sequence_is_the_cli():
     assert fit.output == language.scene == query.scene[0] == highlight.scene
     assert language.encoder == "masks" and language.masks[0].startswith("a person=")
     assert query.scene[1] == highlight.query == "a person"
+
+
+def test_evidence_counts_match_the_files_present(tmp_path_factory):
+    """For any pattern of mask files of two phrases over 3 cameras x 5 timesteps: the per-phrase counts, the
+    annotated camera-timesteps (both phrases present) and annotated() follow the files exactly."""
+    from types import SimpleNamespace
+
+    from hypothesis import given, settings, strategies as st
+
+    cams = [SimpleNamespace(name=f"c{i}", width=4, height=3) for i in range(3)]
+    cells = [(c.name, t) for c in cams for t in range(5)]
+
+    @settings(max_examples=12)
+    @given(st.sets(st.sampled_from(cells), min_size=1), st.sets(st.sampled_from(cells), min_size=1))
+    def check(first, second):
+        root = tmp_path_factory.mktemp("masks")
+        ones = np.ones((3, 4), bool)
+        write_masks(root / "a", {cell: ones for cell in first})
+        write_masks(root / "b", {cell: ones for cell in second})
+        enc = AnnotationMaskEncoder({"a person": root / "a", "a ball": root / "b"})
+        both = first & second
+        if not both:
+            with pytest.raises(InputError, match="no camera-timestep has the masks of every phrase"):
+                enc.check_masks(cams, 5)
+            return
+        enc.check_masks(cams, 5)
+        summary = enc.evidence_summary()
+        assert summary["per_phrase"] == {"a person": len(first), "a ball": len(second)}
+        assert summary["annotated"] == len(both) and summary["camera_timesteps"] == 15
+        for name, t in cells:
+            assert enc.annotated(name, t) == ((name, t) in both)
+            frame = enc.coverage_frame(t, cams[int(name[1])])
+            assert (frame is None) == ((name, t) not in both)
+            if frame is not None:
+                assert frame.shape == (2, 3, 4) and bool(frame.all())
+
+    check()

@@ -359,3 +359,22 @@ def test_evidence_counts_match_the_files_present(tmp_path_factory):
                 assert frame.shape == (2, 3, 4) and bool(frame.all())
 
     check()
+
+
+def test_masks_added_later_make_the_features_stale(tmp_path):
+    """Features extracted from masks of some views are not silently reused once more views are annotated:
+    the extraction refuses them (config mismatch) until --overwrite, then the new view carries evidence."""
+    from fourlegs_engine.errors import ConfigMismatchError
+
+    scene = load_bundle(micro_bundle(tmp_path / "scene", T=2))
+    cams = scene.cameras.cameras(0, "train")
+    person_masks(scene, tmp_path / "masks")
+    import shutil
+    shutil.move(str(tmp_path / "masks" / cams[2].name), str(tmp_path / "later"))
+    extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "masks"}))
+    assert not np.any(feature_store(scene).load(0)[-1])                  # camera 2's last crop: no evidence
+    shutil.move(str(tmp_path / "later"), str(tmp_path / "masks" / cams[2].name))
+    with pytest.raises(ConfigMismatchError):
+        extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "masks"}))
+    extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "masks"}), overwrite=True)
+    assert np.any(feature_store(scene).load(0)[-1])

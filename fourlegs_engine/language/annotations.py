@@ -160,8 +160,17 @@ class AnnotationMaskEncoder:
 
     def config(self) -> dict[str, Any]:
         """JSON-serializable settings (recorded with the features and in scene.json's language block)."""
-        return {"encoder": self.name, "masks": {p: str(f) for p, f in zip(self.labels, self.folders)},
-                "mask_pattern": MASK_PATTERN, "salience": self.salience}
+        config = {"encoder": self.name, "masks": {p: str(f) for p, f in zip(self.labels, self.folders)},
+                  "mask_pattern": MASK_PATTERN, "salience": self.salience}
+        if self._available is not None:  # features made before masks were added or removed are stale
+            config["mask_files"] = self.mask_files_digest()
+        return config
+
+    def mask_files_digest(self) -> str:
+        """Short hash of which mask files exist (after :meth:`check_masks`), per phrase, camera and timestep."""
+        listing = [[p, c, sorted(avail[c])] for p, avail in zip(self.labels, self._available or [])
+                   for c in self._scanned_cameras]
+        return hashlib.sha256(repr(listing).encode()).hexdigest()[:16]
 
     # ----------------------------------------------------------------------------- text
     def encode_text(self, texts: Sequence[str] | str) -> torch.Tensor:

@@ -80,6 +80,8 @@ def scene_signature(scene: Scene) -> dict[str, Any]:
 
 
 def extract_config_dict(scene: Scene, encoder: Any, config: ExtractConfig) -> dict[str, Any]:
+    if hasattr(encoder, "check_masks"):  # annotation masks: which files exist enters the encoder's config
+        encoder.check_masks(scene.cameras.cameras(0, config.split), scene.num_timesteps)
     return {"encoder": str(encoder.name), "dim": int(encoder.dim), "input_kind": str(encoder.input_kind),
             "ratios": [round(float(r), 6) for r in config.ratios], "tube": list(TUBE_OFFSETS),
             "crop_size": config.resolved_crop_size(encoder.input_kind, encoder),

@@ -272,7 +272,7 @@ def test_real_capture_through_the_readme_chain(tmp_path, capsys):
             shutil.copy(REAL / "seg" / cam / f"{t:06d}.png", masks / cam / f"{t:06d}.png")
     scene, out = tmp_path / "my_scene", tmp_path / "out"
     assert main(["fit", str(REAL), "-o", str(scene), "--timesteps", "0:2", "--cameras", ",".join(cams),
-                 "--resolution-scale", "0.125", "--first-iterations", "40", "--iterations", "3",
+                 "--resolution-scale", "0.125", "--first-iterations", "15", "--iterations", "2",
                  "--max-gaussians", "6000", "--init-foreground", "3000", "--init-background", "2000"]) == 0
     capsys.readouterr()
     assert main(["language", str(scene), "--no-progress", "--encoder", "masks", "--masks", f"a person={masks}",

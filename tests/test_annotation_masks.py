@@ -378,22 +378,3 @@ def test_masks_added_later_make_the_features_stale(tmp_path):
         extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "masks"}))
     extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "masks"}), overwrite=True)
     assert np.any(feature_store(scene).load(0)[-1])
-
-
-def test_autoencoder_anchors_span_background_to_each_phrase():
-    """The autoencoder's extra samples for a masks field: per phrase, features from the background's
-    embedding to the phrase's own (the mix at a drawn coverage); none for other encoders."""
-    from fourlegs_engine.language.annotations import anchor_features
-
-    config = AnnotationMaskEncoder({"a person": "p", "a ball": "b"}).config()
-    anchors = anchor_features(config, 4000, np.random.default_rng(0)).double()
-    assert anchors.shape == (4000, 768) and torch.allclose(anchors.norm(dim=1), torch.ones(4000, dtype=torch.float64))
-    basis = torch.from_numpy(np.stack([phrase_embedding(p) for p in ("a person", "a ball", "background")]))
-    coef = torch.linalg.lstsq(basis.T, anchors.T).solution                      # (3, 4000)
-    assert torch.allclose(basis.T @ coef, anchors.T, atol=1e-6)               # in the span
-    assert ((coef[0] > 1e-6) & (coef[1] > 1e-6)).sum() == 0                    # one phrase each
-    for k in (0, 1):
-        cos = anchors @ basis[k]
-        assert cos.max() > 0.999 and cos[coef[k] > 1e-6].min() < basis[k] @ basis[2] + 0.05
-    assert anchor_features({"encoder": "simulated"}, 10, np.random.default_rng(0)) is None
-    assert anchor_features(None, 10, np.random.default_rng(0)) is None

@@ -326,30 +326,3 @@ def create_encoder(*, masks: Any = None, scene: Any = None, base_dir: str | Path
         if isinstance(recorded, dict):
             masks = recorded
     return AnnotationMaskEncoder(masks, base_dir=base_dir, salience=salience)
-
-
-#: share of the autoencoder's training samples added as :func:`anchor_features` (on top of the pixel samples)
-ANCHOR_SHARE = 0.25
-
-
-def anchor_features(encoder_config: Mapping[str, Any] | None, count: int, rng: np.random.Generator
-                    ) -> torch.Tensor | None:
-    """(count, 768) float32 features the annotation-mask teacher can produce, for the autoencoder to learn;
-    None for other encoders.
-
-    Every feature of this teacher lies in the span of the phrases' and the background's embeddings, but
-    pixels sampled uniformly are mostly background: a phrase covering a few percent of the pixels is
-    reconstructed poorly and its relevancy stays below every canonical phrase's. Each anchor is the
-    feature of a crop covered by one phrase (drawn uniformly) to a share drawn uniformly in [0, 1], the
-    rest background: the whole range from background to the pure phrase, for every phrase.
-    """
-    if not isinstance(encoder_config, Mapping) or encoder_config.get("encoder") != ENCODER_NAME or count <= 0:
-        return None
-    phrases = list((encoder_config.get("masks") or {}).keys())
-    if not phrases:
-        return None
-    encoder = AnnotationMaskEncoder({p: "." for p in phrases},
-                                    salience=float(encoder_config.get("salience", DEFAULT_SALIENCE)))
-    coverage = np.zeros((count, 1, len(phrases)))
-    coverage[np.arange(count), 0, rng.integers(0, len(phrases), count)] = rng.uniform(0.0, 1.0, count)
-    return encoder.encode_coverage(torch.from_numpy(coverage))

@@ -187,9 +187,6 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
         raise InputError(f"features of timesteps {format_ranges(missing)} are missing; finish "
                          "`fourlegs extract` first", file=store.root)
     cfg = {"features": store.hash, **config.to_dict()}
-    from .annotations import ANCHOR_SHARE, anchor_features
-    if anchor_features(store.config.get("encoder_config"), 1, np.random.default_rng(0)) is not None:
-        cfg["anchor_share"] = ANCHOR_SHARE
     if timesteps is not None:
         cfg["timesteps"] = steps
     chash = config_hash(cfg)
@@ -218,9 +215,6 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
     held_views = [(t, holdout) for t in steps] if holdout is not None else []
     x_train = _sample_pixel_features(scene, store, train_views, config.samples, rng)
     x_held = _sample_pixel_features(scene, store, held_views, config.heldout_samples, rng)
-    anchors = anchor_features(store.config.get("encoder_config"), int(ANCHOR_SHARE * config.samples), rng)
-    if anchors is not None:  # annotation masks: the rare phrases' features, see anchor_features
-        x_train = torch.cat([x_train, anchors])
     sample_seconds = time.perf_counter() - start
 
     torch.manual_seed(config.seed)

@@ -164,6 +164,8 @@ def ensure_language_field(scene: "Scene", encoder: Any = None, *, encoder_config
               f"distilling ({mode}) — once per scene", file=sys.stderr)
     with report("extract features"):
         extract_features(scene, encoder, progress=progress)
+    if progress and hasattr(encoder, "evidence_line"):  # annotation masks: which views vote
+        print(encoder.evidence_line(), file=sys.stderr)
     with report("train autoencoder"):
         train_autoencoder(scene, progress=progress)
     with report(f"distil ({mode})"):
@@ -191,9 +193,11 @@ def open_query_engine(scene: "Scene", encoder: Any = None, *, options: Optional[
                          "the language stages: extract, train-ae, distill)", file=scene.root, field="language")
     if progress is None:
         encoder = encoder if encoder is not None else text_encoder(scene, encoder_config)
+        _check_field_encoder(scene, encoder)
         return QueryEngine(scene, LanguageField.open(scene.root), encoder, options, **engine_kwargs)
     progress(0.0, "loading the text encoder")
     encoder = encoder if encoder is not None else text_encoder(scene, encoder_config)
+    _check_field_encoder(scene, encoder)
     progress(0.3, "opening the language field")
     engine = QueryEngine(scene, LanguageField.open(scene.root), encoder, options, **engine_kwargs)
     progress(0.5, "embedding the reference phrases")
@@ -203,6 +207,15 @@ def open_query_engine(scene: "Scene", encoder: Any = None, *, options: Optional[
     progress(1.0, "engine ready")
     return engine
 
+
+
+def _check_field_encoder(scene: "Scene", encoder: Any) -> None:
+    """InputError when ``encoder`` is not the encoder ``scene``'s field was distilled with."""
+    recorded = (scene.language or {}).get("encoder")
+    if recorded and getattr(encoder, "name", recorded) != recorded:
+        raise InputError(f"the field was distilled with the {recorded!r} encoder, the query would encode text with "
+                         f"{encoder.name!r}: leave --encoder out (auto) or pass --encoder {recorded}",
+                         file=scene.root, field="--encoder")
 
 @dataclass(frozen=True)
 class FieldStep:

@@ -98,9 +98,15 @@ def test_bad_inputs_give_one_clear_error(tmp_path):
     small = write_masks(tmp_path / "small", {(c.name, t): np.ones((9, 16), bool) for c in cams for t in range(2)})
     with pytest.raises(InputError, match="mask is 16x9, camera 'cam00' images are 32x18"):
         extract_features(scene, AnnotationMaskEncoder({"a person": small}))
-    partial = write_masks(tmp_path / "partial", {(c.name, 0): np.ones((18, 32), bool) for c in cams})
-    with pytest.raises(InputError, match="timestep 1 is missing"):
-        extract_features(scene, AnnotationMaskEncoder({"a person": partial}))
+    (tmp_path / "none" / cams[0].name).mkdir(parents=True)
+    (tmp_path / "none" / cams[0].name / "notes.txt").write_text("no masks here")
+    with pytest.raises(InputError, match=r"no mask of 'a person' for any of the 3 training cameras at timesteps 0\.\.1"):
+        extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "none"}))
+    # two phrases annotated in disjoint views: no view is labelled for both, so none may vote
+    first = write_masks(tmp_path / "first", {(cams[0].name, t): np.ones((18, 32), bool) for t in range(2)})
+    second = write_masks(tmp_path / "second", {(cams[1].name, t): np.ones((18, 32), bool) for t in range(2)})
+    with pytest.raises(InputError, match="no camera-timestep has the masks of every phrase .'a person': 2, 'a ball': 2"):
+        extract_features(scene, AnnotationMaskEncoder({"a person": first, "a ball": second}))
     for spec in ("a person", "=folder", "a person=", ["a=x", "A =y"]):
         with pytest.raises(InputError, match="--masks"):
             mask_pairs([spec] if isinstance(spec, str) else spec)
@@ -147,3 +153,228 @@ def test_real_masks_extract_on_real_cameras(tmp_path):
     assert cos_person.max() > 0.95 and cos_background.max() > 0.99
     assert (cos_background > 0.99).mean() > 0.3  # people fill a small part of each view
     assert time.perf_counter() - start < 60
+
+
+def test_views_without_masks_give_no_evidence_and_do_not_vote(tmp_path, capsys):
+    """Masks for two of the three training cameras: the third camera's feature rows are zero, and the field
+    lifted from the full rig equals the one lifted from a rig of the two annotated cameras only."""
+    from fourlegs_engine.language.autoencoder import ENCODER_FILE, load_encoder
+    from fourlegs_engine.language.distill import DistillConfig, distill_timestep
+    from fourlegs_engine.language.extract import camera_layouts
+    from fourlegs_engine.scene.bundle import write_bundle
+    from fourlegs_engine.scene.camera import CameraRig
+    from fourlegs_engine.scene.scene import Scene
+
+    full = load_bundle(micro_bundle(tmp_path / "full", T=2))
+    masks = person_masks(full, tmp_path / "masks")
+    cams = full.cameras.cameras(0, "train")
+    import shutil
+    shutil.rmtree(tmp_path / "masks" / cams[1].name)       # camera 1 never annotated
+    (tmp_path / "masks" / cams[2].name / "000001.png").unlink()  # camera 2 annotated at t=0 only
+    assert main(["language", str(full.root), "--no-progress", "--encoder", "masks", "--masks",
+                 f"a person={tmp_path / 'masks'}", "--epochs", "1", "--samples", "2048"]) == 0
+    out = capsys.readouterr().out
+    assert "'a person' 3/6" in out and "3/6 annotated for every phrase" in out
+    feats = [feature_store(full).load(t).astype(np.float32) for t in range(2)]
+    layouts, offsets = camera_layouts(full, 0, feature_store(full).config["ratios"])
+    rows = [slice(o, o + l.num_crops) for o, l in zip(offsets, layouts)]
+    for t in range(2):
+        assert np.all(feats[t][rows[1]] == 0)                                   # no evidence
+        assert np.allclose(np.linalg.norm(feats[t][rows[0]], axis=1), 1, atol=2e-3)
+        assert np.allclose(np.linalg.norm(feats[t][rows[2]], axis=1), 1, atol=2e-3)  # t=1: the tube's t=0 frame
+
+    # the same two annotated cameras as the whole training rig
+    sub = Scene(gaussians=full.gaussians, cameras=CameraRig.static([cams[0], cams[2]], [], 2), name="micro")
+    sub = load_bundle(write_bundle(sub, tmp_path / "sub"))
+    extract_features(sub, AnnotationMaskEncoder({"a person": tmp_path / "masks"}))
+    for t in range(2):
+        sub_feats = feature_store(sub).load(t).astype(np.float32)
+        assert np.array_equal(sub_feats, np.concatenate([feats[t][rows[0]], feats[t][rows[2]]]))
+    encoder = load_encoder(Path(full.root) / ENCODER_FILE)
+    for mode in ("lift", "lift+refine"):
+        config = DistillConfig(mode=mode, iterations=3).check()
+        for t in range(2):
+            a, _ = distill_timestep(full, t, encoder, feature_store(full), config)
+            b, _ = distill_timestep(sub, t, encoder, feature_store(sub), config)
+            assert np.isfinite(a).all() and np.abs(a).sum() > 0
+            np.testing.assert_allclose(a, b, atol=1e-5)
+
+    # the field lifted from two annotated views still finds the person from the held-out camera
+    field = load_bundle(full.root)
+    engine = open_query_engine(field)
+    test_cam = field.cameras.cameras(0, "test")[0]
+    rel = engine.relevancy_map("a person", test_cam, 0, outputs=("relevancy",))["relevancy"]
+    gt = masks[(test_cam.name, 0)]
+    assert average_precision(rel.ravel(), gt.ravel()) > 0.7
+
+
+def test_no_view_with_evidence_leaves_zero_latents(tmp_path):
+    """A timestep no annotated frame reaches (its tube holds none) gets zero latents, like Gaussians no
+    training camera sees; the timesteps with evidence are lifted."""
+    from fourlegs_engine.language.autoencoder import ENCODER_FILE, load_encoder
+    from fourlegs_engine.language.distill import DistillConfig, distill_timestep
+
+    scene = load_bundle(micro_bundle(tmp_path / "scene", T=6))
+    cams = scene.cameras.cameras(0, "train")
+    write_masks(tmp_path / "masks", {(c.name, 0): render_label_coverage(scene, c, 0)[1].numpy() > 0.5 for c in cams})
+    extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "masks"}))
+    store = feature_store(scene)
+    assert np.abs(store.load(3).astype(np.float32)).sum() > 0        # tube t-4..t+3, clipped to 0..5, holds t=0
+    assert not np.any(store.load(5).astype(np.float32))              # tube 1..8 holds no annotated frame
+    train_autoencoder(scene, AETrainConfig(epochs=1, samples=1024, heldout_samples=128, batch_size=256))
+    encoder = load_encoder(Path(scene.root) / ENCODER_FILE)
+    for mode in ("lift", "optimize"):
+        config = DistillConfig(mode=mode, iterations=2).check()
+        latents, timing = distill_timestep(scene, 5, encoder, store, config)
+        assert latents.shape == (scene.num_gaussians, 128) and not np.any(latents)
+    latents, _ = distill_timestep(scene, 0, encoder, store, DistillConfig(mode="lift").check())
+    assert np.isfinite(latents).all() and np.abs(latents).sum() > 0
+
+
+def test_query_reads_the_recorded_encoder_and_accepts_the_same_flags(tmp_path, capsys):
+    """`fourlegs query` on a mask-distilled field: no encoder flags needed (the field records its encoder);
+    the flags of `fourlegs language` give the same answer; another encoder is one clear line."""
+    import json
+
+    bundle = micro_bundle(tmp_path / "scene", T=2)
+    person_masks(load_bundle(bundle), tmp_path / "masks")
+    flags = ["--encoder", "masks", "--masks", f"a person={tmp_path / 'masks'}"]
+    assert main(["language", str(bundle), "--no-progress", *flags, "--epochs", "1", "--samples", "2048"]) == 0
+    capsys.readouterr()
+    answers = []
+    for i, extra in enumerate(([], flags)):
+        out = tmp_path / f"q{i}.json"
+        assert main(["query", str(bundle), "a person", "--json", str(out), "--scale", "0.5", *extra]) == 0
+        answers.append(json.loads(out.read_text()))
+    assert answers[0]["temporal"] == answers[1]["temporal"] and answers[0]["best_view"] == answers[1]["best_view"]
+    scores = np.asarray(answers[0]["temporal"]["scores"])
+    assert scores.shape == (2,) and np.isfinite(scores).all()
+    capsys.readouterr()
+    assert main(["query", str(bundle), "a person", "--encoder", "simulated"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'masks' encoder" in err[0] and "--encoder" in err[0]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (REAL / "seg").is_dir(), reason=f"shared real data absent ({REAL})")
+def test_real_capture_through_the_readme_chain(tmp_path, capsys):
+    """The README's "your own capture" sequence on the real capture, small: fit six cameras x two
+    timesteps at 80x45, the seg/ masks as "a person" (two cameras' masks left out: they do not vote),
+    query, highlight video. Each command succeeds; the field, the query and the video are real."""
+    import json
+    import shutil
+
+    cams = ["1", "5", "9", "14", "20", "25"]
+    masks = tmp_path / "seg"
+    for cam in cams[:4]:
+        (masks / cam).mkdir(parents=True)
+        for t in range(2):
+            shutil.copy(REAL / "seg" / cam / f"{t:06d}.png", masks / cam / f"{t:06d}.png")
+    scene, out = tmp_path / "my_scene", tmp_path / "out"
+    assert main(["fit", str(REAL), "-o", str(scene), "--timesteps", "0:2", "--cameras", ",".join(cams),
+                 "--resolution-scale", "0.125", "--first-iterations", "15", "--iterations", "2",
+                 "--max-gaussians", "6000", "--init-foreground", "3000", "--init-background", "2000"]) == 0
+    capsys.readouterr()
+    assert main(["language", str(scene), "--no-progress", "--encoder", "masks", "--masks", f"a person={masks}",
+                 "--epochs", "2", "--samples", "8192", "--view-scale", "0.25"]) == 0
+    printed = capsys.readouterr()
+    assert "'a person' 8/12; 8/12 annotated for every phrase" in printed.out
+    assert printed.err.count("Warning") == 0
+    assert main(["query", str(scene), "a person", "--json", str(out / "person.json"), "--scale", "0.25"]) == 0
+    answer = json.loads((out / "person.json").read_text())
+    assert np.isfinite(answer["temporal"]["scores"]).all() and len(answer["temporal"]["scores"]) == 2
+    capsys.readouterr()
+    assert main(["highlight", str(scene), "a person", "--preset", "broadcast", "-o", str(out),
+                 "--resolution", "64x36", "--fps", "4"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["scene"]["num_timesteps"] == 2 and Path(report["outputs"]["video"]).stat().st_size > 0
+    assert report["localization"]["scores"] == pytest.approx(answer["temporal"]["scores"], abs=1e-4)
+
+
+def test_readme_own_capture_sequence_is_the_cli():
+    """The README's "your own capture" block: each line a `fourlegs` command the CLI parses, in the order
+    fit, language, query, highlight, all on the same scene; the README stays within 200 lines."""
+    import re
+    import shlex
+
+    from fourlegs_engine.cli import build_parser
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert len(text.splitlines()) <= 200
+    section = text.split("## Your own capture", 1)[1].split("\n## ", 1)[0]
+    block = re.search(r"```bash\n(.*?)```", section, re.S).group(1)
+    variables = {}
+    commands = []
+    for line in block.splitlines():
+        line = line.split("  #", 1)[0].strip()
+        if "=" in line.split()[0]:
+            name, value = line.split("=", 1)
+            variables[name] = value
+            continue
+        for name, value in variables.items():
+            line = line.replace("$" + name, value)
+        argv = shlex.split(line)
+        assert argv[0] == "fourlegs"
+        args = build_parser().parse_args(argv[1:])
+        commands.append((argv[1], args))
+    assert [c for c, _ in commands] == ["fit", "language", "query", "highlight"]
+    fit, language, query, highlight = (a for _, a in commands)
+    assert fit.output == language.scene == query.scene[0] == highlight.scene
+    assert language.encoder == "masks" and language.masks[0].startswith("a person=")
+    assert query.scene[1] == highlight.query == "a person"
+
+
+def test_evidence_counts_match_the_files_present(tmp_path_factory):
+    """For any pattern of mask files of two phrases over 3 cameras x 5 timesteps: the per-phrase counts, the
+    annotated camera-timesteps (both phrases present) and annotated() follow the files exactly."""
+    from types import SimpleNamespace
+
+    from hypothesis import given, settings, strategies as st
+
+    cams = [SimpleNamespace(name=f"c{i}", width=4, height=3) for i in range(3)]
+    cells = [(c.name, t) for c in cams for t in range(5)]
+
+    @settings(max_examples=12)
+    @given(st.sets(st.sampled_from(cells), min_size=1), st.sets(st.sampled_from(cells), min_size=1))
+    def check(first, second):
+        root = tmp_path_factory.mktemp("masks")
+        ones = np.ones((3, 4), bool)
+        write_masks(root / "a", {cell: ones for cell in first})
+        write_masks(root / "b", {cell: ones for cell in second})
+        enc = AnnotationMaskEncoder({"a person": root / "a", "a ball": root / "b"})
+        both = first & second
+        if not both:
+            with pytest.raises(InputError, match="no camera-timestep has the masks of every phrase"):
+                enc.check_masks(cams, 5)
+            return
+        enc.check_masks(cams, 5)
+        summary = enc.evidence_summary()
+        assert summary["per_phrase"] == {"a person": len(first), "a ball": len(second)}
+        assert summary["annotated"] == len(both) and summary["camera_timesteps"] == 15
+        for name, t in cells:
+            assert enc.annotated(name, t) == ((name, t) in both)
+            frame = enc.coverage_frame(t, cams[int(name[1])])
+            assert (frame is None) == ((name, t) not in both)
+            if frame is not None:
+                assert frame.shape == (2, 3, 4) and bool(frame.all())
+
+    check()
+
+
+def test_masks_added_later_make_the_features_stale(tmp_path):
+    """Features extracted from masks of some views are not silently reused once more views are annotated:
+    the extraction refuses them (config mismatch) until --overwrite, then the new view carries evidence."""
+    from fourlegs_engine.errors import ConfigMismatchError
+
+    scene = load_bundle(micro_bundle(tmp_path / "scene", T=2))
+    cams = scene.cameras.cameras(0, "train")
+    person_masks(scene, tmp_path / "masks")
+    import shutil
+    shutil.move(str(tmp_path / "masks" / cams[2].name), str(tmp_path / "later"))
+    extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "masks"}))
+    assert not np.any(feature_store(scene).load(0)[-1])                  # camera 2's last crop: no evidence
+    shutil.move(str(tmp_path / "later"), str(tmp_path / "masks" / cams[2].name))
+    with pytest.raises(ConfigMismatchError):
+        extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "masks"}))
+    extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "masks"}), overwrite=True)
+    assert np.any(feature_store(scene).load(0)[-1])

@@ -22,11 +22,22 @@ Features
     ``s`` the ``salience`` of a masked pixel against an unmasked one (default 6, the simulated encoder's
     foreground salience: a person filling a fifth of the smallest crop still dominates its feature, as it
     would for a video model); a crop inside one phrase's mask gets exactly that phrase's embedding.
+
+Views without masks
+    Real annotations cover a few views only. A missing mask file means "not annotated", never "absent":
+    a frame of a camera is *annotated* when every phrase has its mask file there (an empty mask says "not
+    in this view"). A crop tube averages its coverage over its annotated frames only; a camera-timestep
+    whose 8-frame tube holds no annotated frame contributes no evidence: its feature rows are all zero
+    (an encoder's features are unit vectors, so zero rows are unambiguous), and the autoencoder and the
+    lift skip that view. Only annotated views vote; Gaussians no voting view sees keep a zero latent, as
+    Gaussians no training camera sees. A phrase with no mask file for any training camera and timestep,
+    or a set of phrases that no frame holds all of, is an error.
 """
 from __future__ import annotations
 
 import hashlib
 import math
+import os
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -139,6 +150,9 @@ class AnnotationMaskEncoder:
             else torch.zeros(0, EMBED_DIM, dtype=torch.float64)                    # (C, D) float64
         self._background = torch.from_numpy(phrase_embedding("background"))       # (D,)
         self._checked = False
+        self._available: list[dict[str, frozenset[int]]] | None = None    # per phrase: camera -> timesteps
+        self._scanned_cameras: list[str] = []
+        self._scanned_timesteps = 0
 
     @property
     def num_labels(self) -> int:
@@ -146,8 +160,17 @@ class AnnotationMaskEncoder:
 
     def config(self) -> dict[str, Any]:
         """JSON-serializable settings (recorded with the features and in scene.json's language block)."""
-        return {"encoder": self.name, "masks": {p: str(f) for p, f in zip(self.labels, self.folders)},
-                "mask_pattern": MASK_PATTERN, "salience": self.salience}
+        config = {"encoder": self.name, "masks": {p: str(f) for p, f in zip(self.labels, self.folders)},
+                  "mask_pattern": MASK_PATTERN, "salience": self.salience}
+        if self._available is not None:  # features made before masks were added or removed are stale
+            config["mask_files"] = self.mask_files_digest()
+        return config
+
+    def mask_files_digest(self) -> str:
+        """Short hash of which mask files exist (after :meth:`check_masks`), per phrase, camera and timestep."""
+        listing = [[p, c, sorted(avail[c])] for p, avail in zip(self.labels, self._available or [])
+                   for c in self._scanned_cameras]
+        return hashlib.sha256(repr(listing).encode()).hexdigest()[:16]
 
     # ----------------------------------------------------------------------------- text
     def encode_text(self, texts: Sequence[str] | str) -> torch.Tensor:
@@ -163,27 +186,91 @@ class AnnotationMaskEncoder:
     def mask_path(self, phrase_index: int, camera: str, t: int) -> Path:
         return self.folders[phrase_index] / MASK_PATTERN.format(camera=camera, t=int(t))
 
+    def _scan(self, cameras: Sequence[Any], num_timesteps: int) -> None:
+        """Which mask files exist: per phrase, camera name -> set of timesteps (one directory listing per
+        phrase and camera)."""
+        self._available = []
+        for folder in self.folders:
+            per_camera: dict[str, frozenset[int]] = {}
+            for cam in cameras:
+                found: set[int] = set()
+                try:
+                    names = os.listdir(folder / str(cam.name))
+                except (FileNotFoundError, NotADirectoryError):
+                    names = []
+                for name in names:
+                    stem, dot, ext = name.partition(".")
+                    if ext == "png" and len(stem) == 6 and stem.isdigit() and int(stem) < num_timesteps:
+                        found.add(int(stem))
+                per_camera[str(cam.name)] = frozenset(found)
+            self._available.append(per_camera)
+        self._scanned_cameras = [str(c.name) for c in cameras]
+        self._scanned_timesteps = int(num_timesteps)
+
+    def annotated(self, camera: str, t: int) -> bool:
+        """Whether every phrase has its mask file for ``camera`` at timestep ``t``."""
+        available = self._available
+        if available and str(camera) in available[0] and 0 <= int(t) < self._scanned_timesteps:
+            return all(int(t) in per_camera[str(camera)] for per_camera in available)
+        return all(self.mask_path(k, camera, t).is_file() for k in range(self.num_labels))
+
+    def evidence_summary(self) -> dict[str, Any]:
+        """What the scanned masks cover (after :meth:`check_masks`): per phrase the camera-timesteps with its
+        mask, the annotated camera-timesteps (every phrase's mask present: the views that vote) and the
+        camera-timesteps in all."""
+        if self._available is None:
+            raise RuntimeError("check_masks() first")
+        cams, T = self._scanned_cameras, self._scanned_timesteps
+        per_phrase = {p: sum(len(avail[c]) for c in cams) for p, avail in zip(self.labels, self._available)}
+        annotated = sum(len(frozenset.intersection(*(avail[c] for avail in self._available))) for c in cams)
+        return {"per_phrase": per_phrase, "annotated": annotated, "camera_timesteps": len(cams) * T,
+                "cameras": len(cams), "timesteps": T}
+
+    def evidence_line(self) -> str:
+        """One line of :meth:`evidence_summary` for the command line."""
+        summary = self.evidence_summary()
+        total = summary["camera_timesteps"]
+        phrases = ", ".join(f"{p!r} {n}/{total}" for p, n in summary["per_phrase"].items())
+        return (f"annotation masks ({summary['cameras']} training cameras x {summary['timesteps']} timesteps): "
+                f"camera-timesteps with a mask: {phrases}; {summary['annotated']}/{total} annotated for every "
+                "phrase (only these vote)")
+
     def check_masks(self, cameras: Sequence[Any], num_timesteps: int) -> None:
-        """Fail early with one line: no phrase, a missing folder, a missing file, or all masks of a phrase
-        empty. Reads files only until it finds one set pixel per phrase (cheap on real masks)."""
+        """Fail early with one line: no phrase, a missing folder, a phrase without any mask file, no frame
+        annotated for every phrase, a mask of the wrong size, or all masks of a phrase empty. Missing files
+        are allowed otherwise (see "Views without masks" in the module docstring). Reads masks only until
+        it finds one set pixel per phrase (cheap on real masks)."""
         if not self.labels:
             raise InputError("the annotation-mask encoder needs at least one PHRASE=FOLDER", field="--masks")
-        for k, (phrase, folder) in enumerate(zip(self.labels, self.folders)):
+        for phrase, folder in zip(self.labels, self.folders):
             if not folder.is_dir():
                 raise InputError(f"mask folder of {phrase!r} does not exist", file=folder, field="--masks")
+        self._scan(cameras, num_timesteps)
+        summary = self.evidence_summary()
+        for k, (phrase, folder) in enumerate(zip(self.labels, self.folders)):
+            if summary["per_phrase"][phrase] == 0:
+                raise InputError(f"no mask of {phrase!r} for any of the {len(cameras)} training cameras at timesteps "
+                                 f"0..{num_timesteps - 1} (expected {MASK_PATTERN} inside the folder)",
+                                 file=folder, field="--masks")
             found = False
-            for t in range(num_timesteps):
-                for cam in cameras:
-                    path = self.mask_path(k, cam.name, t)
-                    if not path.is_file():
-                        raise InputError(f"mask of {phrase!r} for camera {cam.name!r}, timestep {t} is missing",
-                                         file=path, field="--masks")
-                    if not found:
-                        mask = read_mask(path)
-                        self._check_size(mask, cam, path)
-                        found = bool(mask.any())
+            by_camera = {str(c.name): c for c in cameras}
+            for name, steps in self._available[k].items():
+                for t in sorted(steps):
+                    path = self.mask_path(k, name, t)
+                    mask = read_mask(path)
+                    self._check_size(mask, by_camera[name], path)
+                    if mask.any():
+                        found = True
+                        break
+                if found:
+                    break
             if not found:
                 raise InputError(f"every mask of {phrase!r} is empty (no pixel set)", file=folder, field="--masks")
+        if summary["annotated"] == 0:
+            counts = ", ".join(f"{p!r}: {n}" for p, n in summary["per_phrase"].items())
+            raise InputError(f"no camera-timestep has the masks of every phrase ({counts} camera-timesteps); a "
+                             "view votes only where all phrases are annotated: add empty masks where a phrase "
+                             "is absent", field="--masks")
         self._checked = True
 
     def _check_size(self, mask: np.ndarray, camera: Any, path: Path) -> None:
@@ -191,14 +278,14 @@ class AnnotationMaskEncoder:
             raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]}, camera {camera.name!r} images are "
                              f"{camera.width}x{camera.height}", file=path, field="--masks")
 
-    def coverage_frame(self, t: int, camera: Any) -> torch.Tensor:
-        """(C, H, W) float32 in {0, 1}: channel k = phrase k's mask of ``camera`` at timestep ``t``."""
+    def coverage_frame(self, t: int, camera: Any) -> torch.Tensor | None:
+        """(C, H, W) float32 in {0, 1}: channel k = phrase k's mask of ``camera`` at timestep ``t``; None
+        where the frame is not annotated (some phrase has no mask file there)."""
+        if not self.annotated(camera.name, t):
+            return None
         planes = []
-        for k, phrase in enumerate(self.labels):
+        for k in range(self.num_labels):
             path = self.mask_path(k, camera.name, t)
-            if not path.is_file():
-                raise InputError(f"mask of {phrase!r} for camera {camera.name!r}, timestep {t} is missing",
-                                 file=path, field="--masks")
             mask = read_mask(path)
             self._check_size(mask, camera, path)
             planes.append(torch.from_numpy(mask.astype(np.float32)))

@@ -132,17 +132,23 @@ class AETrainConfig:
 def _sample_pixel_features(scene: Any, store: Any, views: list[tuple[int, int]], total: int,
                            rng: np.random.Generator) -> torch.Tensor:
     """(≈total, D) float32 per-pixel features at uniformly random pixels of the given (t, camera) views."""
-    from .extract import load_step_features
+    from .extract import load_step_features, view_has_evidence
     from .pyramid import interpolate_points
     if not views or total <= 0:
         return torch.zeros((0, int(store.config["dim"])))
-    per_view = max(1, -(-total // len(views)))
     by_t: dict[int, list[int]] = {}
     for t, c in views:
         by_t.setdefault(t, []).append(c)
+    loaded = {t: load_step_features(scene, store, t) for t in sorted(by_t)}
+    # views without evidence (zero rows: annotation masks that do not cover them) are not sampled
+    by_t = {t: [c for c in cams if view_has_evidence(loaded[t][0], loaded[t][2][c])] for t, cams in by_t.items()}
+    count = sum(len(cams) for cams in by_t.values())
+    if count == 0:
+        return torch.zeros((0, int(store.config["dim"])))
+    per_view = max(1, -(-total // count))
     out = []
     for t in sorted(by_t):
-        feats, layouts, offsets = load_step_features(scene, store, t)
+        feats, layouts, offsets = loaded[t]
         for c in by_t[t]:
             lay = layouts[c]
             crop = torch.from_numpy(np.asarray(feats[offsets[c]:offsets[c] + lay.num_crops], dtype=np.float32))

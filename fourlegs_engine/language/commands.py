@@ -187,6 +187,13 @@ def _distill_config(args: argparse.Namespace):
                          lift_smoothing=args.lift_smoothing).check()
 
 
+def _print_evidence(encoder: Any, scene: Any, split: str = "train") -> None:
+    """What annotation masks cover (the encoder reads masks); nothing for other encoders."""
+    if hasattr(encoder, "evidence_line"):
+        encoder.check_masks(scene.cameras.cameras(0, split), scene.num_timesteps)
+        print(encoder.evidence_line())
+
+
 def _print_check(report: dict[str, Any]) -> int:
     print(json.dumps(report, indent=2))
     return 0 if report.get("complete") else 1
@@ -207,8 +214,10 @@ def run_extract(args: argparse.Namespace) -> int:
         report = cli_extract(args, scene, functools.partial(_encoder, args), config, timesteps=args.timesteps,
                              shard=args.shard)
     else:
-        report = extract_features(scene, _encoder(args, scene), config, timesteps=args.timesteps, shard=args.shard,
+        encoder = _encoder(args, scene)
+        report = extract_features(scene, encoder, config, timesteps=args.timesteps, shard=args.shard,
                                   overwrite=args.overwrite, progress=not args.no_progress)
+        _print_evidence(encoder, scene, config.split)
     print(f"extract: {len(report.timesteps_done)} timestep(s) encoded, {len(report.timesteps_skipped)} already "
           f"done, {report.seconds:.1f} s (render {report.render_seconds:.1f} s, encoder "
           f"{report.encode_seconds:.1f} s), {report.crops_per_timestep} crops per timestep")
@@ -265,12 +274,14 @@ def run_language(args: argparse.Namespace) -> int:
     scene = resolve_bundle(args)
     progress = not args.no_progress
     t0 = time.perf_counter()
+    encoder = _encoder(args, scene)
     if args.ray is not None:
         from ..cluster import cli_extract
         rep = cli_extract(args, scene, functools.partial(_encoder, args), ExtractConfig(frame_scale=args.frame_scale))
     else:
-        rep = extract_features(scene, _encoder(args, scene), ExtractConfig(frame_scale=args.frame_scale),
+        rep = extract_features(scene, encoder, ExtractConfig(frame_scale=args.frame_scale),
                                overwrite=args.overwrite, progress=progress)
+    _print_evidence(encoder, scene)
     t1 = time.perf_counter()
     ae = train_autoencoder(scene, _ae_config(args), overwrite=args.overwrite, progress=progress)
     t2 = time.perf_counter()

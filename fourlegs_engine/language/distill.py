@@ -64,7 +64,7 @@ from .attention import NeighbourhoodAttention, knn_indices, neighbour_blur, smoo
 from .autoencoder import (AE_REPORT, DECODER_FILE, ENCODER_FILE, FeatureEncoder, l2_normalize, load_decoder,
                           load_encoder, weights_fingerprint)
 from .encoders import CANONICAL_PHRASES
-from .extract import feature_store, load_step_features
+from .extract import feature_store, load_step_features, view_has_evidence
 from .pyramid import PyramidLayout, interpolate_grid, sample_positions, upsample_to_pixels
 from .store import StepStore, config_hash, format_ranges, select_timesteps
 
@@ -383,6 +383,14 @@ def distill_timestep(scene: Scene, t: int, encoder: FeatureEncoder, features: St
     frame = scene.gaussians.at(t)
     cameras = scene.cameras.cameras(t, config.split)
     feats, layouts, offsets = load_step_features(scene, features, t)
+    if not cameras:
+        raise InputError(f"timestep {t} has no {config.split} cameras to lift from", field="cameras")
+    # views without evidence (annotation masks that do not cover them) do not vote
+    voting = [i for i, off in enumerate(offsets) if view_has_evidence(feats, off)]
+    cameras, layouts, offsets = ([seq[i] for i in voting] for seq in (cameras, layouts, offsets))
+    if not cameras:
+        latents = np.zeros((frame.num_gaussians, encoder.dims[-1]), dtype=np.float32)
+        return latents, TimestepTiming(t, time.perf_counter() - start, 0.0, 0.0, 0.0, 0.0, 0, None)
     if config.mode == "lift":
         return _lift_timestep(frame, cameras, encoder, feats, layouts, offsets, config, t, start)
     ops, teachers = [], []
@@ -665,11 +673,13 @@ def check_distill(scene: Scene, out_dir: str | Path | None = None) -> dict[str, 
 @torch.no_grad()
 def fidelity_reference(scene: Scene, t: int, encoder: FeatureEncoder, features: StepStore,
                        split: str = "train") -> list[tuple[ViewOperator, torch.Tensor]]:
-    """Full-resolution rendering maps and stride-1 teacher latents of every view of timestep t."""
+    """Full-resolution rendering maps and stride-1 teacher latents of every view of timestep t that carries
+    evidence."""
     frame = scene.gaussians.at(t)
     feats, layouts, offsets = load_step_features(scene, features, t)
     return [(view_operator(frame, cam), teacher_latents(encoder, layout, feats[off:off + layout.num_crops], 1))
-            for cam, layout, off in zip(scene.cameras.cameras(t, split), layouts, offsets)]
+            for cam, layout, off in zip(scene.cameras.cameras(t, split), layouts, offsets)
+            if view_has_evidence(feats, off)]
 
 
 @torch.no_grad()

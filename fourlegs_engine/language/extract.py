@@ -80,6 +80,8 @@ def scene_signature(scene: Scene) -> dict[str, Any]:
 
 
 def extract_config_dict(scene: Scene, encoder: Any, config: ExtractConfig) -> dict[str, Any]:
+    if hasattr(encoder, "check_masks"):  # annotation masks: which files exist enters the encoder's config
+        encoder.check_masks(scene.cameras.cameras(0, config.split), scene.num_timesteps)
     return {"encoder": str(encoder.name), "dim": int(encoder.dim), "input_kind": str(encoder.input_kind),
             "ratios": [round(float(r), 6) for r in config.ratios], "tube": list(TUBE_OFFSETS),
             "crop_size": config.resolved_crop_size(encoder.input_kind, encoder),
@@ -148,7 +150,8 @@ class FrameSource:
     def channels(self) -> int:
         return 3 if self.input_kind == "rgb" else self.num_labels
 
-    def frame(self, t: int, cam_index: int) -> torch.Tensor:
+    def frame(self, t: int, cam_index: int) -> torch.Tensor | None:
+        """(C, H, W) frame of camera ``cam_index`` at ``t``; None where annotation masks do not cover it."""
         key = (t, cam_index)
         hit = self.cache.get(key)
         if hit is not None:
@@ -173,6 +176,8 @@ class FrameSource:
         start = time.perf_counter()
         frame = self._render(t, cam_index)      # not cached: only its crop means are kept
         seconds = time.perf_counter() - start
+        if frame is None:
+            return None
         hit = frame_crop_means(frame, layout)
         with self._lock:
             self.render_seconds += seconds
@@ -181,9 +186,12 @@ class FrameSource:
                 self.cache.popitem(last=False)
         return hit
 
-    def tube(self, t: int, cam_index: int) -> torch.Tensor:
-        """(8, C, H, W) frames t-4..t+3 of one camera, edge frames repeated."""
-        return torch.stack([self.frame(k, cam_index) for k in tube_indices(t, self.scene.num_timesteps)])
+    def tube(self, t: int, cam_index: int) -> torch.Tensor | None:
+        """(L, C, H, W) frames t-4..t+3 of one camera, edge frames repeated (L = 8); frames annotation masks
+        do not cover are left out (L < 8), None if none is covered."""
+        frames = [self.frame(k, cam_index) for k in tube_indices(t, self.scene.num_timesteps)]
+        frames = [f for f in frames if f is not None]
+        return torch.stack(frames) if frames else None
 
     def _render(self, t: int, cam_index: int) -> torch.Tensor:
         if self.read_frames is not None:
@@ -263,7 +271,8 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
             for t in bar:
                 layouts, offsets = camera_layouts(scene, t, config.ratios, config.split)
                 crops_per_t = sum(l.num_crops for l in layouts)
-                out = np.empty((crops_per_t, int(encoder.dim)), dtype=np.float16)
+                # rows of a camera without any annotated frame in its tube stay zero: no evidence
+                out = np.zeros((crops_per_t, int(encoder.dim)), dtype=np.float16)
                 cameras = scene.cameras.cameras(t, config.split)
 
                 def encode_camera(c: int) -> float:
@@ -276,11 +285,15 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
                     batcher = _Batcher(cam_encoder, out, batch, coverage=coverage)
                     if coverage:
                         # crop means depend on one frame only: computed once per frame, shared by 8 tubes
-                        means = torch.stack([source.crop_means(k, c, layout)
-                                             for k in tube_indices(t, scene.num_timesteps)], 1)   # (n, 8, C)
-                        batcher.add(means, offsets[c] + np.arange(layout.num_crops))
+                        frames = [source.crop_means(k, c, layout) for k in tube_indices(t, scene.num_timesteps)]
+                        frames = [m for m in frames if m is not None]
+                        if not frames:
+                            return 0.0
+                        batcher.add(torch.stack(frames, 1), offsets[c] + np.arange(layout.num_crops))  # (n, L, C)
                     else:
                         tube = source.tube(t, c)
+                        if tube is None:
+                            return 0.0
                         for grid in layout.scales:
                             rows = offsets[c] + grid.offset + np.arange(grid.num_crops)
                             # raw crops are small; resizing to 224 happens per batch (a 224 px tube is 4.8 MB)
@@ -397,6 +410,12 @@ def check_features(scene: Scene) -> dict[str, Any]:
     report = store.check((sum(l.num_crops for l in layouts), int(store.config["dim"])))
     report["missing_ranges"] = format_ranges(report["missing"])
     return report
+
+
+def view_has_evidence(feats: np.ndarray, offset: int) -> bool:
+    """Whether the camera whose crop rows start at ``offset`` of a timestep's (num_crops_total, D) features
+    carries evidence: encoders write unit vectors; the rows of a view without annotation masks are zero."""
+    return bool(np.any(np.asarray(feats[offset]) != 0))
 
 
 def load_step_features(scene: Scene, store: StepStore, t: int) -> tuple[np.ndarray, list[PyramidLayout],

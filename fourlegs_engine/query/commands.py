@@ -53,6 +53,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--scene-stride", type=bounded(int, 1, MAX_TIMESTEP_ARGUMENT), default=None, metavar="K",
                    help="several scenes: rank them on every K-th timestep (default 10, as the paper)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    from ..cli_options import add_encoder_arguments
+    add_encoder_arguments(p, default="auto")  # 'auto': the encoder recorded with the field (masks need no flags)
     p.set_defaults(func=run_query)
 
 
@@ -84,7 +86,8 @@ def _open(args: argparse.Namespace):
     if not scene.language and not (scene.metadata or {}).get("labels"):
         raise InputError("the scene has no distilled language field; run `fourlegs language` first",
                          file=path, field="language")
-    encoder = text_encoder(scene)
+    from ..cli_options import encoder_config_from_args
+    encoder = text_encoder(scene, encoder_config_from_args(args))
     scene = ensure_language_field(scene, encoder, progress=True)
     options = QueryOptions(path=args.path, codebook_size=args.codebook_size, codebook_refine=args.codebook_refine,
                            negatives=tuple(args.negatives), temporal_stride=args.stride, spatial=args.spatial,

@@ -37,7 +37,7 @@ from fourlegs_engine.errors import InputError
 from fourlegs_engine.language.extract import ExtractConfig
 from fourlegs_engine.language.pyramid import (CLIP_MEAN, CLIP_STD, PyramidLayout, crop_layout, resize_crops,
                                               scale_crops, tube_indices)
-from fourlegs_engine.language.viclip.model import ViCLIPConfig, ViCLIPModel, l2_normalize
+from fourlegs_engine.language.viclip.model import ViCLIPConfig, ViCLIPModel, l2_normalize, video_clip_flops
 
 from .viclip import DTYPES, _cast, _inputs, _sync
 
@@ -232,6 +232,7 @@ def bench_viclip_real(dataset: str | Path, *, size: str | ViCLIPConfig = "l", ca
     prep_cpu = sum(r["cpu_seconds"] for r in prep) / len(prep)
 
     # ---- the network: one seeded float32 master, the reference and every knob cast from it
+    flops = video_clip_flops(config)
     torch.manual_seed(seed)
     master = ViCLIPModel(config).eval()
     rows: list[dict[str, Any]] = []
@@ -270,6 +271,8 @@ def bench_viclip_real(dataset: str | Path, *, size: str | ViCLIPConfig = "l", ca
             "supported": True,
             "seconds_per_clip": s_clip, "cpu_seconds_per_clip": cpu_clip,
             "seconds_per_phrase": text_clock.wall / phrases,
+            "gflop_per_second": flops["total"] / s_clip / 1e9 if s_clip > 0 else None,
+            "gflop_per_cpu_second": flops["total"] / cpu_clip / 1e9 if cpu_clip > 0 else None,
             "video_min_cosine": float((out_video * ref_video).sum(-1).min()),
             "text_min_cosine": float((out_text * ref_text).sum(-1).min()),
             "finite": bool(torch.isfinite(out_video).all() and torch.isfinite(out_text).all()),
@@ -293,7 +296,7 @@ def bench_viclip_real(dataset: str | Path, *, size: str | ViCLIPConfig = "l", ca
         "load_average_after": [round(v, 2) for v in os.getloadavg()],
         "dataset": str(dataset), "image_size": [capture.width, capture.height],
         "cameras": [str(c) for c in cameras], "timesteps": list(timesteps), "crop_size": crop_size,
-        "num_frames": config.num_frames, "layout": layout.to_dict(),
+        "num_frames": config.num_frames, "layout": layout.to_dict(), "flops_per_clip": flops,
         "clips_per_camera_timestep": per_ct,
         "clips_per_scale": [s.num_crops for s in layout.scales],
         "paper_clips_per_camera_timestep": PAPER_CLIPS_640x360 if (capture.width, capture.height) == (640, 360)
@@ -310,7 +313,9 @@ def bench_viclip_real(dataset: str | Path, *, size: str | ViCLIPConfig = "l", ca
     }
 
 
-def _fmt(value: float, digits: int = 3) -> str:
+def _fmt(value: float | None, digits: int = 3) -> str:
+    if value is None:
+        return "–"
     return f"{value:.{digits}g}" if value < 10 ** digits else f"{value:,.0f}"
 
 
@@ -343,18 +348,21 @@ def real_report_markdown(report: dict[str, Any], command: str | None = None) -> 
         f"{pre['crop_resize_cpu_seconds_per_camera_timestep']:.3f} |", "",
         f"Network: {report['rows'][0]['clips']} real clips per knob (spread over cameras and scales), "
         f"accuracy = worst cosine to the {report['reference_dtype']} reference embeddings of the same clips "
-        f"and of {report['phrases']} random token rows.", "",
-        "| dtype | batch | s / clip | CPU s / clip | s / phrase | s / camera-timestep | CPU s / camera-timestep "
-        "| video min cos | text min cos | finite |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+        f"and of {report['phrases']} random token rows. One clip through the video tower is "
+        f"{report['flops_per_clip']['total'] / 1e12:.3g} TFLOP ({report['flops_per_clip']['attention'] / 1e12:.3g} of "
+        f"them joint space-time attention); GFLOP/s = that over the wall seconds per clip.", "",
+        "| dtype | batch | s / clip | CPU s / clip | GFLOP/s | s / phrase | s / camera-timestep "
+        "| CPU s / camera-timestep | video min cos | text min cos | finite |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in report["rows"]:
         name = r["dtype"] + (" (reference)" if r["reference"] else "")
         if not r["supported"]:
             lines.append(f"| {name} | {r['batch_size']} | not supported on {report['device']}: {r['error']} "
-                         "| | | | | | | |")
+                         "| | | | | | | | |")
             continue
         lines.append(f"| {name} | {r['batch_size']} | {_fmt(r['seconds_per_clip'])} | "
-                     f"{_fmt(r['cpu_seconds_per_clip'])} | {r['seconds_per_phrase']:.4f} | "
+                     f"{_fmt(r['cpu_seconds_per_clip'])} | {_fmt(r['gflop_per_second'])} | "
+                     f"{r['seconds_per_phrase']:.4f} | "
                      f"{_fmt(r['seconds_per_camera_timestep'])} | {_fmt(r['cpu_seconds_per_camera_timestep'])} | "
                      f"{r['video_min_cosine']:.6f} | {r['text_min_cosine']:.6f} | {'yes' if r['finite'] else 'NO'} |")
     subsets = report["subsets"]

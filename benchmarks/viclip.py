@@ -6,6 +6,9 @@ batch size, and reports, in one table: seconds per clip (video tower), seconds p
 tower), and the worst cosine between each embedding and the reference one. Timing depends only on
 shapes, so random weights measure speed faithfully; accuracy is most meaningful with a real
 checkpoint. Output: ``PREFIX.json``, ``PREFIX.md`` (table) and ``PREFIX.png`` (plot).
+
+With ``--dataset`` the bench measures the real configuration on a capture's real frames instead
+(:mod:`.viclip_real`).
 """
 from __future__ import annotations
 

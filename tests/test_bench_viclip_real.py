@@ -14,7 +14,7 @@ from PIL import Image
 from _viclip_helpers import tiny_config
 from benchmarks import viclip_real
 from benchmarks.viclip_real import (bench_viclip_real, parse_subsets, preprocess_camera_timestep,
-                                    real_report_markdown, sample_indices, write_real_report)
+                                    real_report_markdown, sample_clips, write_real_report)
 from fourlegs_engine.errors import InputError, OutputExistsError
 from fourlegs_engine.language.pyramid import CLIP_MEAN, CLIP_STD, crop_layout, pyramid_ratios
 
@@ -117,6 +117,19 @@ def test_the_clips_are_extractions_crops_in_layout_order():
         torch.testing.assert_close(kept[index], (window - mean) / std, rtol=0, atol=1e-6)
 
 
+def test_sampled_clips_are_central_crops_spread_over_scales_and_camera_timesteps():
+    layout = crop_layout(640, 360, pyramid_ratios())
+    first, last = layout.scales[0], layout.scales[-1]
+    # scale 0 is 24 x 14 crops: the centre one is row 7, column 12; scale 4 (offset 548) is 6 x 4: row 2, column 3
+    assert (first.nx, first.ny, last.nx, last.ny, last.offset) == (24, 14, 6, 4, 548)
+    assert sample_clips(layout, 1, 2) == [(0, 7 * 24 + 12), (0, 548 + 2 * 6 + 3)]
+    assert [i for _, i in sample_clips(layout, 1, 5)] == [g.offset + (g.ny // 2) * g.nx + g.nx // 2
+                                                        for g in layout.scales]
+    seven = sample_clips(layout, 1, 7)      # more picks than scales: a repeated crop moves one to the right
+    assert len(set(seven)) == 7 and (0, 7 * 24 + 12) in seven and (0, 7 * 24 + 13) in seven
+    assert {p for p, _ in sample_clips(layout, 2, 3)} == {0, 1}
+
+
 def test_a_precision_the_device_cannot_run_is_a_row_saying_so(capture_dir, monkeypatch):
     real_encode = viclip_real._encode
 
@@ -148,7 +161,6 @@ def test_bad_real_bench_input_is_one_clear_error(capture_dir, tmp_path):
         bench_viclip_real(capture_dir, size=tiny_config(), timesteps=(10,))
     with pytest.raises(InputError, match="train_meta.json"):
         bench_viclip_real(tmp_path, size=tiny_config())
-    assert sample_indices(572, 3) == [0, 286, 571] and sample_indices(4, 9) == [0, 1, 2, 3]
 
 
 def test_the_cli_refuses_existing_outputs_and_checkpoints_before_any_work(capture_dir, tmp_path):

@@ -186,20 +186,38 @@ def _add_viclip(bench_subparsers: Any) -> None:
     p = bench_subparsers.add_parser(
         "viclip", help="ViCLIP encoder: seconds per clip/phrase and accuracy per precision and batch size",
         description="Seconds per 8-frame clip and per phrase, and the worst cosine to a float64 reference, "
-                    "for every precision and batch size, in one run.")
-    p.add_argument("--size", default="b", choices=("b", "l"), help="ViCLIP size (default b = B/16)")
-    p.add_argument("--checkpoint", default=None, help="real weights (default: random weights from --seed)")
-    p.add_argument("--dtypes", default="float32,bfloat16", help="precisions to measure (default float32,bfloat16)")
-    p.add_argument("--batch-sizes", default="1,4", help="clips per forward pass (default 1,4)")
+                    "for every precision and batch size, in one run. With --dataset: the real configuration "
+                    "(L/14, 8 frames, the 5-scale crop pyramid, 572 clips per camera-timestep at 640x360) on "
+                    "the capture's real frames through extraction's crop code, with random weights; pre-processing "
+                    "timed apart from the network, and the whole scene extrapolated.")
+    p.add_argument("--dataset", default=None, metavar="DIR",
+                   help="real-frames mode: a Dynamic 3D Gaussians capture (train_meta.json, ims/), e.g. "
+                        "../shared/data/panoptic-basketball (default: random clips)")
+    p.add_argument("--size", default=None, choices=("b", "l"),
+                   help="ViCLIP size (default b = B/16; l = L/14 with --dataset)")
+    p.add_argument("--checkpoint", default=None,
+                   help="real weights (default: random weights from --seed; not with --dataset)")
+    p.add_argument("--dtypes", default=None,
+                   help="precisions to measure (default float32,bfloat16; float32,bfloat16,float16 with --dataset)")
+    p.add_argument("--batch-sizes", default=None, help="clips per forward pass (default 1,4; 1,2 with --dataset)")
     p.add_argument("--reference", default="float64", choices=("float64", "float32", "bfloat16", "float16"),
                    help="precision of the reference embeddings (default float64)")
-    p.add_argument("--clips", type=int, default=4, help="clips encoded per measurement (default 4)")
-    p.add_argument("--phrases", type=int, default=16, help="phrases encoded per measurement (default 16)")
-    p.add_argument("--repeats", type=int, default=2, help="timed repeats, the median is reported (default 2)")
+    p.add_argument("--clips", type=int, default=None,
+                   help="clips encoded per measurement (default 4; 2 real clips with --dataset)")
+    p.add_argument("--phrases", type=int, default=None, help="phrases encoded per measurement (default 16; 8 with "
+                   "--dataset)")
+    p.add_argument("--repeats", type=int, default=2,
+                   help="timed repeats, the median is reported (default 2; --dataset times one pass)")
+    p.add_argument("--cameras", default="1", help="--dataset: training camera ids whose pyramids are cut (default 1)")
+    p.add_argument("--timesteps", default="75", help="--dataset: timesteps of those pyramids (default 75)")
+    p.add_argument("--subsets", default=None,
+                   help="--dataset: NAME:CAMERASxTIMESTEPS entries to extrapolate to (default "
+                        "'all:27x150,8 cameras:8x150,8 cameras 1 s:8x30')")
     p.add_argument("--device", default="auto", help="cpu, cuda or auto (default)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="bench/viclip", help="output prefix (default bench/viclip)")
+    p.add_argument("--out", default=None, help="output prefix (default bench/viclip; bench/viclip_real with --dataset)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.set_defaults(func=_bench_viclip)
 
 

@@ -6,10 +6,14 @@ batch size, and reports, in one table: seconds per clip (video tower), seconds p
 tower), and the worst cosine between each embedding and the reference one. Timing depends only on
 shapes, so random weights measure speed faithfully; accuracy is most meaningful with a real
 checkpoint. Output: ``PREFIX.json``, ``PREFIX.md`` (table) and ``PREFIX.png`` (plot).
+
+With ``--dataset`` the bench measures the real configuration on a capture's real frames instead
+(:mod:`.viclip_real`).
 """
 from __future__ import annotations
 
 import argparse
+import shlex
 import statistics
 import sys
 import time
@@ -157,20 +161,48 @@ def write_report(report: dict[str, Any], prefix: Path) -> list[Path]:
     return [json_path, md_path, png_path]
 
 
+def _int_list(text: str, field: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise InputError(f"must be comma-separated integers, got {text!r}", field=field) from None
+    if not values or min(values) < 0:
+        raise InputError(f"must be non-negative integers, got {text!r}", field=field)
+    return values
+
+
 def run_bench_viclip(args: argparse.Namespace) -> int:
+    from fourlegs_engine.fileio import check_outputs
+    real = args.dataset is not None
     if args.threads:
         torch.set_num_threads(args.threads)
-    try:
-        batches = [int(v) for v in args.batch_sizes.split(",") if v.strip()]
-    except ValueError:
-        raise InputError(f"must be comma-separated integers, got {args.batch_sizes!r}", field="--batch-sizes") from None
-    if not batches or min(batches) < 1 or args.clips < 1 or args.phrases < 1 or args.repeats < 1:
+    batches = _int_list(args.batch_sizes or ("1,2" if real else "1,4"), "--batch-sizes")
+    clips = args.clips if args.clips is not None else (2 if real else 4)
+    phrases = args.phrases if args.phrases is not None else (8 if real else 16)
+    if min(batches) < 1 or clips < 1 or phrases < 1 or args.repeats < 1:
         raise InputError("batch sizes, --clips, --phrases and --repeats must be positive", field="--batch-sizes")
-    report = bench_viclip(size=args.size, checkpoint=args.checkpoint,
-                          dtypes=[d.strip() for d in args.dtypes.split(",") if d.strip()], batch_sizes=batches,
-                          reference=args.reference, clips=args.clips, phrases=args.phrases, repeats=args.repeats,
-                          device=args.device, seed=args.seed)
-    paths = write_report(report, Path(args.out))
+    dtypes = [d.strip() for d in (args.dtypes or ("float32,bfloat16,float16" if real else "float32,bfloat16"))
+              .split(",") if d.strip()]
+    prefix = Path(args.out or ("bench/viclip_real" if real else "bench/viclip"))
+    check_outputs([prefix.with_suffix(s) for s in (".json", ".md", ".png")], overwrite=args.overwrite)
+    if real:
+        from .viclip_real import DEFAULT_SUBSETS, bench_viclip_real, write_real_report
+        if args.checkpoint:
+            raise InputError("the real-frames mode measures random weights only (timing depends on shapes); "
+                             "drop --checkpoint or --dataset", field="--checkpoint")
+        report = bench_viclip_real(args.dataset, size=args.size or "l",
+                                   cameras=[c.strip() for c in args.cameras.split(",") if c.strip()],
+                                   timesteps=_int_list(args.timesteps, "--timesteps"), dtypes=dtypes,
+                                   batch_sizes=batches, reference=args.reference, clips=clips, phrases=phrases,
+                                   subsets=args.subsets or DEFAULT_SUBSETS, device=args.device, seed=args.seed,
+                                   progress=True)
+        command = "fourlegs " + shlex.join(sys.argv[1:]) if sys.argv[1:3] == ["bench", "viclip"] else None
+        paths = write_real_report(report, prefix, command=command, overwrite=args.overwrite)
+    else:
+        report = bench_viclip(size=args.size or "b", checkpoint=args.checkpoint, dtypes=dtypes, batch_sizes=batches,
+                              reference=args.reference, clips=clips, phrases=phrases, repeats=args.repeats,
+                              device=args.device, seed=args.seed)
+        paths = write_report(report, prefix)
     print(paths[1].read_text())
     print("written: " + ", ".join(map(str, paths)), file=sys.stderr)
     return 0

@@ -164,3 +164,23 @@ def test_config_validation():
     with pytest.raises(ValueError, match="unknown ViCLIP size"):
         ViCLIPConfig.preset("xl")
     assert tiny_config().vocab_size == TINY_VOCAB_SIZE
+
+
+@pytest.mark.parametrize("frames", [8, 1])
+def test_video_clip_flops_match_torchs_flop_counter(frames):
+    """The analytic count equals torch's FlopCounterMode on the math attention path (which it can see)."""
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from fourlegs_engine.language.viclip.model import video_clip_flops
+    config = tiny_config(num_frames=frames, vision_layers=3)
+    model = ViCLIPModel(config).double().eval()
+    clips = torch.randn(2, frames, 3, config.image_size, config.image_size, dtype=torch.float64)
+    with torch.no_grad(), sdpa_kernel(SDPBackend.MATH), FlopCounterMode(display=False) as counter:
+        model.encode_video(clips)
+    counts = {str(op).split(".")[-1]: n for op, n in counter.get_flop_counts()["Global"].items()}
+    flops = video_clip_flops(config)
+    assert counts.pop("bmm") == 2 * flops["attention"]
+    assert sum(counts.values()) == 2 * flops["matmul"] and flops["total"] == flops["matmul"] + flops["attention"]
+    large = video_clip_flops(ViCLIPConfig.large())
+    assert large["total"] == 1_652_741_996_544  # ViT-L/14, 8 frames: 2049 tokens, 24 blocks of width 1024

@@ -289,6 +289,23 @@ def l2_normalize(x: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     return x / x.norm(dim=-1, keepdim=True).clamp_min(eps)
 
 
+def video_clip_flops(config: ViCLIPConfig) -> dict[str, int]:
+    """Floating-point operations of one clip through the video tower (a multiply-add counts 2).
+
+    ``matmul``: the patch embedding, every block's linear layers (q, k, v, out: 4 W^2; MLP: 8 W^2 per
+    token) and the projection; ``attention``: the two (L, L) products of joint space-time attention
+    over L = 1 + g*g*F tokens, 4 L^2 W per block. LayerNorms, activations and softmax are left out
+    (linear in L, a fraction of a percent).
+    """
+    width, frames = config.vision_width, config.num_frames
+    patches = config.grid_size ** 2 * frames
+    length = patches + 1
+    matmul = (2 * patches * 3 * config.patch_size ** 2 * width
+              + config.vision_layers * 24 * length * width ** 2 + 2 * width * config.embed_dim)
+    attention = config.vision_layers * 4 * length ** 2 * width
+    return {"matmul": matmul, "attention": attention, "total": matmul + attention}
+
+
 def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
 

@@ -455,6 +455,13 @@ def _cylindrical(point: np.ndarray, centre: np.ndarray, up: np.ndarray) -> tuple
     return ex, ey, math.atan2(r @ ey, r @ ex), math.hypot(r @ ex, r @ ey), float(r @ ez)
 
 
+def _spherical_frame(point: np.ndarray, centre: np.ndarray, up: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float]:
+    """Basis (ex, ey, ez = up) about ``centre`` and ``point``'s azimuth, elevation (radians) and distance."""
+    ex, ey, azimuth, horizontal, height = _cylindrical(point, centre, up)
+    return ex, ey, np.cross(ex, ey), azimuth, math.atan2(height, horizontal), max(math.hypot(horizontal, height), 1e-9)
+
+
 def _spherical_points(centre, ex, ey, ez, azimuth, elevation, distance) -> np.ndarray:
     """(n,3) points at (n,) azimuth/elevation (radians) and distance from ``centre``."""
     az, el, d = (np.broadcast_to(np.asarray(v, dtype=np.float64), np.shape(azimuth)) for v in (azimuth, elevation, distance))
@@ -479,10 +486,7 @@ def framed_zoom(p: dict[str, Any], ctx: ShotContext, times: np.ndarray, facts: d
     zoom. The camera ends level (upright about the scene's up) and aimed at the region's centre."""
     fr = ctx.framing
     c, up = fr.centre, ctx.up
-    ex, ey, az0, h0, z0 = _cylindrical(start.position, c, up)
-    ez = np.cross(ex, ey)
-    d0 = max(math.hypot(h0, z0), 1e-9)
-    el0 = math.atan2(z0, h0)
+    ex, ey, ez, az0, el0, d0 = _spherical_frame(start.position, c, up)
     d_fit = fr.framing_distance(f0, ctx.resolution, fill=0.9) if p["mode"] == "dolly" else d0
     d_end = min(d0, max(d_fit, d0 / p["factor"], fr.region.radius + fr.near + p["min_distance_m"]))
     if p["mode"] == "focal":
@@ -555,10 +559,7 @@ def framed_orbit(p: dict[str, Any], ctx: ShotContext, times: np.ndarray, facts: 
     """
     fr = ctx.framing
     c, up = fr.centre, ctx.up
-    ex, ey, az0, h0, z0 = _cylindrical(start.position, c, up)
-    ez = np.cross(ex, ey)
-    d0 = max(math.hypot(h0, z0), 1e-9)
-    el0 = math.atan2(z0, h0)
+    ex, ey, ez, az0, el0, d0 = _spherical_frame(start.position, c, up)
     arc = math.radians(p["arc_deg"])
     ramp = np.clip(e / (1.0 / 6.0), 0.0, 1.0)
     ramp = ramp * ramp * (3.0 - 2.0 * ramp)

@@ -40,7 +40,7 @@ from ..scene.camera import Camera, CameraRig
 from ..scene.gaussians import GaussianSequence, quaternion_to_matrix
 from ..scene.scene import Scene
 from .dataset import Capture
-from .init import initial_cloud
+from .init import INIT_METHODS, initial_cloud
 from .losses import Priors, image_loss, psnr
 
 WORK_VERSION = 1
@@ -59,7 +59,9 @@ class FitOptions:
         first_iterations: optimization steps of the first (static) timestep (the paper's code: 10,000).
         iterations: steps of every later timestep (the paper's code: 2,000).
         max_gaussians: densification never grows the model past this.
-        init_foreground, init_background: caps on the initial hull / background points.
+        init: how the initial Gaussians are made: "hull" (visual hull + background proxy), "features"
+            (triangulated feature matches, needs OpenCV) or "hull+features" (:mod:`.init`).
+        init_foreground, init_background: caps on the initial foreground / background points.
         voxel: visual-hull voxel side (m). background_stride: pixel stride of the background proxy samples.
         densify: clone/split/prune during the first timestep.
         grad_threshold: densify Gaussians whose mean screen-space gradient (NDC units, as in 3DGS)
@@ -80,6 +82,7 @@ class FitOptions:
     first_iterations: int = 150
     iterations: int = 30
     max_gaussians: int = 60_000
+    init: str = "hull"
     init_foreground: int = 30_000
     init_background: int = 30_000
     voxel: float = 0.02
@@ -108,6 +111,12 @@ class FitOptions:
                      "knn", "background_stride"):
             if int(getattr(self, name)) < (0 if name.endswith("iterations") else 1):
                 raise InputError(f"must be a positive integer, got {getattr(self, name)}", field=name)
+        if self.init not in INIT_METHODS:
+            raise InputError(f"must be one of {', '.join(INIT_METHODS)}, got {self.init!r}", field="init")
+        if self.init != "hull":
+            from .features import require_cv2
+
+            require_cv2()
         if self.device not in ("auto", "cpu", "cuda"):
             raise InputError(f"must be auto, cpu or cuda, got {self.device!r}", field="device")
         if self.device == "cuda" and not torch.cuda.is_available():
@@ -118,6 +127,9 @@ class FitOptions:
         """Everything that changes the result (the device is left out: CPU and CUDA differ anyway)."""
         d = asdict(self)
         d.pop("device")
+        if d["init"] == "hull":
+            # fits started before the init knob existed carry no such key: they resume
+            d.pop("init")
         d["timesteps"] = list(d["timesteps"]) if d["timesteps"] is not None else None
         d["cameras"] = list(d["cameras"]) if d["cameras"] is not None else None
         return d
@@ -599,7 +611,8 @@ def _initial_model(frames: _Frames, cameras: list[Camera], opts: FitOptions, dev
     images = [im.cpu().numpy() for im in frames.images]
     masks = [m[..., 0].cpu().numpy() for m in frames.masks] if frames.masks is not None else None
     cloud = initial_cloud(cameras, images, masks, voxel=opts.voxel, bg_stride=opts.background_stride,
-                          max_foreground=opts.init_foreground, max_background=opts.init_background, seed=opts.seed)
+                          max_foreground=opts.init_foreground, max_background=opts.init_background, seed=opts.seed,
+                          method=opts.init)
     N = cloud.points.shape[0]
     if N == 0:
         raise InputError("the initialisation produced no points (empty masks and images?)", field="dataset")

@@ -151,7 +151,8 @@ def test_features_without_opencv_give_one_clear_line(monkeypatch):
 @pytest.mark.skipif(not BASKETBALL.is_dir(), reason=f"the shared Panoptic capture is not at {BASKETBALL}")
 def test_basketball_foreground_features_lie_on_the_visual_hull():
     """Two independent reconstructions of the players at t = 0 (27 views at 160×90): the triangulated
-    foreground features lie within 10 cm of the carved hull's surface voxels (4 cm)."""
+    foreground features lie within 10 cm of the carved hull's surface voxels (4 cm); the mixed cloud
+    keeps every triangulated point under its caps."""
     from scipy.spatial import cKDTree
 
     from fourlegs_engine.fit import Capture
@@ -171,3 +172,10 @@ def test_basketball_foreground_features_lie_on_the_visual_hull():
     hull, _ = carve_visual_hull(cams, masks, images, voxel=0.04, half_extent=2.5, center=look_at_point(cams))
     dist, _ = cKDTree(hull).query(points[fg])
     assert np.mean(dist < 0.10) >= 0.9, np.percentile(dist, [50, 90])
+    # hull+features: the triangulated points are all there, the proxy fills the rest of the caps
+    cloud = initial_cloud(cams, images, masks, voxel=0.04, max_foreground=1000, max_background=2000,
+                          method="hull+features", feature_options=FeatureOptions(upsample=4))
+    assert cloud.foreground.sum() == min(1000, len(hull) + fg.sum()) and (~cloud.foreground).sum() == 2000
+    mixed = cKDTree(cloud.points)
+    assert (mixed.query(points)[0] < 1e-9).all()
+    assert np.isfinite(cloud.scales).all() and (cloud.scales > 0).all()

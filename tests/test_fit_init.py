@@ -179,3 +179,23 @@ def test_basketball_foreground_features_lie_on_the_visual_hull():
     mixed = cKDTree(cloud.points)
     assert (mixed.query(points)[0] < 1e-9).all()
     assert np.isfinite(cloud.scales).all() and (cloud.scales > 0).all()
+
+
+def test_bench_table_of_a_first_timestep_only_run_shows_the_init_columns(tmp_path):
+    """A 0:1 run has no later timesteps: its seconds are JSON null (no NaN in the JSON), shown as –."""
+    import json
+
+    from benchmarks.fit import _pareto_plot, markdown_table
+
+    record = {"run": "hull", "knobs": {"init": "hull", "first_iterations": 100}, "num_gaussians": 51234,
+              "resolution": [320, 180], "init_wall_s": 80.2, "init_cpu_s": 4.63, "init_points": 39266,
+              "init_foreground_points": 9266, "init_train_psnr": 22.11, "first_timestep_wall_s": 900.0,
+              "first_timestep_cpu_s": 340.0, "later_timestep_wall_s": None, "later_timestep_cpu_s": None,
+              "psnr_first_timestep": 25.5, "ssim_first_timestep": 0.81, "psnr_mean": 25.5, "ssim_mean": 0.81,
+              "psnr_first_k": 25.5, "psnr_last_k": 25.5, "drift_k": 1}
+    json.dumps(record, allow_nan=False)
+    row = markdown_table([record], 150).splitlines()[2]
+    assert row.startswith("| hull | init=hull, first_iterations=100 | 80.2 (4.6) | 39266 (9266) | 22.11 | 51234 |")
+    assert "| – (–) |" in row
+    _pareto_plot([record], tmp_path / "pareto.png")
+    assert (tmp_path / "pareto.png").stat().st_size > 0

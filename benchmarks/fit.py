@@ -221,7 +221,8 @@ def markdown_table(records: list[dict[str, Any]], sequence_length: int) -> str:
         knobs = ", ".join(f"{k}={v}" for k, v in r["knobs"].items()) or "defaults"
         rows.append(
             f"| {r['run']} | {knobs} | {_fmt(r.get('init_wall_s'), '.1f')} ({_fmt(r.get('init_cpu_s'), '.1f')}) | "
-            f"{r.get('init_points', '–')} ({r.get('init_foreground_points', '–')}) | {_fmt(r.get('init_train_psnr'))} | "
+            f"{r.get('init_points', '–')} ({r.get('init_foreground_points', '–')}) | "
+            f"{_fmt(r.get('init_train_psnr'))} | "
             f"{r['num_gaussians']} | {r['resolution'][0]}×{r['resolution'][1]} | "
             f"{_fmt(r['first_timestep_wall_s'], '.0f')} ({_fmt(r['first_timestep_cpu_s'], '.0f')}) | "
             f"{_fmt(r['later_timestep_wall_s'], '.1f')} ({_fmt(r['later_timestep_cpu_s'], '.1f')}) | "

@@ -156,7 +156,8 @@ def match_pair(cam_a: Camera, cam_b: Camera, uv_a: np.ndarray, des_a: np.ndarray
     for m in back:
         best_back[m.queryIdx] = m.trainIdx
     pairs = [(m[0].queryIdx, m[0].trainIdx) for m in fwd
-             if len(m) == 2 and m[0].distance < options.ratio * m[1].distance and best_back[m[0].trainIdx] == m[0].queryIdx]
+             if len(m) == 2 and m[0].distance < options.ratio * m[1].distance
+             and best_back[m[0].trainIdx] == m[0].queryIdx]
     if not pairs:
         return np.zeros((0, 2), np.int64)
     idx = np.asarray(pairs, np.int64)
@@ -180,7 +181,8 @@ def _reproject(P: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def triangulate_matches(cameras: list[Camera], keypoints: list[np.ndarray], matches: dict[tuple[int, int], np.ndarray],
-                        *, reprojection_px: float = 1.5, min_views: int = 3, min_angle_deg: float = 1.0) -> Triangulated:
+                        *, reprojection_px: float = 1.5, min_views: int = 3,
+                        min_angle_deg: float = 1.0) -> Triangulated:
     """Triangulate pairwise matches into multi-view consistent points.
 
     Args:
@@ -197,7 +199,7 @@ def triangulate_matches(cameras: list[Camera], keypoints: list[np.ndarray], matc
     P = np.stack([projection_matrix(c) for c in cameras])
     centers = np.stack([c.center for c in cameras])
     offsets = np.concatenate([[0], np.cumsum([len(k) for k in keypoints])]).astype(np.int64)
-    all_uv = np.concatenate([np.asarray(k, np.float64).reshape(-1, 2) for k in keypoints]) if offsets[-1] else np.zeros((0, 2))
+    all_uv = np.concatenate([np.asarray(k, np.float64).reshape(-1, 2) for k in keypoints] + [np.zeros((0, 2))])
     all_view = np.repeat(np.arange(V), np.diff(offsets))
     cand_pts, cand_ga, cand_gb = [], [], []
     cos_min = np.cos(np.radians(min_angle_deg))

@@ -3,7 +3,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python -m pip install --quiet torch==2.13.0
-python -m pip install --quiet -e ".[dev,blender,cluster]"
+python -m pip install --quiet -e ".[dev,blender,cluster,fit-features]"
 export FOURLEGS_CACHE="${FOURLEGS_CACHE:-$PWD/.cache/fourlegs}"
 # the extension's dependency wheels for linux-x64 (cp311 + cp313; ~190 MB, kept in the cache and not
 # downloaded again), so the offline zip-install tests run; a release build fetches all four platforms

@@ -45,6 +45,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--first-iterations", type=int, default=None, help="steps of the first (static) timestep")
     p.add_argument("--iterations", type=int, default=None, help="steps of every later timestep")
     p.add_argument("--max-gaussians", type=int, default=None, help="cap on the number of Gaussians")
+    p.add_argument("--init", choices=("hull", "features", "hull+features"), default=None,
+                   help="initial Gaussians: visual hull + background proxy (hull), triangulated SIFT matches "
+                   "(features, needs OpenCV: pip install 'fourlegs[fit-features]') or both (default: hull)")
     p.add_argument("--init-foreground", type=int, default=None, help="cap on initial visual-hull points")
     p.add_argument("--init-background", type=int, default=None, help="cap on initial background points")
     p.add_argument("--no-densify", action="store_true", help="no clone/split/prune in the first timestep")
@@ -70,7 +73,7 @@ def options_from_args(args: argparse.Namespace):
         kw["timesteps"] = parse_timesteps(args.timesteps)
     if args.cameras is not None:
         kw["cameras"] = parse_cameras(args.cameras)
-    for name in ("first_iterations", "iterations", "max_gaussians", "init_foreground", "init_background",
+    for name in ("first_iterations", "iterations", "max_gaussians", "init", "init_foreground", "init_background",
                  "clean_plate_samples"):
         if getattr(args, name) is not None:
             kw[name] = getattr(args, name)

@@ -44,7 +44,7 @@ from ..scene.gaussians import GaussianSequence, quaternion_to_matrix
 from ..scene.scene import Scene
 from .dataset import Capture
 from .clean_plate import CleanPlates, clean_plates, sample_timesteps
-from .init import background_proxy, initial_cloud
+from .init import INIT_METHODS, background_proxy, initial_cloud
 from .losses import Priors, image_loss, psnr
 
 WORK_VERSION = 1
@@ -63,7 +63,9 @@ class FitOptions:
         first_iterations: optimization steps of the first (static) timestep (the paper's code: 10,000).
         iterations: steps of every later timestep (the paper's code: 2,000).
         max_gaussians: densification never grows the model past this.
-        init_foreground, init_background: caps on the initial hull / background points.
+        init: how the initial Gaussians are made: "hull" (visual hull + background proxy), "features"
+            (triangulated feature matches, needs OpenCV) or "hull+features" (:mod:`.init`).
+        init_foreground, init_background: caps on the initial foreground / background points.
         voxel: visual-hull voxel side (m). background_stride: pixel stride of the background proxy samples.
         densify: clone/split/prune during the first timestep.
         clean_plate_samples: timesteps (spread over the fitted range) whose background pixels make each
@@ -88,6 +90,7 @@ class FitOptions:
     first_iterations: int = 150
     iterations: int = 30
     max_gaussians: int = 60_000
+    init: str = "hull"
     init_foreground: int = 30_000
     init_background: int = 30_000
     voxel: float = 0.02
@@ -119,6 +122,12 @@ class FitOptions:
                      "knn", "background_stride"):
             if int(getattr(self, name)) < (0 if name.endswith("iterations") else 1):
                 raise InputError(f"must be a positive integer, got {getattr(self, name)}", field=name)
+        if self.init not in INIT_METHODS:
+            raise InputError(f"must be one of {', '.join(INIT_METHODS)}, got {self.init!r}", field="init")
+        if self.init != "hull":
+            from .features import require_cv2
+
+            require_cv2()
         if self.device not in ("auto", "cpu", "cuda"):
             raise InputError(f"must be auto, cpu or cuda, got {self.device!r}", field="device")
         if self.device == "cuda" and not torch.cuda.is_available():
@@ -129,6 +138,12 @@ class FitOptions:
         """Everything that changes the result (the device is left out: CPU and CUDA differ anyway)."""
         d = asdict(self)
         d.pop("device")
+        # knobs at their "off" value are left out, so fits started before these knobs existed still resume
+        if d["init"] == "hull":
+            d.pop("init")
+        if d["clean_plate_samples"] == 0:
+            d.pop("clean_plate_samples")
+            d["weights"] = {k: v for k, v in d["weights"].items() if k != "plate"}
         d["timesteps"] = list(d["timesteps"]) if d["timesteps"] is not None else None
         d["cameras"] = list(d["cameras"]) if d["cameras"] is not None else None
         return d
@@ -630,7 +645,8 @@ def _initial_model(frames: _Frames, cameras: list[Camera], opts: FitOptions, dev
     images = [im.cpu().numpy() for im in frames.images]
     masks = [m[..., 0].cpu().numpy() for m in frames.masks] if frames.masks is not None else None
     cloud = initial_cloud(cameras, images, masks, voxel=opts.voxel, bg_stride=opts.background_stride,
-                          max_foreground=opts.init_foreground, max_background=opts.init_background, seed=opts.seed)
+                          max_foreground=opts.init_foreground, max_background=opts.init_background, seed=opts.seed,
+                          method=opts.init)
     if frames.plates is not None and masks is not None:
         _add_hidden_background(cloud, cameras, frames, masks, opts)
     N = cloud.points.shape[0]

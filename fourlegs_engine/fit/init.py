@@ -7,6 +7,10 @@
   voxels. Background pixels (outside the masks) on a regular stride are cast onto the nearer of the
   two surfaces and become Gaussians the size of their pixel footprint.
 Without masks there is no hull: every Gaussian comes from the proxy and counts as foreground.
+
+The ``method`` of :func:`initial_cloud` chooses the sources: "hull" (the two above), "features"
+(feature matches triangulated with the known cameras alone, :mod:`.features`, needs OpenCV) or
+"hull+features" (both; the triangulated points take their share of the per-class caps first).
 """
 from __future__ import annotations
 
@@ -14,7 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import InputError
 from ..scene.camera import Camera
+
+INIT_METHODS = ("hull", "features", "hull+features")
 
 
 @dataclass
@@ -175,34 +182,77 @@ def background_proxy(cameras: list[Camera], images: list[np.ndarray], masks: lis
 def initial_cloud(cameras: list[Camera], images: list[np.ndarray], masks: list[np.ndarray] | None, *,
                   voxel: float = 0.02, hull_half_extent: float = 2.5, bg_stride: int = 6,
                   max_foreground: int | None = None, max_background: int | None = None,
-                  seed: int = 0) -> InitialCloud:
-    """The initial cloud: visual-hull foreground + dome/floor background (see the module docstring)."""
+                  seed: int = 0, method: str = "hull", feature_options=None) -> InitialCloud:
+    """The initial cloud (see the module docstring for the methods).
+
+    Args:
+        cameras, images, masks: C cameras at the images' resolution, C arrays (h,w,3) in [0,1], C masks
+            (h,w) in [0,1] or None.
+        voxel, hull_half_extent: hull voxel side and half extent (m). bg_stride: background proxy stride (px).
+        max_foreground, max_background: caps on the foreground / background points (random subsets;
+            triangulated points are kept before hull / proxy points).
+        method: "hull", "features" or "hull+features".
+        feature_options: :class:`~.features.FeatureOptions` (None: defaults).
+    """
+    if method not in INIT_METHODS:
+        raise InputError(f"must be one of {', '.join(INIT_METHODS)}, got {method!r}", field="init")
     rng = np.random.default_rng(seed)
     centers = np.stack([c.center for c in cameras])
     dome_center, dome_radius = fit_sphere(centers) if len(cameras) >= 4 else (centers.mean(0), 5.0)
+    empty = (np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros(0))
+    feat_fg = feat_bg = empty
+    if method != "hull":
+        from .features import feature_cloud, require_cv2
+
+        require_cv2()
+        f_pts, f_col, f_scl, f_fg = feature_cloud(cameras, images, masks, feature_options)
+        feat_fg = _cap(rng, max_foreground, f_pts[f_fg], f_col[f_fg], f_scl[f_fg])
+        feat_bg = _cap(rng, max_background, f_pts[~f_fg], f_col[~f_fg], f_scl[~f_fg])
+    hull = proxy = empty
     floor_y = None
-    if masks is not None:
-        target = look_at_point(cameras)
-        fg_pts, fg_col = carve_visual_hull(cameras, masks, images, voxel=voxel, half_extent=hull_half_extent,
-                                           center=target, min_views=min(4, len(cameras)),
-                                           max_misses=1 if len(cameras) >= 6 else 0)
-        if fg_pts.shape[0]:
-            floor_y = float(np.quantile(fg_pts[:, 1], 0.995)) + voxel
-        fg_pts, fg_col = _cap(rng, max_foreground, fg_pts, fg_col)
-        fg_scale = np.full(fg_pts.shape[0], voxel * 0.6)
-    else:
-        fg_pts, fg_col, fg_scale = np.zeros((0, 3)), np.zeros((0, 3), np.float32), np.zeros(0)
-    bg_pts, bg_col, bg_scale = background_proxy(cameras, images, masks, stride=bg_stride, dome_center=dome_center,
-                                                dome_radius=dome_radius, floor_y=floor_y)
-    bg_pts, bg_col, bg_scale = _cap(rng, max_background, bg_pts, bg_col, bg_scale)
-    points = np.concatenate([fg_pts, bg_pts])
-    colors = np.concatenate([fg_col, bg_col])
-    scales = np.concatenate([fg_scale, bg_scale])
-    fg = np.concatenate([np.ones(len(fg_pts), bool), np.zeros(len(bg_pts), bool)])
+    if method != "features":
+        if masks is not None:
+            target = look_at_point(cameras)
+            fg_pts, fg_col = carve_visual_hull(cameras, masks, images, voxel=voxel, half_extent=hull_half_extent,
+                                               center=target, min_views=min(4, len(cameras)),
+                                               max_misses=1 if len(cameras) >= 6 else 0)
+            if fg_pts.shape[0]:
+                floor_y = float(np.quantile(fg_pts[:, 1], 0.995)) + voxel
+            hull = _cap(rng, _room(max_foreground, feat_fg), fg_pts, fg_col, np.full(fg_pts.shape[0], voxel * 0.6))
+        proxy = background_proxy(cameras, images, masks, stride=bg_stride, dome_center=dome_center,
+                                 dome_radius=dome_radius, floor_y=floor_y)
+        proxy = _cap(rng, _room(max_background, feat_bg), *proxy)
+    elif masks is not None and feat_fg[0].shape[0]:
+        floor_y = float(np.quantile(feat_fg[0][:, 1], 0.995)) + voxel
+    if method == "hull+features":
+        feat_fg, feat_bg = _fit_scales_among(feat_fg, hull, proxy), _fit_scales_among(feat_bg, hull, proxy)
+    parts = [hull, feat_fg, proxy, feat_bg]
+    points = np.concatenate([p[0] for p in parts])
+    colors = np.concatenate([p[1] for p in parts]).astype(np.float32)
+    scales = np.concatenate([p[2] for p in parts])
+    fg = np.concatenate([np.full(len(p[0]), i < 2) for i, p in enumerate(parts)]).astype(bool)
     if masks is None:
         fg[:] = True
     return InitialCloud(points=points, colors=colors, scales=scales, foreground=fg, floor_y=floor_y,
                         dome_center=dome_center, dome_radius=dome_radius)
+
+
+def _fit_scales_among(points: tuple[np.ndarray, ...], *others: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
+    """``points`` (pts, colors, scales) with each scale no larger than the root mean square distance to
+    its three nearest points among ``points`` and ``others`` together: a sparse feature point's own
+    spacing would make it a large splat in front of the denser hull and proxy points."""
+    pts, col, scl = points
+    cloud = np.concatenate([pts] + [o[0] for o in others])
+    if pts.shape[0] == 0 or cloud.shape[0] < 5:
+        return points
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(cloud).query(pts, k=4)
+    return pts, col, np.minimum(scl, np.sqrt((dist[:, 1:] ** 2).mean(1)))
+
+
+def _room(limit: int | None, taken: tuple[np.ndarray, ...]) -> int | None:
+    return None if limit is None else max(0, limit - taken[0].shape[0])
 
 
 def _cap(rng, limit, *arrays):

@@ -25,7 +25,6 @@ from typing import Any
 
 import numpy as np
 
-DEFAULT_SCENE = "/work/fitted/basketball_t10"
 DEFAULT_MASKS = "../shared/data/panoptic-basketball/seg"
 MODES = ("lift", "lift+refine", "optimize")
 
@@ -36,7 +35,7 @@ def register_bench(bench_sub: Any) -> None:
         description="Annotation masks (not a language model) lifted into a per-Gaussian field from subsets of "
                     "the training cameras of a fitted real scene; the rendered relevancy is scored against the "
                     "masks of held-out training cameras (vIoU, vAP per timestep and mean), per mode, with seconds.")
-    p.add_argument("--scene", default=DEFAULT_SCENE, help=f"fitted scene bundle, read only (default {DEFAULT_SCENE})")
+    p.add_argument("--scene", required=True, help="fitted scene bundle of the capture (`fourlegs fit`), read only")
     p.add_argument("--masks", default=DEFAULT_MASKS, help=f"mask folder {{camera}}/{{t:06d}}.png (default {DEFAULT_MASKS})")
     p.add_argument("--phrase", default="a person", help="the masks' phrase (default 'a person')")
     p.add_argument("--sizes", default="4,8,16,23", help="training-camera subset sizes (default 4,8,16,23)")

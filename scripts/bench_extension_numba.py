@@ -6,7 +6,7 @@ Builds the linux-x64 extension zip from the cached wheels (``fourlegs build-exte
 --platform linux-x64`` downloads them), and for each variant installs it into a fresh Blender user folder
 in a child Python (the bpy module): ``numba``, numba and llvmlite imported only from the extension;
 ``torch path``, numba made unimportable, as an extension without it would be. The child imports the
-scene (default: the fitted basketball bundle if present, else the synthetic ``demo`` scene), renders
+scene (``--scene``: a bundle directory, default the synthetic ``demo`` scene), renders
 one frame from its first camera through the 4-LEGS Splats engine to warm up (numba compiles its kernels
 once; they are cached in the extension's folder), then ``--repeats`` frames, each timed in process CPU
 seconds (every thread) and wall seconds. Writes ``extension_numba.json`` and ``extension_numba.md`` into
@@ -25,7 +25,6 @@ import textwrap
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-FITTED = Path("/work/fitted/basketball_t10")
 
 #: sitecustomize of each variant's child Python
 SITECUSTOMIZE = {
@@ -107,8 +106,8 @@ def run_variant(variant: str, zip_path: Path, scene_arg: str, width: int, height
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", default=None, help="scene directory (default: the fitted basketball bundle, "
-                                                  "else synthetic:demo)")
+    ap.add_argument("--scene", default="synthetic:demo",
+                    help="scene directory (e.g. a `fourlegs fit` bundle), or synthetic:demo (the default)")
     ap.add_argument("--resolution", default="1280x720")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("-o", "--output", default=str(REPO / "docs" / "bench" / "extension_numba"))
@@ -123,7 +122,7 @@ def main() -> None:
     if existing and not args.overwrite:
         raise SystemExit(f"{', '.join(existing)}: already exists (pass --overwrite to replace)")
     width, height = (int(v) for v in args.resolution.lower().split("x"))
-    scene_arg = args.scene or (str(FITTED) if (FITTED / "scene.json").is_file() else "synthetic:demo")
+    scene_arg = args.scene
     with tempfile.TemporaryDirectory(prefix="fourlegs-bench-ext-") as tmp:
         zip_path = build.build(tmp, platforms=["linux-x64"])[0]
         results = {variant: run_variant(variant, zip_path, scene_arg, width, height, args.repeats)

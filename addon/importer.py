@@ -343,7 +343,7 @@ def update_object(obj: bpy.types.Object, t: float) -> bool:
     mesh.attributes["position"].data.foreach_set("vector", blend_timestep(g.means, t).ravel())
     if g.colors is not None and g.colors.ndim == 3:
         _set_attr(mesh, RGB_ATTR, "FLOAT_COLOR", "color", _rgba(blend_timestep(g.colors, t)))
-    _release_after_reading(source_key(obj), g, 2 if t != int(t) else 1)
+    release_after_reading(source_key(obj), (g.means, g.colors), 2 if t != int(t) else 1)
     rel = _RELEVANCY.get(source_key(obj))
     if rel is not None and rel.ndim == 2:
         _write_relevancy(mesh, blend_timestep(rel[:, :, None], t)[:, 0])
@@ -352,17 +352,17 @@ def update_object(obj: bpy.types.Object, t: float) -> bool:
     return True
 
 
-def _release_after_reading(key: Optional[str], g: Any, rows: int) -> None:
-    """Count the per-timestep bytes read from ``g``'s memory-mapped means and colours; every
-    :data:`RELEASE_EVERY_BYTES` unmap them, so scrubbing a long scene does not keep every timestep resident
-    (the pages stay in the OS file cache)."""
+def release_after_reading(key: Optional[str], arrays: tuple, rows: int) -> None:
+    """Count the bytes of ``rows`` timesteps read from ``arrays`` (memory-mapped (T,N,k) arrays of one
+    scene; others are skipped); every :data:`RELEASE_EVERY_BYTES` unmap them, so scrubbing or rendering a
+    long scene does not keep every timestep resident (the pages stay in the OS file cache)."""
     from fourlegs_engine import api
 
-    per_row = sum(a[0].nbytes for a in (g.means, g.colors) if a is not None and a.ndim == 3)
-    _BYTES_READ[key] = _BYTES_READ.get(key, 0) + rows * per_row
+    per_timestep = [a for a in arrays if a is not None and a.ndim == 3]
+    _BYTES_READ[key] = _BYTES_READ.get(key, 0) + rows * sum(a[0].nbytes for a in per_timestep)
     if _BYTES_READ[key] >= RELEASE_EVERY_BYTES:
         _BYTES_READ[key] = 0
-        for arr in (g.means, g.colors):
+        for arr in per_timestep:
             api.release_mapped_pages(arr)
 
 

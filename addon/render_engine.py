@@ -132,6 +132,8 @@ def gather_gaussians(scene: bpy.types.Scene, t: float, with_relevancy: bool,
             colors = g.rgb(ti).astype(np.float32)
         part = {"means": means, "rotations": np.asarray(g.rotations[ti], np.float32), "log_scales": log_scales,
                 "opacity_logits": np.asarray(g.opacity_logits, np.float32), "colors": colors}
+        importer.release_after_reading(importer.source_key(obj), (g.means, g.colors, g.rotations, g.log_scales),
+                                       2 if tt != int(tt) else 1)
         if with_relevancy:
             rel = importer.gaussian_relevancy(obj, ti)
             query = ((plan_of(scene) if plan is ... else plan) or {}).get("query")

@@ -233,6 +233,28 @@ def test_scrubbing_every_timestep_does_not_keep_them_all_resident(bl, long_bundl
     np.testing.assert_array_equal(_positions(obj.data), means[-1])
 
 
+@LINUX_PROC
+@pytest.mark.blender
+def test_rendering_every_timestep_does_not_keep_them_all_resident(bl, long_bundle, monkeypatch):
+    """The render engine reads means and rotations per frame (71 MB over the 64 timesteps); a long
+    render must not keep them all resident."""
+    from fourlegs_addon import importer, render_engine
+
+    monkeypatch.setattr(importer, "RELEASE_EVERY_BYTES", 4 << 20)
+
+    assert bl.ops.fourlegs.import_scene(filepath=str(long_bundle)) == {"FINISHED"}
+    scene = bl.context.scene
+    g = importer.engine_scene_for(scene.fourlegs.splat_object).gaussians
+    before = _resident_file_mb()
+    for t in range(g.num_timesteps):
+        part = render_engine.gather_gaussians(scene, float(t), with_relevancy=False)
+        assert np.isfinite(part["means"]).all() and np.isfinite(part["rotations"]).all()  # read, as a render does
+    grown = _resident_file_mb() - before
+    assert grown < 8.0, f"{grown:.0f} MB of the 71 MB of means and rotations stayed resident after rendering"
+    np.testing.assert_array_equal(part["means"], g.means[-1])
+    np.testing.assert_array_equal(part["rotations"], g.rotations[-1])
+
+
 @pytest.mark.blender
 @settings(max_examples=40, deadline=None)
 @given(hnp.arrays(np.float32, st.integers(1, 300), elements=st.floats(-0.5, 1.5, width=32) | st.just(math.nan)))

@@ -238,3 +238,21 @@ def test_replay_keeps_every_relevant_gaussian_in_colour_in_every_desaturated_fra
         # upright replay camera: the image's x axis is horizontal
         assert abs(key.pose.rotation[:, 0] @ np.array([0, 0, 1.0])) < 1e-6
     assert covered_total > 100 * len(frames)
+
+
+def test_orbit_never_frames_the_action_closer_than_the_zoom_it_continues():
+    """Bullet-time continues the zoom: its magnification (focal / distance to the action) stays at or
+    below the zoom's end, so a small action (a ball) is not blown up to fill the frame."""
+    scene, players = occluded_scene()
+    means = scene.gaussians.means[0]
+    ball = players & (np.linalg.norm(means - np.array([0.0, -0.35, 1.5]), axis=1) < 0.15)
+    assert 3 <= ball.sum() < 30
+    loc = RegionLocalizer(scene, ball, segment=(3, 8), centre=(0.0, -0.35, 1.5), best_view="cam02")
+    plan = plan_highlight(scene, loc, QUERY, load_preset("broadcast"), resolution=(640, 360))
+    zoom = next(s for s in plan.shots if s.effect == "zoom_in")
+    orbit = next(s for s in plan.shots if s.effect == "bullet_time")
+    centre = np.array(orbit.params["centre"])
+    end = zoom.camera_keys[-1]
+    zoom_magnification = end.focal_px / np.linalg.norm(end.pose.position - centre)
+    for key in orbit.camera_keys:
+        assert key.focal_px / np.linalg.norm(key.pose.position - centre) <= zoom_magnification * (1 + 1e-9)

@@ -565,7 +565,9 @@ def framed_orbit(p: dict[str, Any], ctx: ShotContext, times: np.ndarray, facts: 
     ramp = ramp * ramp * (3.0 - 2.0 * ramp)
     candidates = []
     for lens in (1.0, 0.8, 0.65, 0.5):   # a wider lens frames the region from closer in
-        d_fit = max(fr.framing_distance(f0 * lens, ctx.resolution, fill=0.9), fr.region.radius + 2 * fr.near)
+        # never a closer framing than the shot it continues (the zoom's end sets the magnification)
+        d_fit = max(fr.framing_distance(f0 * lens, ctx.resolution, fill=0.9), fr.region.radius + 2 * fr.near,
+                    d0 * lens)
         for sign in (1.0, -1.0):
             for d_scale in (1.0, 1.15):
                 for del_deg in (0, 15, 30, 45, 60):

@@ -125,31 +125,25 @@ class Capture:
     # ----------------------------------------------------------------------- loading
     def load_image(self, split: str, t: int, c: int, size: tuple[int, int]) -> np.ndarray:
         """(h, w, 3) float32 RGB in [0, 1] resized (area filter) to ``size`` = (w, h)."""
-        from PIL import Image
-
-        path = self.image_path(split, t, c)
-        with _open_image(path) as im:
-            if im.size != (self.width, self.height):
-                raise InputError(f"is {im.size[0]}x{im.size[1]} but the metadata says {self.width}x{self.height}",
-                                 file=path)
-            im = im.convert("RGB")
-            if im.size != tuple(size):
-                im = im.resize(tuple(size), Image.BOX)
-            return np.asarray(im, dtype=np.float32) / 255.0
+        return self._load_resized(self.image_path(split, t, c), "RGB", size)
 
     def load_mask(self, split: str, t: int, c: int, size: tuple[int, int]) -> np.ndarray:
         """(h, w) float32 foreground fraction in [0, 1] resized (area filter) to ``size`` = (w, h)."""
+        return self._load_resized(self.mask_path(split, t, c), "L", size).clip(0.0, 1.0)
+
+    def _load_resized(self, path: Path, mode: str, size: tuple[int, int]) -> np.ndarray:
+        """The image at ``path`` (checked against the metadata's size) in PIL ``mode``, area-resized to
+        ``size`` = (w, h), as float32 in [0, 1]: (h, w, 3) for "RGB", (h, w) for "L"."""
         from PIL import Image
 
-        path = self.mask_path(split, t, c)
         with _open_image(path) as im:
             if im.size != (self.width, self.height):
                 raise InputError(f"is {im.size[0]}x{im.size[1]} but the metadata says {self.width}x{self.height}",
                                  file=path)
-            im = im.convert("L")
+            im = im.convert(mode)
             if im.size != tuple(size):
                 im = im.resize(tuple(size), Image.BOX)
-            return (np.asarray(im, dtype=np.float32) / 255.0).clip(0.0, 1.0)
+            return np.asarray(im, dtype=np.float32) / 255.0
 
 
 def _open_image(path: Path):

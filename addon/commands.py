@@ -17,7 +17,7 @@ def register(subparsers) -> None:
         description="Make a highlight video of a text query in a 4D scene, headless through Blender's bpy "
                     "module. Example: fourlegs highlight --demo \"a ball flying in the air\" --preset "
                     "broadcast -o out/")
-    from fourlegs_engine.cli_options import add_highlight_arguments
+    from fourlegs_engine.commands.options import add_highlight_arguments
 
     add_highlight_arguments(hl)
     hl.set_defaults(func=run_highlight)

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any, Optional, Sequence
 
 from fourlegs_engine import api
-from fourlegs_engine.cli_options import add_highlight_arguments, highlight_job_options
+from fourlegs_engine.commands.options import add_highlight_arguments, highlight_job_options
 
 from .process import blender_log_silenced, heap_kept
 

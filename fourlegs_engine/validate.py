@@ -1,15 +1,12 @@
 """Checks of user-given values made before any work starts: bounded numeric arguments and text.
 
-Every check raises :class:`~fourlegs_engine.errors.InputError` (or, for argparse types,
-``argparse.ArgumentTypeError``) with one line naming the argument and the accepted range, so a bad
-value never reaches an allocation or a half-written output.
+Every check raises :class:`~fourlegs_engine.errors.InputError` with one line naming the argument and
+the accepted range, so a bad value never reaches an allocation or a half-written output.
 """
 from __future__ import annotations
 
-import argparse
 import math
 import numbers
-from typing import Callable
 
 from .errors import InputError
 
@@ -60,26 +57,3 @@ def _range_text(low: float | None, high: float | None, low_open: bool) -> str:
     if low is None:
         return f" <= {high:g}"
     return f" in {'(' if low_open else '['}{low:g}, {high:g}]"
-
-
-def bounded(kind: type, low: float | None = None, high: float | None = None, *,
-            low_open: bool = False) -> Callable[[str], float]:
-    """An argparse ``type=`` that parses ``kind`` (int or float) and enforces the range.
-
-    >>> bounded(float, 0, 8, low_open=True)("2.5")
-    2.5
-    """
-    def parse(text: str):
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, "
-                                             f"got {text!r}") from None
-        try:
-            check_number(value, "", low=low, high=high, low_open=low_open, integer=kind is int)
-        except InputError as exc:
-            raise argparse.ArgumentTypeError(exc.problem) from None
-        return value
-
-    parse.__name__ = kind.__name__  # argparse names the type in its messages
-    return parse

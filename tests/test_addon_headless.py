@@ -13,7 +13,7 @@ QUERY = "the red cube"
 
 
 def test_cli_process_never_imports_bpy():
-    code = ("import sys; from fourlegs_engine.cli import build_parser; p = build_parser(); "
+    code = ("import sys; from fourlegs_engine.commands.main import build_parser; p = build_parser(); "
             "a = p.parse_args(['highlight', '--demo', 'a ball', '-o', 'x']); "
             "from fourlegs_addon.commands import headless_argv; argv = headless_argv(a); "
             "assert 'bpy' not in sys.modules, 'bpy imported'; print(argv)")
@@ -37,7 +37,7 @@ def test_headless_argv_round_trips_every_option():
 @pytest.mark.parametrize("text", ["640", "640x", "0x360", "641x360", "axb"])
 def test_bad_resolution_is_an_input_error(text):
     from fourlegs_addon import headless
-    from fourlegs_engine.cli_options import highlight_job_options
+    from fourlegs_engine.commands.options import highlight_job_options
     from fourlegs_engine.errors import InputError
 
     args = headless.build_parser().parse_args(["scene_dir", "q", "-o", "o", "--resolution", text])
@@ -51,7 +51,7 @@ def test_highlight_end_to_end(tmp_path, request, capsys):
     pytest.importorskip("bpy")
     bundle = language_bundle(tmp_path / "scene")
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "fourlegs_engine.cli", "highlight", str(bundle), QUERY, "--preset", "broadcast",
+    cmd = [sys.executable, "-m", "fourlegs_engine.commands.main", "highlight", str(bundle), QUERY, "--preset", "broadcast",
            "-o", str(out), "--resolution", "64x36", "--fps", "3"]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=child_env(), timeout=500)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]

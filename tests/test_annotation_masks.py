@@ -10,8 +10,8 @@ import torch
 from PIL import Image
 
 from _language_helpers import micro_bundle
-from benchmarks.metrics import average_precision
-from fourlegs_engine.cli import main
+from fourlegs_bench.metrics import average_precision
+from fourlegs_engine.commands.main import main
 from fourlegs_engine.errors import InputError
 from fourlegs_engine.language.autoencoder import AETrainConfig, train_autoencoder
 from fourlegs_engine.language.distill import distill_scene
@@ -297,7 +297,7 @@ def test_readme_own_capture_sequence_is_the_cli():
     import re
     import shlex
 
-    from fourlegs_engine.cli import build_parser
+    from fourlegs_engine.commands.main import build_parser
 
     text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     assert len(text.splitlines()) <= 200

@@ -14,11 +14,12 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 ENGINE = REPO / "fourlegs_engine"
-#: engine packages in data-flow order; a module may import its own layer and the ones before it; every
-#: package's ``commands`` module is part of the command line, the last layer
-LAYERS = {"errors": 0, "fileio": 0, "paths": 0, "threads": 0, "validate": 0, "scene": 1, "render": 2, "language": 3, "query": 4,
-          "highlights": 5, "pipeline": 6, "highlight_job": 7, "api": 7, "cli_options": 7, "cli": 8}
-FORBIDDEN = ("benchmarks", "fourlegs_addon", "bpy")
+#: engine packages in data-flow order; a module may import its own layer and the ones before it; the
+#: command line (``commands``) is the last layer and the only one that may use argparse
+LAYERS = {"errors": 0, "fileio": 0, "paths": 0, "threads": 0, "validate": 0, "scene": 1, "render": 2, "fit": 3,
+          "language": 3, "cluster": 3, "query": 4, "highlights": 5, "pipeline": 6, "highlight_job": 7, "api": 7,
+          "commands": 8}
+FORBIDDEN = ("fourlegs_bench", "fourlegs_addon", "bpy")
 
 
 def engine_modules() -> list[str]:
@@ -64,7 +65,7 @@ def layer_of(module: str) -> int | None:
 def test_engine_imports_run_one_way_and_never_reach_benchmarks_or_the_addon():
     problems = []
     for path in sorted(ENGINE.rglob("*.py")):
-        own = LAYERS["cli"] if path.stem == "commands" else layer_of(".".join(path.relative_to(REPO).with_suffix("").parts))
+        own = layer_of(".".join(path.relative_to(REPO).with_suffix("").parts))
         for line, module in imported_modules(path):
             where = f"{path.relative_to(REPO)}:{line}"
             if module.split(".")[0] in FORBIDDEN:
@@ -75,16 +76,29 @@ def test_engine_imports_run_one_way_and_never_reach_benchmarks_or_the_addon():
     assert problems == []
 
 
+def test_every_engine_module_and_package_has_a_layer():
+    """A module or package missing from LAYERS would go unchecked."""
+    tops = {p.stem for p in ENGINE.glob("*.py") if p.stem != "__init__"}
+    tops |= {p.name for p in ENGINE.iterdir() if (p / "__init__.py").is_file()}
+    assert sorted(tops - set(LAYERS)) == []
+
+
+def test_argparse_lives_only_in_the_command_line():
+    users = [str(p.relative_to(REPO)) for p in sorted(ENGINE.rglob("*.py"))
+             if "argparse" in {m for _, m in imported_modules(p)} and "commands" not in p.relative_to(ENGINE).parts]
+    assert users == []
+
+
 def test_the_layer_check_catches_a_violation(tmp_path):
     """The scan really resolves relative imports (a check that cannot fail would prove nothing)."""
     bad = ENGINE / "scene" / "_probe_violation.py"
     assert not bad.exists()
-    bad.write_text("from ..query import engine\nfrom benchmarks import metrics\n", encoding="utf-8")
+    bad.write_text("from ..query import engine\nfrom fourlegs_bench import metrics\n", encoding="utf-8")
     try:
         found = [m for _, m in imported_modules(bad)]
     finally:
         bad.unlink()
-    assert "fourlegs_engine.query" in found and "benchmarks" in found
+    assert "fourlegs_engine.query" in found and "fourlegs_bench" in found
     assert layer_of("fourlegs_engine.query") > layer_of("fourlegs_engine.scene.bundle")
 
 
@@ -103,7 +117,7 @@ def test_addon_reaches_the_engine_only_through_its_facade():
     helpers); the build script and the ``fourlegs`` command registration run outside Blender."""
     from fourlegs_addon.build import NOT_IN_BLENDER
 
-    allowed = {"fourlegs_engine.api", "fourlegs_engine.cli_options", "fourlegs_engine"}
+    allowed = {"fourlegs_engine.api", "fourlegs_engine.commands.options", "fourlegs_engine"}
     problems = []
     for path in sorted((REPO / "addon").glob("*.py")):
         text = path.read_text(encoding="utf-8")

@@ -7,7 +7,7 @@ import numpy as np
 from PIL import Image
 
 import _fit_helpers as fh
-from fourlegs_engine.cli import main
+from fourlegs_engine.commands.main import main
 from fourlegs_engine.scene.bundle import write_bundle
 from fourlegs_engine.scene.camera import CameraRig
 from fourlegs_engine.scene.gaussians import GaussianSequence

@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from _blender_helpers import child_env
-from benchmarks import main_job
+from fourlegs_bench import main_job
 
 #: what the job times, in the order it runs, for a --demo run rendered to MP4 (encode mp4 inside render)
 JOB_STAGES = ["scene", "extract features", "train autoencoder", "distil (lift)", "open query engine",
@@ -42,7 +42,7 @@ def test_epoch_rows_accumulate_seconds_and_keep_the_cosines():
 
 
 def test_bad_epoch_list_is_one_line(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "fourlegs_engine.cli", "bench", "main-job", "-o", str(tmp_path / "b"),
+    proc = subprocess.run([sys.executable, "-m", "fourlegs_engine.commands.main", "bench", "main-job", "-o", str(tmp_path / "b"),
                            "--ae-epochs", "2,zero"], capture_output=True, text=True, env=child_env(), timeout=120)
     assert proc.returncode == 2 and "--ae-epochs" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "b").exists()
@@ -53,7 +53,7 @@ def test_bad_epoch_list_is_one_line(tmp_path):
 def test_main_job_from_scratch_on_the_tiny_scene(tmp_path):
     pytest.importorskip("bpy")
     out, cache = tmp_path / "bench", tmp_path / "cache"
-    cmd = [sys.executable, "-m", "fourlegs_engine.cli", "bench", "main-job", "--demo-size", "tiny",
+    cmd = [sys.executable, "-m", "fourlegs_engine.commands.main", "bench", "main-job", "--demo-size", "tiny",
            "--resolution", "64x36", "--fps", "3", "-o", str(out), "--cache", str(cache)]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=child_env(), timeout=900)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]

@@ -12,8 +12,8 @@ import torch.nn.functional as F
 from PIL import Image
 
 from _viclip_helpers import tiny_config
-from benchmarks import viclip_real
-from benchmarks.viclip_real import (bench_viclip_real, parse_subsets, preprocess_camera_timestep,
+from fourlegs_bench import viclip_real
+from fourlegs_bench.viclip_real import (bench_viclip_real, parse_subsets, preprocess_camera_timestep,
                                     real_report_markdown, sample_clips, write_real_report)
 from fourlegs_engine.errors import InputError, OutputExistsError
 from fourlegs_engine.language.pyramid import CLIP_MEAN, CLIP_STD, crop_layout, pyramid_ratios
@@ -164,7 +164,7 @@ def test_bad_real_bench_input_is_one_clear_error(capture_dir, tmp_path):
 
 
 def test_the_cli_refuses_existing_outputs_and_checkpoints_before_any_work(capture_dir, tmp_path):
-    from benchmarks.commands import register_bench
+    from fourlegs_bench.commands import register_bench
     parser = argparse.ArgumentParser()
     register_bench(parser.add_subparsers())
     (tmp_path / "v.md").write_text("mine")

@@ -78,7 +78,7 @@ def test_zip_contains_addon_engine_presets_and_declared_wheels(extension_zip, pr
         assert required in names, required
     assert not [n for n in names if "__pycache__" in n or n.endswith(".pyc")]
     # only what runs in Blender: no engine sources beside the wheel, no build script, no benchmarks
-    assert not [n for n in names if n.startswith(("fourlegs_engine/", "benchmarks/")) or n in ("build.py", "commands.py")]
+    assert not [n for n in names if n.startswith(("fourlegs_engine/", "fourlegs_bench/")) or n in ("build.py", "commands.py")]
     manifest = zipfile.ZipFile(extension_zip).read("blender_manifest.toml").decode()
     assert f'"./wheels/{probe_wheel.name}"' in manifest and f'"./wheels/{engine_wheel}"' in manifest
     with zipfile.ZipFile(io.BytesIO(zipfile.ZipFile(extension_zip).read(f"wheels/{engine_wheel}"))) as wheel:
@@ -86,7 +86,7 @@ def test_zip_contains_addon_engine_presets_and_declared_wheels(extension_zip, pr
     for required in ("fourlegs_engine/__init__.py", "fourlegs_engine/render/__init__.py", "fourlegs_engine/api.py",
                      "fourlegs_engine/highlights/presets/broadcast.toml"):
         assert required in inside, required
-    assert not [n for n in inside if n.startswith(("benchmarks/", "fourlegs_addon/")) or "__pycache__" in n]
+    assert not [n for n in inside if n.startswith(("fourlegs_bench/", "fourlegs_addon/")) or "__pycache__" in n]
 
 
 def test_manifest_wheels_inserted_before_tables():

@@ -94,7 +94,7 @@ def test_fitted_scene_imports_through_the_operator_and_scrubs_to_each_timestep(b
 
 @pytest.mark.blender
 def test_bench_real_scene_measures_the_fitted_scene(bpy_addon, fitted_bundle):
-    from benchmarks.blender import bench_real_scene
+    from fourlegs_bench.blender import bench_real_scene
 
     result = bench_real_scene(str(fitted_bundle), viewport_frames=1, viewport_size=(64, 48))
     means = np.load(fitted_bundle / "means.npy", mmap_mode="r")

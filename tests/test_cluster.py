@@ -15,7 +15,7 @@ import torch
 from _cluster_helpers import KillOnceFactory, count_then_fail, simulated_factory
 from _language_helpers import micro_bundle
 from fourlegs_engine import cluster
-from fourlegs_engine.cli import main
+from fourlegs_engine.commands.main import main
 from fourlegs_engine.language.distill import distill_scene
 from fourlegs_engine.scene.bundle import load_bundle
 
@@ -158,7 +158,7 @@ def test_missing_ray_names_the_extra_to_install(reference, tmp_path, monkeypatch
 
 
 def test_list_scheduling_simulation():
-    from benchmarks.cluster import SequenceAssumptions, list_schedule, simulate_sequence
+    from fourlegs_bench.cluster import SequenceAssumptions, list_schedule, simulate_sequence
     assert list_schedule([3, 1, 1, 1], 2) == (3.0, [3.0, 3.0])
     assert list_schedule([2, 2, 2], 1) == (6.0, [6.0])
     assert list_schedule([5], 4)[0] == 5.0

@@ -5,9 +5,9 @@ import json
 
 import pytest
 
-from fourlegs_engine.cli import main
+from fourlegs_engine.commands.main import main
 from fourlegs_engine.errors import InputError
-from benchmarks.compare import compare_markdown, compare_reports, load_report
+from fourlegs_bench.compare import compare_markdown, compare_reports, load_report
 
 
 def _row(group, name, vap, tiou=0.2, seconds=1.0, per_t=None):

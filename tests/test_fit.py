@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import _fit_helpers as fh
-from fourlegs_engine.cli import main
+from fourlegs_engine.commands.main import main
 from fourlegs_engine.errors import ConfigMismatchError, InputError, OutputExistsError
 from fourlegs_engine.fit import Capture, FitOptions, fit_capture
 from fourlegs_engine.fit.losses import Priors, psnr

@@ -119,8 +119,8 @@ def test_fitted_background_has_the_wall_colour_where_the_occluder_stood(moving_o
 
 
 def test_cli_flag_sets_the_clean_plate_samples():
-    from fourlegs_engine.cli import build_parser
-    from fourlegs_engine.fit.commands import options_from_args
+    from fourlegs_engine.commands.main import build_parser
+    from fourlegs_engine.commands.fit import options_from_args
 
     args = build_parser().parse_args(["fit", "ds", "-o", "out", "--clean-plate-samples", "5"])
     assert options_from_args(args).clean_plate_samples == 5

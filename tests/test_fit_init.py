@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks.fit import parse_runs
+from fourlegs_bench.fit import parse_runs
 from fourlegs_engine.errors import InputError
 from fourlegs_engine.fit import FitOptions
-from fourlegs_engine.fit.commands import options_from_args, register
+from fourlegs_engine.commands.fit import options_from_args, register
 from fourlegs_engine.fit.init import initial_cloud
 from fourlegs_engine.scene.camera import Camera
 
@@ -185,7 +185,7 @@ def test_bench_table_of_a_first_timestep_only_run_shows_the_init_columns(tmp_pat
     """A 0:1 run has no later timesteps: its seconds are JSON null (no NaN in the JSON), shown as –."""
     import json
 
-    from benchmarks.fit import _pareto_plot, markdown_table
+    from fourlegs_bench.fit import _pareto_plot, markdown_table
 
     record = {"run": "hull", "knobs": {"init": "hull", "first_iterations": 100}, "num_gaussians": 51234,
               "resolution": [320, 180], "init_wall_s": 80.2, "init_cpu_s": 4.63, "init_points": 39266,

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fourlegs_engine.errors import InputError
-from benchmarks.baseline2d import Features2D, pixel_relevancy, pixel_taps
+from fourlegs_bench.baseline2d import Features2D, pixel_relevancy, pixel_taps
 from fourlegs_engine.scene.synthetic import LABELS
 from fourlegs_engine.language.pyramid import crop_layout, pixel_features, pyramid_ratios
 from fourlegs_engine.language.simulated import SimulatedTextEncoder, SimulatedVideoEncoder

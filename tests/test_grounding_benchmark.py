@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks import grounding
-from benchmarks.baseline2d import ViewPrediction, inclusive_to_exclusive
-from benchmarks.ground_truth import (VISIBILITY_THRESHOLD, CoverageVideo, ensure_ground_truth,
+from fourlegs_bench import grounding
+from fourlegs_bench.baseline2d import ViewPrediction, inclusive_to_exclusive
+from fourlegs_bench.ground_truth import (VISIBILITY_THRESHOLD, CoverageVideo, ensure_ground_truth,
                                                label_ids, scene_queries, segments_of, visible_masks)
-from benchmarks.metrics import METRIC_NAMES, mask_to_box
+from fourlegs_bench.metrics import METRIC_NAMES, mask_to_box
 from fourlegs_engine.scene.synthetic import LABELS, SCRIPT, _frames_of, write_synthetic_bundle
 from fourlegs_engine.render import rasterize
 from fourlegs_engine.scene import load_bundle
@@ -173,7 +173,7 @@ def test_oracle_scores_perfectly_and_an_empty_prediction_scores_zero(scene_gt, r
 
 def test_tiny_benchmark_reports_the_2d_baseline(scene_gt, tmp_path, monkeypatch, capsys):
     """`fourlegs bench grounding --scene tiny` end to end on one view (kept short for the suite)."""
-    from fourlegs_engine.cli import main
+    from fourlegs_engine.commands.main import main
     monkeypatch.setenv("FOURLEGS_CACHE", str(tmp_path / "cache"))
     scene, _ = scene_gt
     out = tmp_path / "res.json"
@@ -225,8 +225,8 @@ def test_stride_list_parsing_and_the_speed_accuracy_plot(tmp_path):
 
 
 def test_tiled_ground_truth_stretches_each_segment_over_the_repeated_timesteps(bundle):
-    from benchmarks.ground_truth import temporal_ground_truth
-    from benchmarks.query_speed_tiled import tiled_ground_truth
+    from fourlegs_bench.ground_truth import temporal_ground_truth
+    from fourlegs_bench.query_speed_tiled import tiled_ground_truth
 
     scene = load_bundle(bundle)
     T0 = scene.num_timesteps

@@ -9,7 +9,7 @@ import pytest
 
 from _blender_helpers import language_bundle
 from fourlegs_engine import api
-from fourlegs_engine.cli_options import add_highlight_arguments, highlight_job_options
+from fourlegs_engine.commands.options import add_highlight_arguments, highlight_job_options
 from fourlegs_engine.fileio import OUTPUTS_MARKER
 from fourlegs_engine.highlight_job import DEMO_RESOLUTION, job_outputs
 

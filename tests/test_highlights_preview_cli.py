@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from _highlights_helpers import FakeLocalizer, tiny_scene
-from fourlegs_engine import cli
-from fourlegs_engine.highlights import commands as plan_commands
+from fourlegs_engine.commands import main as cli
+from fourlegs_engine.commands import highlights as plan_commands
 from fourlegs_engine.highlights.plan import HighlightPlan
 from fourlegs_engine.highlights.planner import plan_highlight
 from fourlegs_engine.highlights.presets import load_preset

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from _language_helpers import kill_after_first_step, micro_bundle, one_thread  # noqa: F401 (one_thread: autouse fixture)
-from fourlegs_engine.cli import main
+from fourlegs_engine.commands.main import main
 from fourlegs_engine.errors import ConfigMismatchError, InputError
 from fourlegs_engine.language.autoencoder import AETrainConfig, train_autoencoder
 from fourlegs_engine.language.distill import (DistillConfig, distill_scene, lift_latents,
@@ -245,7 +245,7 @@ def test_resume_after_a_real_kill_gives_the_uninterrupted_result(prepared, tmp_p
     args = ["--mode", "optimize", "--iterations", "20", "--no-progress"]
     # both runs in fresh processes with the same thread settings (floating-point reductions depend on them)
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    code = ("import sys, torch; torch.set_num_threads(1); from fourlegs_engine.cli import main; "
+    code = ("import sys, torch; torch.set_num_threads(1); from fourlegs_engine.commands.main import main; "
             "sys.exit(main(sys.argv[1:]))")
     subprocess.run([sys.executable, "-c", code, "distill", str(reference), *args], env=env, check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=300)

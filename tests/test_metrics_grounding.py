@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from fourlegs_engine.errors import InputError
-from benchmarks.metrics import (METRIC_NAMES, aggregate_views, average_precision, box_iou, format_percent,
+from fourlegs_bench.metrics import (METRIC_NAMES, aggregate_views, average_precision, box_iou, format_percent,
                                           frames_from_segments, grounding_metrics, mask_to_box, mean_std,
                                           temporal_metrics, vap, viou)
 

@@ -6,9 +6,9 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-from benchmarks.accuracy_time import CastField, hold_fill, markdown_table, pareto_plot
-from benchmarks.grounding import method_names, score_view
-from benchmarks.method4d import FourLegsMethod
+from fourlegs_bench.accuracy_time import CastField, hold_fill, markdown_table, pareto_plot
+from fourlegs_bench.grounding import method_names, score_view
+from fourlegs_bench.method4d import FourLegsMethod
 from fourlegs_engine.fileio import save_npy_atomic
 
 from _query_helpers import two_cluster_scene
@@ -84,7 +84,7 @@ def test_table_and_pareto_plot(tmp_path):
 
 
 def test_query_speed_bench_runs_small(tmp_path):
-    from benchmarks.query_speed import markdown, run_query_speed
+    from fourlegs_bench.query_speed import markdown, run_query_speed
 
     rep = run_query_speed(gaussians=300, timesteps=3, codebook_sizes=[16], repeats=2, exact_timesteps=0,
                           spatial_scene="none", workdir=tmp_path, progress=False, refine_margins=(0.0, 0.01),
@@ -106,7 +106,7 @@ def test_query_speed_bench_runs_small(tmp_path):
 def test_skipped_groups_are_not_distilled(tmp_path, monkeypatch):
     """--skip knn: the kNN rows are not distilled at all (not distilled and then dropped)."""
     import fourlegs_engine.language.distill as distill_mod
-    from benchmarks.accuracy_time import _distill_variants
+    from fourlegs_bench.accuracy_time import _distill_variants
 
     calls = []
 

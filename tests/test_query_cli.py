@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from fourlegs_engine.cli import main
+from fourlegs_engine.commands.main import main
 from fourlegs_engine import pipeline
 from fourlegs_engine.query.engine import QueryEngine
 from fourlegs_engine.query.exr import read_exr, write_exr

@@ -285,7 +285,7 @@ def test_scattered_exact_reads_do_not_stay_resident(tmp_path):
     # the kernel maps cached pages around every faulting row; a re-scoring query reading thousands of
     # scattered rows through the mapping would keep ~64 kB resident per row (here the whole 20 MB file)
     from _query_helpers import LinearField
-    from benchmarks.query_fixtures import flat_scene, warm_page_cache
+    from fourlegs_bench.query_fixtures import flat_scene, warm_page_cache
 
     T, N, d = 4, 40_000, 64
     rng = np.random.default_rng(0)

@@ -7,8 +7,8 @@ from _query_helpers import LinearField, two_cluster_scene
 
 from fourlegs_engine.errors import InputError
 from fourlegs_engine.query.engine import QueryEngine
-from benchmarks.query_fixtures import flat_scene
-from benchmarks.query_speed_tiled import exact_tiled_answers, source_timesteps, write_tiled_latents
+from fourlegs_bench.query_fixtures import flat_scene
+from fourlegs_bench.query_speed_tiled import exact_tiled_answers, source_timesteps, write_tiled_latents
 
 
 def test_source_timesteps_repeat_every_source_timestep_in_order():
@@ -48,7 +48,7 @@ def test_exact_tiled_answers_equal_the_exact_path_on_the_tiled_field(tmp_path, q
 
 
 def test_markdown_rows_report_the_exact_work_and_what_bounds_decided():
-    from benchmarks.query_speed_tiled import markdown_rows
+    from fourlegs_bench.query_speed_tiled import markdown_rows
 
     queries = [{"query": "a", "seconds": 0.1, "sampled": 4096, "rescored": 1000, "bounded": 900},
                {"query": "b", "seconds": 0.3, "sampled": 0, "rescored": 0}]  # a row from before the bounds

@@ -5,8 +5,8 @@ import json
 
 import pytest
 
-from fourlegs_engine.cli import main
-from benchmarks.render_scene import make_bench_scene
+from fourlegs_engine.commands.main import main
+from fourlegs_bench.render_scene import make_bench_scene
 
 TINY = ["bench", "render", "--sizes", "400", "--outputs", "rgb,features", "--repeats", "1", "--channels", "8",
         "--threads", "1",

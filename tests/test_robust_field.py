@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from _language_helpers import kill_after_first_step, micro_bundle, one_thread  # noqa: F401 (one_thread: autouse fixture)
-from fourlegs_engine.cli import main
+from fourlegs_engine.commands.main import main
 from fourlegs_engine.errors import InputError
 from fourlegs_engine.language.autoencoder import load_decoder, weights_fingerprint
 from fourlegs_engine.language.field import LanguageField
@@ -142,7 +142,7 @@ def test_an_older_field_without_fingerprint_is_checked_through_the_autoencoder_h
 
 
 # ------------------------------------------- item 1: distill --overwrite keeps the old field readable
-CODE = ("import sys, torch; torch.set_num_threads(1); from fourlegs_engine.cli import main; "
+CODE = ("import sys, torch; torch.set_num_threads(1); from fourlegs_engine.commands.main import main; "
         "sys.exit(main(sys.argv[1:]))")
 
 

@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from _language_helpers import micro_bundle
-from fourlegs_engine.cli import main
+from fourlegs_engine.commands.main import main
 from fourlegs_engine.errors import FourlegsError, InputError
 from fourlegs_engine.language.autoencoder import FeatureDecoder, load_decoder
 from fourlegs_engine.scene.dynamic3dgs import write_dynamic3dgs

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from _language_helpers import micro_bundle
-from fourlegs_engine.cli import main
+from fourlegs_engine.commands.main import main
 from fourlegs_engine.errors import InputError, describe_environment_error
 from fourlegs_engine.query.temporal import sparkline
 from fourlegs_engine.scene.bundle import load_bundle
@@ -120,7 +120,7 @@ def test_query_engine_bounds_its_options():
 def test_query_on_a_non_bundle_names_commands_that_exist(tmp_path, capsys):
     code, line = _one_line_error(capsys, ["query", str(tmp_path), "ball"])
     assert code == 2 and "fourlegs convert" not in line and "fourlegs highlight" in line
-    from fourlegs_engine.cli import build_parser
+    from fourlegs_engine.commands.main import build_parser
     commands = build_parser()._subparsers._group_actions[0].choices
     assert "highlight" in commands and "language" in commands and "convert" not in commands
 
@@ -247,7 +247,7 @@ def test_language_files_outside_the_bundle_are_refused(bundle, tmp_path, key):
 
 def test_no_message_points_to_a_command_that_does_not_exist():
     import re
-    from fourlegs_engine.cli import build_parser
+    from fourlegs_engine.commands.main import build_parser
     commands = set(build_parser()._subparsers._group_actions[0].choices)
     root = Path(__file__).resolve().parents[1]
     sources = list((root / "fourlegs_engine").rglob("*.py")) + list((root / "addon").rglob("*.py"))

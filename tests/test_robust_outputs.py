@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from _language_helpers import micro_bundle
-from fourlegs_engine.cli import main
+from fourlegs_engine.commands.main import main
 from fourlegs_engine.errors import InputError, OutputExistsError
 from fourlegs_engine.fileio import OUTPUTS_MARKER, claim_outputs, output_group
 from fourlegs_engine.validate import check_text
@@ -26,7 +26,7 @@ class _Stop(Exception):
 def _headless_run(monkeypatch, argv):
     from fourlegs_addon import headless
     from fourlegs_engine import pipeline
-    from fourlegs_engine.cli_options import highlight_job_options
+    from fourlegs_engine.commands.options import highlight_job_options
 
     def stop(*args, **kwargs):
         raise _Stop

@@ -162,7 +162,7 @@ def test_large_latent_file_is_never_read_whole(tmp_path):
         import numpy as np, torch
         torch.set_num_threads(1)
         from fourlegs_engine.scene import load_scene
-        from fourlegs_engine.scene.commands import format_summary
+        from fourlegs_engine.commands.scene import format_summary
         data_kb = int(open('/proc/self/status').read().split('VmData:')[1].split()[0])
         limit = data_kb * 1024 + (512 << 20)   # RLIMIT_AS would also count the file mapping itself,
         resource.setrlimit(resource.RLIMIT_DATA, (limit, limit))  # so limit private memory instead

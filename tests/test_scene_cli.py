@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from fourlegs_engine.cli import main
+from fourlegs_engine.commands.main import main
 from fourlegs_engine.scene import write_bundle
 from fourlegs_engine.scene.ply import write_ply_scene
 
@@ -76,7 +76,7 @@ def test_info_usage_errors(tmp_path, capsys, argv, needle):
 def test_bad_input_is_one_line_without_traceback(tmp_path):
     (tmp_path / "cloud.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n"
                                         "property float y\nproperty float z\nend_header\n0 0 0\n")
-    proc = subprocess.run([sys.executable, "-m", "fourlegs_engine.cli", "info", str(tmp_path / "cloud.ply")],
+    proc = subprocess.run([sys.executable, "-m", "fourlegs_engine.commands.main", "info", str(tmp_path / "cloud.ply")],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr == (f"fourlegs: error: {tmp_path / 'cloud.ply'}: vertex: is a point cloud, not Gaussian "

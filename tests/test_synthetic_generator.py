@@ -138,7 +138,7 @@ def test_ensure_demo_bundle_generates_once_and_reuses(tmp_path, monkeypatch):
 
 
 def test_generate_cli_writes_a_bundle(tmp_path, capsys):
-    from fourlegs_engine.cli import main
+    from fourlegs_engine.commands.main import main
     out = tmp_path / "scene"
     assert main(["generate", "--size", "tiny", "--seed", "5", "-o", str(out)]) == 0
     assert (out / "scene.json").is_file() and (out / "queries.json").is_file()

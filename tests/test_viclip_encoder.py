@@ -8,7 +8,7 @@ import torch
 
 from fourlegs_engine.errors import InputError, OutputExistsError
 from fourlegs_engine.language import encoders
-from fourlegs_engine.cli_options import add_encoder_arguments, encoder_config_from_args
+from fourlegs_engine.commands.options import add_encoder_arguments, encoder_config_from_args
 from fourlegs_engine.language.encoders import CANONICAL_PHRASES, VideoTextEncoder, get_encoder
 from fourlegs_engine.pipeline import text_encoder
 from fourlegs_engine.language.viclip import BPETokenizer, ViCLIPEncoder, ViCLIPModel, save_viclip
@@ -188,7 +188,7 @@ def test_cuda_matches_cpu(files):
 
 
 def test_bench_reports_time_and_accuracy_per_knob(tmp_path):
-    from benchmarks.viclip import bench_viclip, write_report
+    from fourlegs_bench.viclip import bench_viclip, write_report
     report = bench_viclip(size=tiny_config(), dtypes=("float32", "bfloat16"), batch_sizes=(1, 2), clips=2,
                           phrases=3, repeats=1, device="cpu")
     rows = {(r["dtype"], r["batch_size"]): r for r in report["rows"]}
@@ -202,7 +202,7 @@ def test_bench_reports_time_and_accuracy_per_knob(tmp_path):
 
 
 def test_viclip_info_command_checks_and_converts(files, tmp_path, capsys):
-    from fourlegs_engine.language.viclip import commands
+    from fourlegs_engine.commands import viclip as commands
     model, checkpoint, vocab = files
     parser = argparse.ArgumentParser()
     commands.register(parser.add_subparsers())

@@ -4,7 +4,7 @@
 - :mod:`.tokenizer`: CLIP's BPE tokenizer over ``bpe_simple_vocab_16e6.txt.gz``.
 - :mod:`.checkpoint`: strict, pickle-free loading (``.pth`` and ``-hf`` safetensors) and saving.
 - :mod:`.encoder`: ``ViCLIPEncoder``, the ``VideoTextEncoder`` the rest of the engine uses.
-- :mod:`.commands`: ``fourlegs viclip-info`` (``fourlegs bench viclip`` lives in ``benchmarks.viclip``).
+``fourlegs viclip-info`` lives in :mod:`fourlegs_engine.commands.viclip`, ``fourlegs bench viclip`` in ``fourlegs_bench.viclip``.
 """
 from .checkpoint import check_state_dict, load_viclip, read_state_dict, save_viclip
 from .encoder import ViCLIPEncoder

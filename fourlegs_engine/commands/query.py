@@ -7,8 +7,8 @@ from pathlib import Path
 from typing import Any
 
 def register(subparsers: Any) -> None:
-    from ..validate import bounded
-    from .engine import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_TIMESTEP_ARGUMENT
+    from .options import bounded
+    from ..query.engine import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_TIMESTEP_ARGUMENT
 
     p = subparsers.add_parser(
         "query", help="when and where a text query happens in a scene (segment, peak, maps)",
@@ -53,7 +53,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--scene-stride", type=bounded(int, 1, MAX_TIMESTEP_ARGUMENT), default=None, metavar="K",
                    help="several scenes: rank them on every K-th timestep (default 10, as the paper)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
-    from ..cli_options import add_encoder_arguments
+    from .options import add_encoder_arguments
     add_encoder_arguments(p, default="auto")  # 'auto': the encoder recorded with the field (masks need no flags)
     p.set_defaults(func=run_query)
 
@@ -86,7 +86,7 @@ def _open(args: argparse.Namespace):
     if not scene.language and not (scene.metadata or {}).get("labels"):
         raise InputError("the scene has no distilled language field; run `fourlegs language` first",
                          file=path, field="language")
-    from ..cli_options import encoder_config_from_args
+    from .options import encoder_config_from_args
     encoder = text_encoder(scene, encoder_config_from_args(args))
     scene = ensure_language_field(scene, encoder, progress=True)
     options = QueryOptions(path=args.path, codebook_size=args.codebook_size, codebook_refine=args.codebook_refine,
@@ -129,7 +129,7 @@ def run_multiscene(args: argparse.Namespace, scenes: list[str]) -> int:
 
     from ..errors import InputError, OutputExistsError
     from ..fileio import write_json_atomic
-    from .multiscene import DEFAULT_SCENE_STRIDE, rank_scenes_opening
+    from ..query.multiscene import DEFAULT_SCENE_STRIDE, rank_scenes_opening
 
     for flag in ("exr", "plot", "views", "frames"):
         if getattr(args, flag):
@@ -181,9 +181,9 @@ def run_multiscene(args: argparse.Namespace, scenes: list[str]) -> int:
 def _run_one(args: argparse.Namespace) -> int:
     from ..errors import OutputExistsError
     from ..fileio import output_group, write_json_atomic
-    from .exr import write_exr
-    from .plots import plot_temporal
-    from .temporal import sparkline
+    from ..query.exr import write_exr
+    from ..query.plots import plot_temporal
+    from ..query.temporal import sparkline
 
     plot = Path(args.plot) if args.plot else (Path(args.json).with_suffix(".st.png") if args.json else None)
     for out in (args.json, plot):

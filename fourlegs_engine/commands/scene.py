@@ -23,7 +23,7 @@ def register(subparsers: Any) -> None:
 
 
 def run_info(args: argparse.Namespace) -> int:
-    from .loaders import load_scene
+    from ..scene.loaders import load_scene
 
     if bool(args.demo) == bool(args.path):
         raise InputError("give either a scene PATH or --demo (exactly one)", field="info")
@@ -39,7 +39,7 @@ def run_info(args: argparse.Namespace) -> int:
 def demo_bundle_path():
     """The demo bundle from the synthetic benchmark generator (built into the cache on first use)."""
     try:
-        from .synthetic import ensure_demo_bundle
+        from ..scene.synthetic import ensure_demo_bundle
     except ImportError as exc:
         raise InputError(f"the demo scene generator is not available ({exc})", field="--demo") from None
     return ensure_demo_bundle()

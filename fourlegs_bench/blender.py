@@ -13,8 +13,8 @@ the per-frame cost of scrubbing the timeline over every timestep (the frame-chan
 depsgraph evaluation of the point instances), checked against the scene's means, and the Rendered-shading
 viewport's draw cost (``render_engine.viewport_image``) at sampled timesteps.
 
-    python -m benchmarks.blender --gaussians 300000 --resolution 640x360 --frames 3 --json b.json --plot b.png
-    python -m benchmarks.blender --scene basketball/ --frames 3 --json b.json --plot b.png
+    python -m fourlegs_bench.blender --gaussians 300000 --resolution 640x360 --frames 3 --json b.json --plot b.png
+    python -m fourlegs_bench.blender --scene basketball/ --frames 3 --json b.json --plot b.png
 """
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..cli_options import encoder_config_from_args, parse_resolution
+from .options import encoder_config_from_args, parse_resolution
 from ..errors import InputError
 from ..pipeline import EncoderConfig, QueryOptions
 
@@ -66,7 +66,7 @@ def open_scene_and_localizer(scene_path: str | Path | None, *, demo: bool, encod
 
 
 def run_plan(args: argparse.Namespace) -> int:
-    from .presets import available_presets, load_preset
+    from ..highlights.presets import available_presets, load_preset
 
     if args.list_presets:
         for name, path in sorted(available_presets(args.preset_dir).items()):
@@ -97,7 +97,7 @@ def run_plan(args: argparse.Namespace) -> int:
 
     preset = load_preset(args.preset, args.preset_dir)
     if args.effects:
-        from .effects import EFFECTS
+        from ..highlights.effects import EFFECTS
         wanted = [e.strip() for e in args.effects.split(",") if e.strip()]
         unknown = [e for e in wanted if e not in EFFECTS]
         if unknown:
@@ -106,7 +106,7 @@ def run_plan(args: argparse.Namespace) -> int:
         if not preset.shots:
             raise InputError(f"preset {preset.name!r} has no shot with the effects {wanted}", field="--effects")
 
-    from .planner import plan_highlight
+    from ..highlights.planner import plan_highlight
     scene, localizer = open_scene_and_localizer(scene_path, demo=args.demo is not None,
                                                 encoder=encoder_config_from_args(args),
                                                 options=QueryOptions(path=args.query_path, spatial=args.spatial))
@@ -125,7 +125,7 @@ def run_plan(args: argparse.Namespace) -> int:
     for m in plan.messages:
         print(f"  note: {m}", file=sys.stderr)
     if preview is not None:
-        from .preview import write_contact_sheet
+        from ..highlights.preview import write_contact_sheet
         write_contact_sheet(preview, scene, plan, localizer=localizer, overlay=args.overlay,
                             per_shot=args.per_shot, width=args.preview_width, overwrite=args.overwrite)
         print(f"preview: {preview}")

@@ -9,7 +9,7 @@ For a query whose answer is the label set S (``queries.json``):
   front-to-back order: occluders reduce the transmittance of what lies behind them. A pixel belongs
   to the mask when the Gaussians of S contribute more than ``VISIBILITY_THRESHOLD`` = 0.5 of its
   colour (they are what the pixel shows). The box is the tight box of the mask (x1, y1 exclusive,
-  :func:`benchmarks.metrics.mask_to_box`); NaN when the mask is empty (fully occluded or out
+  :func:`fourlegs_bench.metrics.mask_to_box`); NaN when the mask is empty (fully occluded or out
   of view).
 
 Results are cached in the bundle under ``ground_truth/`` (``meta.json``, ``temporal.json``,

@@ -20,7 +20,7 @@ from ..errors import InputError
 
 # ------------------------------------------------------------------------------------ parsers
 def register(subparsers: Any) -> None:
-    from ..cli_options import add_encoder_arguments
+    from .options import add_encoder_arguments
 
     p = subparsers.add_parser(
         "extract", help="teacher features: crop-pyramid video-text encodings per timestep",
@@ -143,7 +143,7 @@ def resolve_bundle(args: argparse.Namespace):
 
 
 def _ratios(spec: str, steps: int) -> tuple[float, ...]:
-    from .pyramid import pyramid_ratios
+    from ..language.pyramid import pyramid_ratios
     try:
         low, high = (float(v) for v in spec.split(":"))
     except ValueError:
@@ -164,19 +164,19 @@ def _crop_size(value: str | None) -> int | str | None:
 
 
 def _encoder(args: argparse.Namespace, scene: Any):
-    from ..cli_options import encoder_config_from_args
+    from .options import encoder_config_from_args
     from ..pipeline import text_encoder
     return text_encoder(scene, encoder_config_from_args(args))
 
 
 def _ae_config(args: argparse.Namespace):
-    from .autoencoder import AETrainConfig
+    from ..language.autoencoder import AETrainConfig
     return AETrainConfig(epochs=args.epochs, samples=args.samples, batch_size=args.ae_batch_size, lr=args.lr,
                          holdout_camera=args.holdout_camera, seed=args.seed)
 
 
 def _distill_config(args: argparse.Namespace):
-    from .distill import DistillConfig
+    from ..language.distill import DistillConfig
     if args.no_attention and args.blur:
         raise InputError("choose at most one of --no-attention and --blur", field="--blur")
     smoothing = "none" if args.no_attention else ("blur" if args.blur else "attention")
@@ -201,7 +201,7 @@ def _print_check(report: dict[str, Any]) -> int:
 
 # ----------------------------------------------------------------------------------- commands
 def run_extract(args: argparse.Namespace) -> int:
-    from .extract import ExtractConfig, check_features, extract_features
+    from ..language.extract import ExtractConfig, check_features, extract_features
     scene = resolve_bundle(args)
     if args.check:
         return _print_check(check_features(scene))
@@ -225,7 +225,7 @@ def run_extract(args: argparse.Namespace) -> int:
 
 
 def run_train_ae(args: argparse.Namespace) -> int:
-    from .autoencoder import train_autoencoder
+    from ..language.autoencoder import train_autoencoder
     scene = resolve_bundle(args)
     report = train_autoencoder(scene, _ae_config(args), overwrite=args.overwrite, progress=True)
     if args.json:
@@ -239,7 +239,7 @@ def run_train_ae(args: argparse.Namespace) -> int:
 
 
 def run_distill(args: argparse.Namespace) -> int:
-    from .distill import check_distill, distill_scene
+    from ..language.distill import check_distill, distill_scene
     scene = resolve_bundle(args)
     if args.check:
         report = check_distill(scene)
@@ -268,9 +268,9 @@ def run_distill(args: argparse.Namespace) -> int:
 
 
 def run_language(args: argparse.Namespace) -> int:
-    from .autoencoder import train_autoencoder
-    from .distill import distill_scene
-    from .extract import ExtractConfig, extract_features
+    from ..language.autoencoder import train_autoencoder
+    from ..language.distill import distill_scene
+    from ..language.extract import ExtractConfig, extract_features
     scene = resolve_bundle(args)
     progress = not args.no_progress
     t0 = time.perf_counter()

@@ -1,7 +1,7 @@
 """The spatio-temporal grounding benchmark runner (paper §4.1 metrics on synthetic scenes).
 
 Every *method* answers every benchmark query in every evaluation view (the scene's test cameras) with
-a :class:`~benchmarks.baseline2d.ViewPrediction`; the runner scores it against the exact
+a :class:`~fourlegs_bench.baseline2d.ViewPrediction`; the runner scores it against the exact
 ground truth (:mod:`.ground_truth`) with :mod:`.metrics` and reports, per method, the six metrics per
 query and overall as mean ± standard deviation over the views (overall: per view, the mean over the
 queries; then mean ± std over views).
@@ -29,7 +29,7 @@ from .ground_truth import CoverageVideo, default_eval_cameras, ensure_ground_tru
     scene_queries
 from .metrics import METRIC_NAMES, aggregate_views, format_percent, grounding_metrics
 
-METHOD_MODULES = ("benchmarks.method4d",)
+METHOD_MODULES = ("fourlegs_bench.method4d",)
 
 
 @dataclass

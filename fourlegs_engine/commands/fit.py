@@ -65,7 +65,7 @@ def register(subparsers: Any) -> None:
 
 def options_from_args(args: argparse.Namespace):
     """:class:`~fourlegs_engine.fit.FitOptions` from parsed arguments (unset knobs keep their defaults)."""
-    from .fitter import FitOptions
+    from ..fit.fitter import FitOptions
 
     kw: dict[str, Any] = {"resolution_scale": args.resolution_scale, "seed": args.seed, "device": args.device,
                           "densify": not args.no_densify}
@@ -94,7 +94,7 @@ def scene_outputs(datasets: Sequence[str], output: str) -> list[Path]:
 
 def fit_one(job: tuple[str, str], *, options: Any, overwrite: bool, progress: bool) -> str:
     """Fit one ``(dataset, output)`` pair; returns the scene path (a Ray task's function)."""
-    from .fitter import fit_capture
+    from ..fit.fitter import fit_capture
 
     dataset, output = job
     return str(fit_capture(dataset, output, options, overwrite=overwrite, progress=progress))

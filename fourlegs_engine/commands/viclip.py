@@ -26,9 +26,9 @@ def register(subparsers: Any) -> None:
 def run_info(args: argparse.Namespace) -> int:
     import torch
 
-    from ..encoders import CANONICAL_PHRASES
-    from .checkpoint import load_viclip, resolve_checkpoint_path, save_viclip
-    from .model import count_parameters
+    from ..language.encoders import CANONICAL_PHRASES
+    from ..language.viclip.checkpoint import load_viclip, resolve_checkpoint_path, save_viclip
+    from ..language.viclip.model import count_parameters
 
     path = resolve_checkpoint_path(args.checkpoint)
     model = load_viclip(path, size=args.size)
@@ -37,8 +37,8 @@ def run_info(args: argparse.Namespace) -> int:
           f"{config.num_frames} frames of {config.image_size}x{config.image_size}, text context "
           f"{config.context_length}, {config.embed_dim}-d joint space (strict load: all keys match)")
     if args.vocab:
-        from .encoder import ViCLIPEncoder
-        from .tokenizer import BPETokenizer
+        from ..language.viclip.encoder import ViCLIPEncoder
+        from ..language.viclip.tokenizer import BPETokenizer
         encoder = ViCLIPEncoder(model, BPETokenizer(args.vocab))
         emb = encoder.encode_text(list(CANONICAL_PHRASES))
         sims = (emb @ emb.T).tolist()

@@ -1,7 +1,7 @@
 """The ``fourlegs`` command.
 
-Each engine package contributes its sub-commands from a ``commands`` module with
-``register(subparsers)`` (and optionally ``register_bench(bench_subparsers)``). Other installed
+Each module of this package contributes a command family with ``register(subparsers)`` (and
+optionally ``register_bench(bench_subparsers)``). Other installed
 packages (the Blender add-on, the benchmarks) add theirs through the entry-point group
 ``fourlegs.commands`` (pyproject.toml), so the engine never imports them by name. Heavy imports happen
 inside the command functions so ``fourlegs --help`` stays fast. Errors from bad input print one line
@@ -18,16 +18,16 @@ from importlib.metadata import entry_points
 from types import ModuleType
 from typing import Iterator, Sequence
 
-from . import __version__
-from .errors import FourlegsError, describe_environment_error, print_error
+from .. import __version__
+from ..errors import FourlegsError, describe_environment_error, print_error
 
 COMMAND_MODULES = (
-    "fourlegs_engine.scene.commands",
-    "fourlegs_engine.language.commands",
-    "fourlegs_engine.language.viclip.commands",
-    "fourlegs_engine.query.commands",
-    "fourlegs_engine.highlights.commands",
-    "fourlegs_engine.fit.commands",
+    "fourlegs_engine.commands.scene",
+    "fourlegs_engine.commands.language",
+    "fourlegs_engine.commands.viclip",
+    "fourlegs_engine.commands.query",
+    "fourlegs_engine.commands.highlights",
+    "fourlegs_engine.commands.fit",
 )
 ENTRY_POINT_GROUP = "fourlegs.commands"
 

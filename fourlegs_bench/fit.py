@@ -109,7 +109,7 @@ def bench_fit(args: argparse.Namespace) -> int:
     from fourlegs_engine.errors import InputError
     from fourlegs_engine.fileio import read_json, write_json_atomic
     from fourlegs_engine.fit import Capture, FitOptions, fit_capture
-    from fourlegs_engine.fit.commands import parse_timesteps
+    from fourlegs_engine.commands.fit import parse_timesteps
     from fourlegs_engine.fit.evaluate import evaluate_test_views
     from fourlegs_engine.scene.bundle import is_bundle
 

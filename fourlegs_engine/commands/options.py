@@ -7,13 +7,37 @@ argparse stays here, at the edge: the library takes :class:`~fourlegs_engine.pip
 from __future__ import annotations
 
 import argparse
-from typing import Optional
+from typing import Callable, Optional
 
-from .errors import InputError
-from .highlight_job import DEFAULT_QUERY_PATH, DEFAULT_SPATIAL, VIDEO_FORMATS, HighlightJobOptions
-from .language.encoders import DTYPES, encoder_names
-from .pipeline import EncoderConfig
+from ..errors import InputError
+from ..validate import check_number
+from ..highlight_job import DEFAULT_QUERY_PATH, DEFAULT_SPATIAL, VIDEO_FORMATS, HighlightJobOptions
+from ..language.encoders import DTYPES, encoder_names
+from ..pipeline import EncoderConfig
 
+
+
+def bounded(kind: type, low: float | None = None, high: float | None = None, *,
+            low_open: bool = False) -> Callable[[str], float]:
+    """An argparse ``type=`` that parses ``kind`` (int or float) and enforces the range.
+
+    >>> bounded(float, 0, 8, low_open=True)("2.5")
+    2.5
+    """
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, "
+                                             f"got {text!r}") from None
+        try:
+            check_number(value, "", low=low, high=high, low_open=low_open, integer=kind is int)
+        except InputError as exc:
+            raise argparse.ArgumentTypeError(exc.problem) from None
+        return value
+
+    parse.__name__ = kind.__name__  # argparse names the type in its messages
+    return parse
 
 def add_encoder_arguments(parser: argparse.ArgumentParser, *, default: str = "viclip") -> None:
     """The encoder options shared by every command that encodes video or text."""
@@ -57,7 +81,7 @@ def _mask_pairs(specs: Optional[list[str]]) -> tuple[tuple[str, str], ...]:
     """``--masks`` values ("PHRASE=FOLDER") -> pairs; one clear line for a bad spec."""
     if not specs:
         return ()
-    from .language.annotations import mask_pairs
+    from ..language.annotations import mask_pairs
     return tuple(mask_pairs(specs))
 
 

@@ -292,4 +292,4 @@ def _bench_viclip(args: argparse.Namespace) -> int:
 def _bench_blender(args: argparse.Namespace) -> int:
     """Runs in a child process: Blender's bpy module never loads into the ``fourlegs`` process."""
     from . import blender
-    return subprocess.call([sys.executable, "-m", "benchmarks.blender", *blender.forward_argv(args)])
+    return subprocess.call([sys.executable, "-m", "fourlegs_bench.blender", *blender.forward_argv(args)])

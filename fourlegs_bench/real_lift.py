@@ -78,7 +78,7 @@ def score(scene: Any, phrase: str, masks: Path, held_out: list[Any], scale: floa
     import torch.nn.functional as F
     import torch
 
-    from benchmarks.metrics import average_precision, box_iou, mask_to_box
+    from fourlegs_bench.metrics import average_precision, box_iou, mask_to_box
     from fourlegs_engine.language.annotations import read_mask
     from fourlegs_engine.pipeline import QueryOptions, open_query_engine
 

@@ -37,8 +37,8 @@ IN_AIR_PHRASE = "the ball in the air"
 HOLDING_PHRASE = "a person holding the ball"
 #: a basketball's radius in metres (size 7: 0.749 m circumference)
 BALL_RADIUS_M = 0.119
-#: a hand's reach from the ball's surface: closer people Gaussians mean the ball is held
-DEFAULT_REACH_M = 0.25
+#: a hand's length from the ball's surface: more people Gaussians that close mean the ball is held
+DEFAULT_REACH_M = 0.15
 DEFAULT_MIN_PEOPLE_GAUSSIANS = 8
 #: the smallest ball mask (pixels) whose centroid is used for triangulation
 MIN_TRIANGULATION_PIXELS = 60

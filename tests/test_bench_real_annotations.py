@@ -128,7 +128,7 @@ def test_write_annotations_splits_the_ball_in_the_air_from_the_ball_held(tmp_pat
     cams = ring_cameras(6)
     person = np.array([0.0, -1.0, 0.0])
     ball_centres = [np.array([0.0, -1.0, 1.2]),                      # well away: in the air
-                    np.array([0.0, -1.0, 0.35 + BALL_RADIUS_M])]     # against the person: held
+                    np.array([0.0, -1.0, 0.2 + BALL_RADIUS_M])]      # against the person: held
     capture = write_tiny_capture(tmp_path / "cap", cams, ball_centres, person)
     rng = np.random.default_rng(0)
     person_pts = person + rng.normal(size=(300, 3)) * [0.12, 0.3, 0.12]

@@ -62,16 +62,16 @@ to = "end"
 #: per size: each step's sizes (what :mod:`.device_steps` reads) and its time cap in seconds
 PLANS: dict[str, dict[str, dict[str, Any]]] = {
     "full": {
-        "env": {"cap_s": 45},
-        "viclip": {"cap_s": 100, "size": "l", "dtypes": ["float32", "bfloat16", "float16"],
+        "env": {"cap_s": 30},
+        "viclip": {"cap_s": 75, "size": "l", "dtypes": ["float32", "bfloat16", "float16"],
                    "batches": {"float32": [16], "bfloat16": [16, 64, 256], "float16": [16, 64, 256]},
                    "repeats": 2, "reference_clips": 16, "camera": "1", "timestep": 12, "subsets": SUBSETS},
-        "raster_torch": {"cap_s": 75, "n": 300_000, "channels": 128, "resolutions": [[640, 360], [1920, 1080]],
+        "raster_torch": {"cap_s": 60, "n": 300_000, "channels": 128, "resolutions": [[640, 360], [1920, 1080]],
                          "outputs": ["rgb", "features"], "modes": ["forward", "backward"], "repeats": 3},
-        "main_job": {"cap_s": 100, "demo": "demo", "resolution": [640, 360], "preset": "broadcast", "query": QUERY},
+        "main_job": {"cap_s": 90, "demo": "demo", "resolution": [640, 360], "preset": "broadcast", "query": QUERY},
         "raster_gsplat": {"cap_s": 45, "n": 300_000, "channels": 128, "resolutions": [[640, 360], [1920, 1080]],
                           "outputs": ["rgb", "features"], "modes": ["forward", "backward"], "repeats": 5},
-        "cuda_tests": {"cap_s": 110, "per_test_timeout_s": 90},
+        "cuda_tests": {"cap_s": 90, "per_test_timeout_s": 75},
         "fit": {"cap_s": 170, "timesteps": 25, "resolution_scale": 1.0, "first_iterations": 2000, "iterations": 150,
                 "max_gaussians": 150_000, "init_background": 60_000, "min_first_iterations": 300,
                 "min_iterations": 30, "calibration_iterations": [60, 30], "evaluation_reserve_s": 40,
@@ -97,8 +97,8 @@ PLANS: dict[str, dict[str, dict[str, Any]]] = {
                 "options": {"voxel": 0.05, "init_foreground": 1000}},
     },
 }
-DEFAULT_BUDGET_S = {"full": 375.0, "toy": 900.0}
-DEFAULT_GSPLAT_WAIT_S = {"full": 210.0, "toy": 30.0}
+DEFAULT_BUDGET_S = {"full": 330.0, "toy": 900.0}
+DEFAULT_GSPLAT_WAIT_S = {"full": 170.0, "toy": 30.0}
 
 
 def register_bench(bench_sub: Any) -> None:
@@ -129,14 +129,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=None,
                    help="CPU threads of every step (OMP_NUM_THREADS; default: the libraries' choice)")
     p.add_argument("--budget", type=float, default=None,
-                   help="seconds for everything from --started (default: 375 full, 900 toy)")
+                   help="seconds for everything from --started (default: 330 full, 900 toy)")
     p.add_argument("--started", type=float, default=None, help="epoch seconds the run began (default: now)")
     p.add_argument("--work", default=None, help="scratch folder (default: a new temporary folder)")
     p.add_argument("--gsplat-status", default=None, help="status JSON of the background gsplat build")
     p.add_argument("--gsplat-site", default=None, help="folder holding the gsplat package (added once it is built)")
     p.add_argument("--gsplat-log", default=None, help="the gsplat build's log (its tail is copied to --out)")
     p.add_argument("--gsplat-wait", type=float, default=None,
-                   help="seconds after --started that steps needing gsplat wait for its build (default: 210 full)")
+                   help="seconds after --started that steps needing gsplat wait for its build (default: 170 full)")
 
 
 def run_device_cli(args: argparse.Namespace) -> int:

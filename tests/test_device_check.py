@@ -127,7 +127,7 @@ def test_the_dry_run_markdown_and_contact_sheet(dry_run):
     assert "Blender was not run" in md and "28.7 dB" in md
     with Image.open(out / "device_contact.png") as im:
         assert im.width >= 300 and im.height >= 100           # the fit strip above the main job's frames
-            colours = im.convert("L").getcolors(256)              # None: more than 256 grey levels
+        colours = im.convert("L").getcolors(256)               # None: more than 256 grey levels
         assert colours is None or len(colours) > 50            # real images, not an empty canvas
 
 

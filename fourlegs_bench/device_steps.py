@@ -202,7 +202,6 @@ def step_viclip(ctx: StepContext) -> None:
         t = min(int(plan["timestep"]), capture.num_timesteps - 1)
         layout = crop_layout(capture.width, capture.height, pyramid_ratios())
         keep = [i for _, i in sample_clips(layout, 1, reference_clips)]
-        start = time.perf_counter()
         tube, decoded = load_tube(capture, t, cam)
         decode_s = decoded["seconds"] / decoded["frames"]
         start = time.perf_counter()

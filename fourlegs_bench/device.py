@@ -118,8 +118,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", choices=tuple(PLANS), default="full", help="full (the device) or toy (CPU dry run)")
     p.add_argument("--out", default=None, help="report folder (default: $OUT, else a new temporary folder)")
     p.add_argument("--data", default=None,
-                   help="capture subset (default: .device_data when present; with --size toy a synthetic capture "
-                        "otherwise); 'synthetic' forces the synthetic one")
+                   help="capture subset (default: .device_data for --size full, a tiny synthetic capture for "
+                        "--size toy; 'synthetic' forces that one)")
     p.add_argument("--device", choices=("auto", "cuda", "cpu"), default="auto")
     p.add_argument("--steps", default=",".join(STEP_ORDER), help="comma-separated steps (default: all, in order)")
     p.add_argument("--cap", action="append", default=[], metavar="STEP=SECONDS", help="override a step's time cap")

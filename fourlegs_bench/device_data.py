@@ -177,7 +177,7 @@ def write_synthetic_capture(root: str | Path, *, timesteps: int = 4, width: int 
                 for cam in split_cams:
                     with torch.no_grad():
                         out = rasterize(f32(means), f32(np.tile([1.0, 0, 0, 0], (len(means), 1))),
-                                        f32(g["log_scales"]), torch.full((len(means),), 3.0, dtype=torch.float32),
+                                        f32(g["log_scales"]), torch.full((len(means),), 3.0),
                                         cam, colors=f32(g["colors"]), outputs=("rgb",),
                                         options=RasterOptions(tile_size="auto"))
                     image = (out["rgb"].clamp(0, 1).numpy() * 255).round().astype(np.uint8)
@@ -187,8 +187,8 @@ def write_synthetic_capture(root: str | Path, *, timesteps: int = 4, width: int 
                         fg = np.flatnonzero(g["fg"])
                         with torch.no_grad():
                             alpha = rasterize(f32(means[fg]), f32(np.tile([1.0, 0, 0, 0], (len(fg), 1))),
-                                              f32(g["log_scales"][fg]), torch.full((len(fg),), 3.0, dtype=torch.float32),
-                                              cam, colors=f32(g["colors"][fg]), outputs=("alpha",),
+                                              f32(g["log_scales"][fg]), torch.full((len(fg),), 3.0), cam,
+                                              colors=f32(g["colors"][fg]), outputs=("alpha",),
                                               options=RasterOptions(tile_size="auto"))["alpha"][..., 0].numpy()
                         (tmp / "seg" / cam.name).mkdir(parents=True, exist_ok=True)
                         Image.fromarray(((alpha > 0.5) * 255).astype(np.uint8)).save(

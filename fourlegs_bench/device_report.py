@@ -89,7 +89,8 @@ def _device_line(report: dict[str, Any]) -> str:
     parts = [f"**{name}**" + (f" ({env['memory_gib']} GiB, compute capability {env['capability']})"
                               if env.get("memory_gib") else ""),
              f"driver {env.get('driver') or '–'}", f"torch {env.get('torch')} (CUDA {env.get('torch_cuda') or '–'})",
-             f"nvcc: {env.get('nvcc') or 'not found'}", f"numpy {env.get('numpy')}", f"Python {env.get('python')}",
+             f"nvcc: {env.get('nvcc') or 'not found'}", f"ninja {env.get('ninja') or 'not found'}",
+             f"numpy {env.get('numpy')}", f"Python {env.get('python')}",
              f"{env.get('cpu_count')} CPU cores"]
     line = "Device: " + ", ".join(parts) + "."
     if env.get("missing"):
@@ -101,7 +102,9 @@ def _gsplat_line(build: dict[str, Any]) -> str:
     state = build.get("state", "not attempted")
     text = f"gsplat build: **{state}**"
     if build.get("seconds") is not None:
-        text += f" in {build['seconds']:.0f} s" + (" (reused a build from an earlier run)" if build.get("cached") else "")
+        text += f" in {build['seconds']:.0f} s"
+        if build.get("cached"):
+            text += " (reused a build from an earlier run)"
     if build.get("version"):
         text += f", gsplat {build['version']}"
     if build.get("arch"):
@@ -227,8 +230,8 @@ def _main_job_md(r: dict[str, Any]) -> list[str]:
 
 def _tests_md(r: dict[str, Any]) -> list[str]:
     counts = r.get("counts") or {}
-    out = [f"`{r.get('command', 'pytest -m cuda')}`: " + (", ".join(f"{v} {k}" for k, v in counts.items()) or "no summary")
-           + " (full output: cuda_tests.txt).", ""]
+    summary = ", ".join(f"{v} {k}" for k, v in counts.items()) or "no summary"
+    out = [f"`{r.get('command', 'pytest -m cuda')}`: {summary} (full output: cuda_tests.txt).", ""]
     tests = r.get("tests") or []
     if tests:
         out += ["| test | outcome | detail |", "|---|---|---|"]
@@ -259,7 +262,8 @@ def _fit_md(r: dict[str, Any]) -> list[str]:
         out += ["| test cameras | mean PSNR / SSIM | first timestep PSNR | last timestep PSNR | paper |",
                 "|---|---:|---:|---:|---:|",
                 f"| {', '.join(r.get('test_cameras') or [])} | **{_f(r['psnr_mean'], 4)} dB** / {_f(r['ssim_mean'])} | "
-                f"{_f(r['psnr_first_timestep'], 4)} dB | {_f(r['psnr_last_timestep'], 4)} dB | {r.get('paper_psnr')} dB |",
+                f"{_f(r['psnr_first_timestep'], 4)} dB | {_f(r['psnr_last_timestep'], 4)} dB | "
+                f"{r.get('paper_psnr')} dB |",
                 "", f"PSNR per test camera: {cams}. Gaussians: {_f(r.get('num_gaussians'))}.", ""]
     row = r.get("cpu_row")
     if row:

@@ -30,6 +30,8 @@ mkdir -p "$SITE" "$GSPLAT_SITE"
 exec > >(tee -a "$OUT/device_log.txt") 2>&1
 TEE_PID=$!
 
+# the interpreter's own bin folder first: torch's extension builder runs `ninja` (from the ninja wheel) by name
+export PATH="$("$PY" -c 'import os, sys; print(os.path.dirname(sys.executable))'):$PATH"
 export PYTHONUNBUFFERED=1
 export TQDM_MININTERVAL=${TQDM_MININTERVAL:-10}
 # a fixed folder: a rerun on the same machine reuses the compiled gsplat extension

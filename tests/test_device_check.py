@@ -19,7 +19,8 @@ from hypothesis import strategies as st
 from fourlegs_bench import device, device_gsplat
 from fourlegs_bench.device_data import build_device_data
 from fourlegs_bench.device_report import REPORT_FILES, STEP_TITLES
-from fourlegs_bench.device_steps import choose_fit_schedule, parse_pytest_output
+from fourlegs_bench.device_fit import choose_fit_schedule
+from fourlegs_bench.device_steps import parse_pytest_output
 from fourlegs_engine.errors import InputError, OutputExistsError
 
 REPO = Path(__file__).resolve().parents[1]

@@ -22,7 +22,7 @@ class _FitClock:
     def __call__(self, ev) -> None:
         if ev.kind == "iteration":
             self.iterations[ev.timestep] = ev.index
-            if ev.index % 50 == 0 and self.ctx.remaining() < self.reserve_s:
+            if self.ctx.remaining() < self.reserve_s:
                 raise _OutOfTime(f"timestep {ev.timestep}, iteration {ev.index}")
             return
         now = time.perf_counter()
@@ -41,41 +41,58 @@ class _OutOfTime(Exception):
 
 
 class _IterationClock:
-    """Fit progress callback of the calibration run: when each timestep's iterations ran."""
+    """Fit progress callback of the calibration run: when each timestep's iterations ran. Past
+    ``limit_s`` (and three first-timestep iterations, enough for a rate) it stops the run."""
 
-    def __init__(self):
+    def __init__(self, limit_s: float):
         self.start = time.perf_counter()
+        self.limit_s = limit_s
         self.stamps: dict[int, list[float]] = {}
         self.ends: dict[int, float] = {}
 
     def __call__(self, ev) -> None:
-        if ev.kind == "iteration":
-            self.stamps.setdefault(ev.timestep, []).append(time.perf_counter())
-        else:
-            self.ends[ev.timestep] = time.perf_counter()
+        now = time.perf_counter()
+        if ev.kind != "iteration":
+            self.ends[ev.timestep] = now
+            return
+        self.stamps.setdefault(ev.timestep, []).append(now)
+        if now - self.start > self.limit_s and len(self.stamps.get(0, [])) >= 3:
+            raise _OutOfTime(f"calibration stopped after {now - self.start:.0f} s")
 
-    def per_iteration(self, t: int) -> float:
+    def per_iteration(self, t: int) -> float | None:
         s = self.stamps.get(t, [])
-        return (s[-1] - s[0]) / (len(s) - 1) if len(s) > 1 else 0.0
+        return (s[-1] - s[0]) / (len(s) - 1) if len(s) > 1 else None
 
 
-def calibrate_fit(capture, opts, scratch: Path, iterations: tuple[int, int]) -> dict[str, float]:
+def calibrate_fit(capture, opts, scratch: Path, iterations: tuple[int, int], limit_s: float) -> dict[str, Any]:
     """Fit two timesteps with a few iterations and time the parts: the first timestep's set-up
     (frames, initial cloud), one first-timestep iteration, a later timestep's set-up and one of its
-    iterations, and the bundle written at the end."""
+    iterations, and the bundle written at the end. Stopped after ``limit_s``, the parts it did not
+    reach are guessed from the others (``complete`` is then False)."""
     from dataclasses import replace
 
     from fourlegs_engine.fit import fit_capture
 
-    clock = _IterationClock()
-    fit_capture(capture, scratch, replace(opts, timesteps=(0, 2), first_iterations=iterations[0],
-                                          iterations=iterations[1]), overwrite=True, progress=clock)
+    clock = _IterationClock(limit_s)
+    try:
+        fit_capture(capture, scratch, replace(opts, timesteps=(0, 2), first_iterations=iterations[0],
+                                              iterations=iterations[1]), overwrite=True, progress=clock)
+        complete = True
+    except _OutOfTime:
+        complete = False
     done = time.perf_counter()
-    t0, t1 = clock.stamps.get(0, [clock.start]), clock.stamps.get(1, [clock.ends.get(0, clock.start)])
-    first_it, later_it = clock.per_iteration(0), clock.per_iteration(1)
-    return {"setup_s": t0[0] - clock.start - first_it, "first_iteration_s": first_it,
-            "later_setup_s": max(0.0, t1[0] - clock.ends.get(0, t1[0]) - later_it), "later_iteration_s": later_it,
-            "finish_s": max(0.0, done - clock.ends.get(1, done)), "seconds": done - clock.start}
+    first_it = clock.per_iteration(0) or 0.0
+    setup = clock.stamps.get(0, [done])[0] - clock.start - first_it
+    later_it = clock.per_iteration(1)
+    t1 = clock.stamps.get(1)
+    later_setup = max(0.0, t1[0] - clock.ends[0] - (later_it or 0.0)) if t1 and 0 in clock.ends else None
+    return {"setup_s": setup, "first_iteration_s": first_it,
+            # not reached: a later iteration costs about a first one; a later set-up reads one timestep's
+            # frames (a fifth of the first set-up, which also builds the initial cloud); the bundle a tenth
+            "later_iteration_s": later_it if later_it is not None else first_it,
+            "later_setup_s": later_setup if later_setup is not None else 0.2 * setup,
+            "finish_s": max(0.0, done - clock.ends[1]) if complete and 1 in clock.ends else 0.1 * setup,
+            "seconds": done - clock.start, "complete": complete}
 
 
 def choose_fit_schedule(plan: dict[str, Any], timing: dict[str, float], budget_s: float, timesteps: int,
@@ -127,9 +144,11 @@ def step_fit(ctx: StepContext) -> None:
                resolution=[round(capture.width * opts.resolution_scale), round(capture.height * opts.resolution_scale)],
                planned={"first_iterations": opts.first_iterations, "iterations": opts.iterations, "timesteps": steps})
     reserve = float(plan["evaluation_reserve_s"])
-    timing = calibrate_fit(capture, opts, ctx.work / "calibration", tuple(plan["calibration_iterations"]))
+    timing = calibrate_fit(capture, opts, ctx.work / "calibration", tuple(plan["calibration_iterations"]),
+                           limit_s=0.3 * (ctx.remaining() - reserve))
     schedule = choose_fit_schedule(plan, timing, ctx.remaining() - reserve, steps)
-    ctx.record(calibration={k: round(v, 4) for k, v in timing.items()}, schedule=schedule)
+    ctx.record(calibration={k: round(v, 4) if isinstance(v, float) else v for k, v in timing.items()},
+               schedule=schedule)
     steps = schedule["timesteps"]
     opts = replace(opts, timesteps=(0, steps), first_iterations=schedule["first_iterations"],
                    iterations=schedule["iterations"])

@@ -17,9 +17,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from fourlegs_bench import device, device_gsplat
-from fourlegs_bench.device_data import build_device_data
+from fourlegs_bench.device_data import build_device_data, write_synthetic_capture
 from fourlegs_bench.device_report import REPORT_FILES, STEP_TITLES
-from fourlegs_bench.device_fit import choose_fit_schedule
+from fourlegs_bench.device_fit import calibrate_fit, choose_fit_schedule
 from fourlegs_bench.device_steps import parse_pytest_output
 from fourlegs_engine.errors import InputError, OutputExistsError
 
@@ -232,6 +232,22 @@ def test_a_plan_that_fits_is_run_as_planned():
     assert s["estimated_s"] <= 200.0
     s = choose_fit_schedule(plan, slow, budget_s=120.0, timesteps=25)     # at the minimums: fewer timesteps
     assert (s["first_iterations"], s["iterations"]) == (300, 30) and s["timesteps"] < 25 and s["estimated_s"] <= 120
+
+
+def test_a_calibration_over_its_time_is_stopped_and_its_missing_parts_estimated(tmp_path):
+    from fourlegs_engine.fit import Capture, FitOptions
+    from fourlegs_engine.threads import torch_threads
+
+    capture = Capture(write_synthetic_capture(tmp_path / "capture", timesteps=2))
+    opts = FitOptions(resolution_scale=1.0, max_gaussians=3000, init_background=400, init_foreground=1000,
+                      voxel=0.05, device="cpu")
+    with torch_threads(1):
+        timing = calibrate_fit(capture, opts, tmp_path / "calibration", (50, 10), limit_s=0.0)
+    assert timing["complete"] is False and timing["setup_s"] > 0 and timing["first_iteration_s"] > 0
+    assert timing["later_iteration_s"] == timing["first_iteration_s"]       # no later timestep was reached
+    assert timing["later_setup_s"] == pytest.approx(0.2 * timing["setup_s"])
+    # stopped at its third iteration of 50
+    assert timing["seconds"] < timing["setup_s"] + 10 * timing["first_iteration_s"]
 
 
 # ------------------------------------------------------------------------------------------- pytest output

@@ -97,8 +97,8 @@ PLANS: dict[str, dict[str, dict[str, Any]]] = {
                 "options": {"voxel": 0.05, "init_foreground": 1000}},
     },
 }
-DEFAULT_BUDGET_S = {"full": 330.0, "toy": 900.0}
-DEFAULT_GSPLAT_WAIT_S = {"full": 170.0, "toy": 30.0}
+DEFAULT_BUDGET_S = {"full": 360.0, "toy": 900.0}
+DEFAULT_GSPLAT_WAIT_S = {"full": 200.0, "toy": 30.0}
 
 
 def register_bench(bench_sub: Any) -> None:
@@ -129,14 +129,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=None,
                    help="CPU threads of every step (OMP_NUM_THREADS; default: the libraries' choice)")
     p.add_argument("--budget", type=float, default=None,
-                   help="seconds for everything from --started (default: 330 full, 900 toy)")
+                   help="seconds for everything from --started (default: 360 full, 900 toy)")
     p.add_argument("--started", type=float, default=None, help="epoch seconds the run began (default: now)")
     p.add_argument("--work", default=None, help="scratch folder (default: a new temporary folder)")
     p.add_argument("--gsplat-status", default=None, help="status JSON of the background gsplat build")
     p.add_argument("--gsplat-site", default=None, help="folder holding the gsplat package (added once it is built)")
     p.add_argument("--gsplat-log", default=None, help="the gsplat build's log (its tail is copied to --out)")
     p.add_argument("--gsplat-wait", type=float, default=None,
-                   help="seconds after --started that steps needing gsplat wait for its build (default: 170 full)")
+                   help="seconds after --started that steps needing gsplat wait for its build (default: 200 full)")
 
 
 def run_device_cli(args: argparse.Namespace) -> int:

@@ -6,14 +6,14 @@
 #
 # 1. installs the carried wheels (.whl/*.whl) with pip --no-index --no-deps: gsplat into a folder of its
 #    own, the rest (plyfile, ...) into another; the project itself runs from this checkout (PYTHONPATH);
-# 2. starts gsplat's CUDA build in the background, under its own cap (GSPLAT_BUILD_CAP, default 240 s);
+# 2. starts gsplat's CUDA build in the background, under its own cap (GSPLAT_BUILD_CAP, default 300 s);
 # 3. runs `python -m fourlegs_bench.device` (= `fourlegs bench device`) with the remaining arguments:
 #    every step in its own process under its own cap, the report rewritten after every step.
 #
 # Writes into $OUT (a new temporary folder when OUT is unset): device_report.json, device_report.md,
 # device_contact.png, cuda_tests.txt, gsplat_build.txt and device_log.txt (this script's output).
 # Prepare beforehand (on a machine with network): the wheels and the capture subset, see
-# docs/benchmarks.md ("GPU"). Environment: PYTHON (default python3), GSPLAT_BUILD_CAP, MAX_JOBS.
+# docs/device_check.md. Environment: PYTHON (default python3), GSPLAT_BUILD_CAP, MAX_JOBS.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 STARTED=$(date +%s)
@@ -60,8 +60,8 @@ fi
 ln -sfn "$PWD/addon" "$SITE/fourlegs_addon"     # the package name the add-on installs as
 echo "[device_check] wheels installed after $(( $(date +%s) - STARTED )) s"
 
-MAX_JOBS=${MAX_JOBS:-12} "$PY" -m fourlegs_bench.device_gsplat build --site "$GSPLAT_SITE" \
-    --status "$WORK/gsplat_build.json" --log "$WORK/gsplat_build.txt" --cap "${GSPLAT_BUILD_CAP:-240}" &
+MAX_JOBS=${MAX_JOBS:-16} "$PY" -m fourlegs_bench.device_gsplat build --site "$GSPLAT_SITE" \
+    --status "$WORK/gsplat_build.json" --log "$WORK/gsplat_build.txt" --cap "${GSPLAT_BUILD_CAP:-300}" &
 BUILD_PID=$!
 
 "$PY" -m fourlegs_bench.device --out "$OUT" --work "$WORK" --started "$STARTED" \

@@ -132,6 +132,28 @@ def test_the_dry_run_markdown_and_contact_sheet(dry_run):
         assert colours is None or len(colours) > 50            # real images, not an empty canvas
 
 
+def test_the_gpu_section_names_the_device_and_sets_1080p_beside_gsplats_published_figure(dry_run):
+    """The branches only a CUDA run reaches (device name, gsplat built, 1920x1080 rows), on the dry run's report
+    with those parts as a GPU run would fill them."""
+    from fourlegs_bench.device_report import markdown
+
+    report = json.loads(json.dumps(dry_run["report"]))
+    report["device"] = "cuda"
+    report["steps"]["env"].update(device_name="NVIDIA H100 80GB HBM3", memory_gib=79.2, capability="9.0",
+                                  driver="580.1", torch_cuda="13.0")
+    report["gsplat_build"] = {"state": "ok", "seconds": 151.0, "version": "1.5.3", "arch": "9.0 (the visible GPU)"}
+    rows = [{"width": w, "height": h, "output": o, "mode": m, "ms_median": ms, "fps": 1000 / ms, "timed_runs": 5,
+             "peak_mb": 900.0} for (w, h), ms in (((640, 360), 2.0), ((1920, 1080), 4.0))
+            for o in ("rgb", "features") for m in ("forward", "backward")]
+    report["steps"]["raster_gsplat"] = {"status": "ok", "seconds": 9.0, "cap_s": 45, "backend": "gsplat",
+                                        "device": "cuda", "n": 300000, "channels": 128, "rows": rows,
+                                        "gsplat_published_fps_1080p": 160.0}
+    md = markdown(report)
+    assert md.startswith("## GPU (NVIDIA H100 80GB HBM3)")
+    assert "compute capability 9.0" in md and "gsplat build: **ok** in 151 s, gsplat 1.5.3" in md
+    assert "RGB forward at 1920×1080: **250 FPS**, against gsplat's published 160 FPS" in md
+
+
 def test_a_step_over_its_cap_is_timed_out_and_the_next_step_still_runs(tmp_path):
     start = time.perf_counter()
     code = device.main(_device_args(tmp_path, "--steps", "env,raster_torch", "--cap", "env=1"))

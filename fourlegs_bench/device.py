@@ -29,7 +29,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from fourlegs_engine.errors import InputError
 
@@ -251,9 +251,22 @@ def _child_env(gsplat: dict[str, Any], site: str | None, threads: int | None) ->
     return env
 
 
-def run_step(name: str, config: dict[str, Any], work: Path, cap: float, env: dict[str, str]) -> dict[str, Any]:
+#: seconds between two reports while a step runs (a run stopped from outside keeps the step's rows so far)
+PROGRESS_EVERY_S = 15.0
+
+
+def _read_result(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+
+
+def run_step(name: str, config: dict[str, Any], work: Path, cap: float, env: dict[str, str],
+             progress: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
     """Run one step in its own process group, killed at ``cap`` seconds. Returns its result dict with
-    ``status`` ("ok", "failed: …", "skipped: …", "timed out after N s") and ``seconds``."""
+    ``status`` ("ok", "failed: …", "skipped: …", "timed out after N s") and ``seconds``; while it runs,
+    ``progress`` receives what it has measured so far (status "running") every :data:`PROGRESS_EVERY_S`."""
     from fourlegs_engine.fileio import write_json_atomic
 
     config_path, result_path = work / f"{name}.config.json", work / f"{name}.result.json"
@@ -263,17 +276,22 @@ def run_step(name: str, config: dict[str, Any], work: Path, cap: float, env: dic
     start = time.perf_counter()
     proc = subprocess.Popen([sys.executable, "-m", "fourlegs_bench.device_steps", name, str(config_path),
                              str(result_path)], env=env, start_new_session=True)
-    try:
-        code = proc.wait(timeout=cap)
-        timed_out = False
-    except subprocess.TimeoutExpired:
-        _kill_group(proc)
-        code, timed_out = None, True
+    code, timed_out = None, False
+    while code is None:
+        left = cap - (time.perf_counter() - start)
+        if left <= 0:
+            _kill_group(proc)
+            timed_out = True
+            break
+        try:
+            code = proc.wait(timeout=min(PROGRESS_EVERY_S, left))
+        except subprocess.TimeoutExpired:
+            if progress is not None:
+                elapsed = time.perf_counter() - start
+                progress({**_read_result(result_path), "status": f"running ({elapsed:.0f} s of its {cap:.0f} s cap)",
+                          "seconds": round(elapsed, 2), "cap_s": round(cap, 1)})
     seconds = time.perf_counter() - start
-    try:
-        result = json.loads(result_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        result = {}
+    result = _read_result(result_path)
     if timed_out:
         status = f"timed out after {cap:.0f} s (its cap)"
     elif code == 0:
@@ -349,7 +367,12 @@ def run_device_check(args: argparse.Namespace) -> dict[str, Any]:
             cap = min(cap, deadline - time.time() - REPORT_RESERVE_S)
         report["gsplat_build"] = state
         config = {"size": args.size, "device": device, "data": data, "work": str(work), "plan": plans[name]}
-        result = run_step(name, config, work, max(cap, 1.0), _child_env(state, gsplat.site, args.threads))
+        def progress(partial: dict[str, Any], name: str = name) -> None:
+            report["steps"][name] = partial
+            report["gsplat_build"] = gsplat.state()
+            publish(report, out, work, gsplat.log)
+
+        result = run_step(name, config, work, max(cap, 1.0), _child_env(state, gsplat.site, args.threads), progress)
         result["gsplat_at_start"] = state["state"]
         report["steps"][name] = result
         report["gsplat_build"] = gsplat.state()

@@ -166,6 +166,19 @@ def test_a_step_over_its_cap_is_timed_out_and_the_next_step_still_runs(tmp_path)
     assert "timed out after 1 s" in (tmp_path / "out" / "device_report.md").read_text()
 
 
+def test_a_running_step_publishes_what_it_has_measured_so_far(tmp_path, monkeypatch):
+    monkeypatch.setattr(device, "PROGRESS_EVERY_S", 0.3)
+    partials = []
+    config = {"size": "toy", "device": "cpu", "data": None, "work": str(tmp_path),
+              "plan": device.PLANS["toy"]["raster_torch"]}
+    result = device.run_step("raster_torch", config, tmp_path, cap=120, env={**os.environ, "OMP_NUM_THREADS": "1"},
+                             progress=partials.append)
+    assert result["status"] == "ok" and len(result["rows"]) == 8
+    assert partials and all(p["status"].startswith("running (") for p in partials)
+    assert [p["seconds"] for p in partials] == sorted(p["seconds"] for p in partials)
+    assert any(0 < len(p.get("rows", [])) < 8 for p in partials)     # rows arrive while the step runs
+
+
 def test_steps_past_the_budget_are_skipped_and_said_so(tmp_path):
     code = device.main(_device_args(tmp_path, "--steps", "env,fit", "--budget", "3"))
     report = json.loads((tmp_path / "out" / "device_report.json").read_text())

@@ -27,7 +27,6 @@ from typing import Any, Callable, ContextManager, Optional
 from . import pipeline
 from .errors import InputError, OutputExistsError
 from .fileio import OUTPUTS_MARKER, claim_outputs, write_json_atomic
-from .highlights import load_preset, plan_highlight, plan_needs
 from .validate import check_text
 
 __all__ = ["DEFAULT_QUERY_PATH", "DEFAULT_SPATIAL", "DEMO_RESOLUTION", "HighlightJob", "HighlightJobOptions",
@@ -151,6 +150,7 @@ def prepare_highlight_job(options: HighlightJobOptions,
     ``stage`` times each step (a :class:`StageTimer`). OutputExistsError before any work if a finished
     job's outputs (or foreign files of the same names) are there and ``options.overwrite`` is false.
     """
+    from .highlights import load_preset, plan_highlight, plan_needs
     from .query.plots import write_scores_plot
 
     out = job_outputs(options.output, options.format)

@@ -16,7 +16,7 @@ REPO = Path(__file__).resolve().parents[1]
 ENGINE = REPO / "fourlegs_engine"
 #: engine packages in data-flow order; a module may import its own layer and the ones before it; the
 #: command line (``commands``) is the last layer and the only one that may use argparse
-LAYERS = {"errors": 0, "fileio": 0, "paths": 0, "threads": 0, "validate": 0, "scene": 1, "render": 2, "fit": 3,
+LAYERS = {"errors": 0, "fileio": 0, "lazy": 0, "paths": 0, "threads": 0, "validate": 0, "scene": 1, "render": 2, "fit": 3,
           "language": 3, "cluster": 3, "query": 4, "highlights": 5, "pipeline": 6, "highlight_job": 7, "api": 7,
           "commands": 8}
 FORBIDDEN = ("fourlegs_bench", "fourlegs_addon", "bpy")
@@ -161,3 +161,39 @@ def test_every_name_in_the_contracts_is_exported(module, name):
     mod = importlib.import_module(module)
     assert hasattr(mod, name), f"{module}.{name}"
     assert name in getattr(mod, "__all__", ()), f"{name} missing from {module}.__all__"
+
+
+TORCH_PROBE = ("import json, sys\n"
+               "from fourlegs_engine.commands.main import main\n"
+               "try:\n"
+               "    code = main(sys.argv[1:])\n"
+               "except SystemExit as exc:\n"
+               "    code = exc.code\n"
+               "print(json.dumps({'code': code, 'torch': 'torch' in sys.modules}))\n")
+
+
+def _command_modules_loaded(argv: list[str], tmp_path: Path) -> dict:
+    """Run ``fourlegs ARGV`` in a fresh interpreter: its exit code and whether torch got imported."""
+    proc = subprocess.run([sys.executable, "-c", TORCH_PROBE, *argv], capture_output=True, text=True, cwd=tmp_path,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["info", "--help"], ["highlight", "--help"], ["query", "--help"]])
+def test_help_imports_no_torch(argv, tmp_path):
+    assert _command_modules_loaded(argv, tmp_path) == {"code": 0, "torch": False}
+
+
+def test_info_of_a_ply_imports_no_torch(tmp_path):
+    """`fourlegs info` of a scene on disk reads numpy arrays; torch would only cost seconds of start-up."""
+    import numpy as np
+
+    from fourlegs_engine.scene.ply import read_ply_splats, write_ply_splats
+
+    rng = np.random.default_rng(0)
+    n = 7
+    path = write_ply_splats(tmp_path / "splats.ply", rng.normal(size=(n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)),
+                            np.full((n, 3), -2.0), np.zeros(n), rng.uniform(size=(n, 1, 3)))
+    assert read_ply_splats(path).means.shape == (n, 3)
+    assert _command_modules_loaded(["info", str(path), "--json"], tmp_path) == {"code": 0, "torch": False}

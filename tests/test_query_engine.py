@@ -6,7 +6,7 @@ import pytest
 
 from fourlegs_engine.errors import InputError
 from fourlegs_engine.query.engine import QueryEngine, QueryOptions
-from fourlegs_engine.query.relevancy import relevancy_reference
+from fourlegs_engine.query.lerf import relevancy_reference
 from fourlegs_engine.query.temporal import localize_relevancy
 
 from _query_helpers import CANON, two_cluster_scene

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from fourlegs_engine.language.autoencoder import FeatureDecoder
 from fourlegs_engine.query.engine import QueryEngine, QueryOptions
 from fourlegs_engine.query.head import RelevancyHead
-from fourlegs_engine.query.relevancy import l2_normalize, relevancy_reference
+from fourlegs_engine.query.lerf import l2_normalize, relevancy_reference
 
 from _query_helpers import CANON, two_cluster_scene
 

@@ -14,7 +14,7 @@ from fourlegs_engine.scene.synthetic import LABELS, QUERIES, generate_scene
 from fourlegs_engine.language.encoders import CANONICAL_PHRASES, get_encoder
 from fourlegs_engine.language.simulated import (EMBED_DIM, SimulatedTextEncoder, SimulatedVideoEncoder,
                                                 label_coverage_tube, lemmatize, render_label_coverage)
-from fourlegs_engine.query.relevancy import relevancy_reference
+from fourlegs_engine.query.lerf import relevancy_reference
 
 TEXT = SimulatedTextEncoder()
 BACKGROUND = ["floor", "wall", "wooden box", "bench"]

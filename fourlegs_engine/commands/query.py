@@ -8,7 +8,7 @@ from typing import Any
 
 def register(subparsers: Any) -> None:
     from .options import bounded
-    from ..query.engine import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_TIMESTEP_ARGUMENT
+    from ..query.options import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_TIMESTEP_ARGUMENT
 
     p = subparsers.add_parser(
         "query", help="when and where a text query happens in a scene (segment, peak, maps)",

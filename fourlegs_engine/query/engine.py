@@ -37,8 +37,8 @@ from ..validate import check_number
 from . import spatial, viewpoint
 from .codebook import Codebook, ensure_codebook
 from .head import RelevancyHead
-from .options import QueryOptions
-from .relevancy import (as_tensor, l2_normalize, reference_set, relevancy, relevancy_many,
+from .options import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_TIMESTEP_ARGUMENT, QueryOptions
+from .lerf import (as_tensor, l2_normalize, reference_set, relevancy, relevancy_many,
                         relevancy_of_unit_features)
 from .rows import RowReader
 from .results import CentreResult, Localization, TemporalResult, ViewResult
@@ -48,9 +48,6 @@ from .temporal import (RELEVANT, counts_from_code_histogram, counts_from_codes_r
 __all__ = ["QueryEngine", "QueryOptions", "TemporalResult", "Localization", "ViewResult", "CentreResult"]
 
 NEEDS = frozenset({"temporal", "best_view", "action_centre"})
-MAX_CODEBOOK_SIZE = 1 << 20
-MAX_RESOLUTION_SCALE = 8.0  # of the camera resolution; Camera.scaled also bounds the image size
-MAX_TIMESTEP_ARGUMENT = 1 << 20  # strides and dilation radii beyond any scene's length
 GAUSSIAN_CACHE_SIZE = 16  # per-Gaussian relevancy vectors (query, t) kept for reuse
 TEMPORAL_SCORE_BYTES = 512 << 20  # exact temporal scores (T·N float32 per query) kept for per-frame reuse
 TEMPORAL_STREAMS = 2  # timesteps scored concurrently on the exact temporal path (CPU)

@@ -15,14 +15,14 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from .errors import (Cancelled, FourlegsError, InputError, OutputExistsError, describe_environment_error,
-                     print_error)
+                     exit_code_of, print_error)
 from .lazy import lazy_exports
 
 # name -> engine module it lives in. They are imported on first use, so a front end that only opens and
 # shows a scene (the Blender add-on's import and timeline playback) runs without PyTorch installed.
 _LAZY = {
     **{name: "errors" for name in ("Cancelled", "FourlegsError", "InputError", "OutputExistsError",
-                                   "describe_environment_error", "print_error")},
+                                   "describe_environment_error", "exit_code_of", "print_error")},
     "atomic_path": "fileio", "write_json_atomic": "fileio", "OUTPUTS_MARKER": "fileio", "claim_outputs": "fileio",
     "image_file_problem": "fileio", "incomplete_write_error": "fileio",
     "check_text": "validate",

@@ -27,6 +27,7 @@ from typing import Any, Callable, ContextManager, Optional
 from . import pipeline
 from .errors import InputError, OutputExistsError
 from .fileio import OUTPUTS_MARKER, claim_outputs, write_json_atomic
+from .options_json import options_from_dict, options_to_dict
 from .validate import check_text
 
 __all__ = ["DEFAULT_QUERY_PATH", "DEFAULT_SPATIAL", "DEMO_RESOLUTION", "HighlightJob", "HighlightJobOptions",
@@ -82,6 +83,20 @@ class HighlightJobOptions:
     spatial: str = DEFAULT_SPATIAL
     encoder: pipeline.EncoderConfig = field(default_factory=pipeline.EncoderConfig)
     render_threads: Optional[int] = 1
+
+    def to_json(self) -> str:
+        """Every field as JSON: how ``fourlegs highlight`` hands the job to its Blender child."""
+        return json.dumps(options_to_dict(self), indent=1)
+
+    @classmethod
+    def from_json(cls, text: str, *, file: Optional[str | Path] = None) -> "HighlightJobOptions":
+        """The options :meth:`to_json` wrote; InputError naming ``file`` and the field for malformed JSON,
+        an unknown field or a value of the wrong type."""
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise InputError(f"not valid JSON ({exc})", file=file) from None
+        return options_from_dict(cls, data, file=file)
 
 
 class StageTimer:

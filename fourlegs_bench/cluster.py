@@ -239,7 +239,7 @@ def measure(source: Path, timesteps: str, workers: int, chunk: int | None, share
                                       stage="warm-up", progress=False)
             warm.raise_failures()
             lat = []
-            remote = ray.remote(cluster._run_task).options(num_cpus=1)
+            remote = ray.remote(cluster.run_task).options(num_cpus=1)
             for _ in range(20):
                 s = time.perf_counter()
                 ray.get(remote.remote(_noop, None, (), None))

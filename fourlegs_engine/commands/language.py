@@ -11,11 +11,15 @@ import functools
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable
 
-from ..cluster import add_ray_arguments
 from ..errors import InputError
+from .options import add_ray_arguments, ray_options_from_args
 
+if TYPE_CHECKING:
+    from ..language.distill import DistillConfig, DistillResult
+    from ..language.extract import ExtractConfig, ExtractReport
+    from ..scene.scene import Scene
 
 
 # ------------------------------------------------------------------------------------ parsers
@@ -210,8 +214,7 @@ def run_extract(args: argparse.Namespace) -> int:
     config = ExtractConfig(ratios=_ratios(args.ratios, args.steps), crop_size=_crop_size(args.crop_size),
                            batch_size=args.batch_size, frame_scale=args.frame_scale)
     if args.ray is not None:
-        from ..cluster import cli_extract
-        report = cli_extract(args, scene, functools.partial(_encoder, args), config, timesteps=args.timesteps,
+        report = extract_with_ray(args, scene, functools.partial(_encoder, args), config, timesteps=args.timesteps,
                              shard=args.shard)
     else:
         encoder = _encoder(args, scene)
@@ -250,8 +253,7 @@ def run_distill(args: argparse.Namespace) -> int:
             report["merged_into"] = result.latents
         return _print_check(report)
     if args.ray is not None:
-        from ..cluster import cli_distill
-        result = cli_distill(args, scene, _distill_config(args), timesteps=args.timesteps, shard=args.shard)
+        result = distill_with_ray(args, scene, _distill_config(args), timesteps=args.timesteps, shard=args.shard)
     else:
         result = distill_scene(scene, config=_distill_config(args), timesteps=args.timesteps, shard=args.shard,
                                overwrite=args.overwrite, progress=not args.no_progress)
@@ -276,8 +278,7 @@ def run_language(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     encoder = _encoder(args, scene)
     if args.ray is not None:
-        from ..cluster import cli_extract
-        rep = cli_extract(args, scene, functools.partial(_encoder, args), ExtractConfig(frame_scale=args.frame_scale))
+        rep = extract_with_ray(args, scene, functools.partial(_encoder, args), ExtractConfig(frame_scale=args.frame_scale))
     else:
         rep = extract_features(scene, encoder, ExtractConfig(frame_scale=args.frame_scale),
                                overwrite=args.overwrite, progress=progress)
@@ -286,11 +287,33 @@ def run_language(args: argparse.Namespace) -> int:
     ae = train_autoencoder(scene, _ae_config(args), overwrite=args.overwrite, progress=progress)
     t2 = time.perf_counter()
     if args.ray is not None:
-        from ..cluster import cli_distill
-        result = cli_distill(args, scene, _distill_config(args))
+        result = distill_with_ray(args, scene, _distill_config(args))
     else:
         result = distill_scene(scene, config=_distill_config(args), overwrite=args.overwrite, progress=progress)
     t3 = time.perf_counter()
     print(f"language: extract {t1 - t0:.1f} s ({len(rep.timesteps_done)} new), train-ae {t2 - t1:.1f} s "
           f"(held-out cosine {ae.get('heldout_cosine')}), distill {t3 - t2:.1f} s; latents: {result.latents}")
     return 0
+
+
+def extract_with_ray(args: argparse.Namespace, scene: "Scene", encoder_factory: Callable[["Scene"], Any],
+                config: "ExtractConfig", *, timesteps: Any = None, shard: Any = None) -> "ExtractReport":
+    """``fourlegs extract|language --ray``: extraction on the cluster; prints a one-line task summary."""
+    from ..cluster.stages import extract_on_ray as run_on_ray
+
+    report, tasks = run_on_ray(scene, encoder_factory, config, timesteps=timesteps, shard=shard,
+                               overwrite=args.overwrite, progress=not args.no_progress,
+                               options=ray_options_from_args(args), device=getattr(args, "device", None))
+    print(tasks.summary(), flush=True)
+    return report
+
+
+def distill_with_ray(args: argparse.Namespace, scene: "Scene", config: "DistillConfig", *, timesteps: Any = None,
+                shard: Any = None) -> "DistillResult":
+    """``fourlegs distill|language --ray``: distillation on the cluster, merged when complete."""
+    from ..cluster.stages import distill_on_ray as run_on_ray
+
+    result, tasks = run_on_ray(scene, config, timesteps=timesteps, shard=shard, overwrite=args.overwrite,
+                               progress=not args.no_progress, options=ray_options_from_args(args))
+    print(tasks.summary(), flush=True)
+    return result

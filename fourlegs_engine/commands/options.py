@@ -7,14 +7,15 @@ argparse stays here, at the edge: the library takes :class:`~fourlegs_engine.pip
 from __future__ import annotations
 
 import argparse
-from typing import Callable, Optional
+from pathlib import Path
+from typing import Any, Callable, Optional
 
+from ..cluster.runner import DEFAULT_RETRIES, INSTALL_HINT, RayOptions
 from ..errors import InputError
 from ..validate import check_number
 from ..highlight_job import DEFAULT_QUERY_PATH, DEFAULT_SPATIAL, VIDEO_FORMATS, HighlightJobOptions
 from ..language.encoders import DTYPES, encoder_names
 from ..pipeline import EncoderConfig
-
 
 
 def bounded(kind: type, low: float | None = None, high: float | None = None, *,
@@ -38,6 +39,7 @@ def bounded(kind: type, low: float | None = None, high: float | None = None, *,
 
     parse.__name__ = kind.__name__  # argparse names the type in its messages
     return parse
+
 
 def add_encoder_arguments(parser: argparse.ArgumentParser, *, default: str = "viclip") -> None:
     """The encoder options shared by every command that encodes video or text."""
@@ -139,3 +141,48 @@ def highlight_job_options(args: argparse.Namespace) -> HighlightJobOptions:
         preset=args.preset, overwrite=args.overwrite, resolution=parse_resolution(args.resolution, even=True),
         fps=args.fps, format=args.format, no_effect=tuple(args.no_effect), query_path=args.query_path,
         spatial=args.spatial, encoder=encoder_config_from_args(args), render_threads=args.render_threads or None)
+
+
+# ----------------------------------------------------------------------------------- --ray
+class _RayAddress(argparse.Action):
+    """``--ray [ADDRESS]``; in ``--ray BUNDLE`` (the optional value swallowed the scene argument) the
+    value is a scene bundle, not an address: it becomes the scene and the cluster a local one."""
+
+    def __call__(self, parser: Any, namespace: argparse.Namespace, values: Any, option_string: Any = None) -> None:
+        if (values not in (None, "local", "auto") and getattr(namespace, "scene", None) is None
+                and (Path(values) / "scene.json").is_file()):
+            parser.set_defaults(scene=values)   # the scene positional, matched empty afterwards, takes it
+            namespace.scene, values = values, "local"
+        setattr(namespace, self.dest, values)
+
+
+def add_ray_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--ray [ADDRESS]`` and its task options (shared by extract, distill and language)."""
+    g = parser.add_argument_group("cluster (Ray; needs " + INSTALL_HINT + ")")
+    g.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS", action=_RayAddress,
+                   help="run the stage as Ray tasks: on a local cluster (no ADDRESS) or the cluster at "
+                        "ADDRESS (auto, HOST:6379, ray://HOST:10001)")
+    g.add_argument("--ray-cpus", type=float, default=1.0, help="CPUs each task declares (default 1)")
+    g.add_argument("--ray-gpus", type=float, default=None,
+                   help="GPUs each task declares (default 1 with a CUDA encoder device, else 0)")
+    g.add_argument("--ray-retries", type=int, default=DEFAULT_RETRIES,
+                   help=f"retries of a failed task (default {DEFAULT_RETRIES})")
+    g.add_argument("--ray-chunk", type=int, default=None,
+                   help="timesteps per task (default: distillation 1; extraction 1 with RGB encoders such as "
+                        "ViCLIP, one run per worker with label encoders, whose cost is rendering)")
+    g.add_argument("--ray-no-shared-fs", action="store_true",
+                   help="the bundle is not on a filesystem every node sees: ship inputs and results "
+                        "through Ray's object store (the driver writes the files)")
+
+
+def ray_options_from_args(args: argparse.Namespace) -> RayOptions:
+    """The :class:`~fourlegs_engine.cluster.RayOptions` of the options :func:`add_ray_arguments` defined."""
+    address = getattr(args, "ray", None)
+    return RayOptions(address=None if address in (None, "local") else address, num_cpus=args.ray_cpus,
+                      num_gpus=args.ray_gpus, retries=args.ray_retries, shared_fs=not args.ray_no_shared_fs,
+                      chunk=args.ray_chunk).check()
+
+
+def uses_ray(args: argparse.Namespace) -> bool:
+    """Whether ``--ray`` was given."""
+    return getattr(args, "ray", None) is not None

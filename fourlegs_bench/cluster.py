@@ -195,6 +195,7 @@ def measure(source: Path, timesteps: str, workers: int, chunk: int | None, share
     from fourlegs_engine.language.autoencoder import (AE_CHECKPOINT, AE_REPORT, DECODER_FILE, ENCODER_FILE,
                                                       AETrainConfig, train_autoencoder)
     from fourlegs_engine.language.distill import DistillConfig, distill_scene
+    import fourlegs_engine.demo  # noqa: F401 (registers the "simulated" encoder)
     from fourlegs_engine.language.encoders import get_encoder
     from fourlegs_engine.language.extract import ExtractConfig, extract_features
     from fourlegs_engine.language.store import select_timesteps
@@ -283,6 +284,7 @@ def measure(source: Path, timesteps: str, workers: int, chunk: int | None, share
 
 
 def _simulated_encoder(scene: Any) -> Any:
+    import fourlegs_engine.demo  # noqa: F401 (registers the "simulated" encoder)
     from fourlegs_engine.language.encoders import get_encoder
     return get_encoder("simulated", scene=scene)
 
@@ -292,7 +294,7 @@ def run_bench_cluster(args: argparse.Namespace) -> int:
     from fourlegs_engine.errors import InputError
     from fourlegs_engine.fileio import write_bytes_atomic, write_json_atomic
     if args.scene in SYNTHETIC_SIZES:
-        from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+        from fourlegs_engine.demo.synthetic import ensure_demo_bundle
         source = ensure_demo_bundle(args.scene)
     else:
         source = Path(args.scene)

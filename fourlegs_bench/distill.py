@@ -18,7 +18,7 @@ def run_bench_distill(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.scene in SYNTHETIC_SIZES:
-        from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+        from fourlegs_engine.demo.synthetic import ensure_demo_bundle
         path = ensure_demo_bundle(args.scene)
     else:
         path = Path(args.scene)
@@ -47,6 +47,7 @@ def bench_distill(scene: Any, *, modes: list[str], optimize_iterations: list[int
     import torch
     from fourlegs_engine.language.autoencoder import ENCODER_FILE, load_encoder, train_autoencoder
     from fourlegs_engine.language.distill import DistillConfig, distill_scene, fidelity_reference, render_fidelity
+    import fourlegs_engine.demo  # noqa: F401 (registers the "simulated" encoder)
     from fourlegs_engine.language.encoders import get_encoder
     from fourlegs_engine.language.extract import extract_features, feature_store
     from fourlegs_engine.language.store import select_timesteps

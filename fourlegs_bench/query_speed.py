@@ -86,7 +86,7 @@ def codebook_query_timings(workdir: Path, k: int, margin: float, repeats: int, t
     for R_avg, and the re-scoring of ``rescore_share`` of all (t, g) pairs (whole codes picked at random,
     at every timestep: more scattered reads than the few timesteps a real query re-scores).
     """
-    from fourlegs_engine.language.simulated import SimulatedTextEncoder
+    from fourlegs_engine.demo.simulated import SimulatedTextEncoder
     from fourlegs_engine.query.codebook import load_codebook
 
     torch.set_num_threads(threads)
@@ -150,7 +150,7 @@ def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int]
                     exact_timesteps: int, spatial_scene: str, workdir: Path, progress: bool = True,
                     refine_margins: Sequence[float] = (0.0,), rescore_share: float = 0.0,
                     sample_count: int = 0) -> dict:
-    from fourlegs_engine.language.simulated import SimulatedTextEncoder
+    from fourlegs_engine.demo.simulated import SimulatedTextEncoder
 
     T, N = int(timesteps), int(gaussians)
     if T < 1 or N < 1:
@@ -209,7 +209,7 @@ def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int]
 
 
 def _spatial_timings(size: str, text, repeats: int, workdir: Path) -> list[dict]:
-    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
     from fourlegs_engine.scene.bundle import load_bundle
 
     scene = load_bundle(ensure_demo_bundle(size))

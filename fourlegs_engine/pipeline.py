@@ -91,7 +91,8 @@ def text_encoder(scene: Optional["Scene"] = None, config: EncoderConfig = Encode
     from .language.encoders import get_encoder
 
     name = config.resolved_name(scene)
-    if name == "simulated":
+    if name == "simulated":  # the demo scenes' encoder: the demo package registers it
+        from . import demo  # noqa: F401
         return get_encoder(name, scene=scene)
     if name == "masks":
         return get_encoder(name, masks=list(config.masks), scene=scene)
@@ -118,7 +119,7 @@ def open_scene(source: str | Path | None = None, *, demo: Optional[str] = None) 
     if demo is not None:
         if source is not None:
             raise InputError("give either a demo scene or a scene path, not both", field="scene")
-        from .scene.synthetic import ensure_demo_bundle
+        from .demo.synthetic import ensure_demo_bundle
         source = ensure_demo_bundle(demo)
     elif source is None:
         raise InputError("no scene given (a path, or the demo scene)", field="scene")

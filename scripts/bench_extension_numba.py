@@ -57,7 +57,7 @@ CHILD = textwrap.dedent("""
     from fourlegs_engine import api
     from fourlegs_engine.render import cpu_kernels
     if scene_arg.startswith("synthetic:"):
-        from fourlegs_engine.scene.synthetic import generate_scene
+        from fourlegs_engine.demo.synthetic import generate_scene
         scene = generate_scene(scene_arg.split(":", 1)[1])
         pkg.importer.import_scene(bpy.context.scene, scene)
     else:

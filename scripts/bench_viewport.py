@@ -23,7 +23,7 @@ def main() -> None:
     import bpy
 
     from fourlegs_addon import importer, registration, render_engine
-    from fourlegs_engine.scene.synthetic import generate_scene
+    from fourlegs_engine.demo.synthetic import generate_scene
 
     registration.register()
     scene = generate_scene(args.size)

@@ -18,7 +18,7 @@ from fourlegs_engine.language.distill import distill_scene
 from fourlegs_engine.language.annotations import AnnotationMaskEncoder, mask_pairs, phrase_embedding
 from fourlegs_engine.language.encoders import CANONICAL_PHRASES, get_encoder
 from fourlegs_engine.language.extract import extract_features, feature_store
-from fourlegs_engine.language.simulated import render_label_coverage
+from fourlegs_engine.language.coverage import render_label_coverage
 from fourlegs_engine.pipeline import EncoderConfig, open_query_engine, text_encoder
 from fourlegs_engine.scene.bundle import load_bundle
 

@@ -14,7 +14,7 @@ def _engine_for(scene):
     """A real QueryEngine over a small hand-made language field (fixed random decoder, seeded latents)."""
     from fourlegs_engine.language.autoencoder import FeatureDecoder
     from fourlegs_engine.language.field import LanguageField
-    from fourlegs_engine.language.simulated import SimulatedTextEncoder
+    from fourlegs_engine.demo.simulated import SimulatedTextEncoder
     from fourlegs_engine.query.engine import QueryEngine
 
     torch.manual_seed(0)

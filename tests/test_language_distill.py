@@ -20,6 +20,7 @@ from fourlegs_engine.errors import ConfigMismatchError, InputError
 from fourlegs_engine.language.autoencoder import AETrainConfig, train_autoencoder
 from fourlegs_engine.language.distill import (DistillConfig, distill_scene, lift_latents,
                                               optimize_latents, view_operator)
+import fourlegs_engine.demo  # noqa: F401 (registers the "simulated" encoder)
 from fourlegs_engine.language.encoders import get_encoder
 from fourlegs_engine.language.extract import ExtractConfig, check_features, extract_features
 from fourlegs_engine.language.field import LanguageField

@@ -137,7 +137,7 @@ def resolve_bundle(args: argparse.Namespace):
     if bool(getattr(args, "demo", False)) == bool(args.scene):
         raise InputError("give either a scene bundle or --demo (exactly one)", field="scene")
     if args.demo:
-        from ..scene.synthetic import ensure_demo_bundle
+        from ..demo.synthetic import ensure_demo_bundle
         return load_bundle(ensure_demo_bundle())
     path = Path(args.scene)
     if not is_bundle(path):

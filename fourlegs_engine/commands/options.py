@@ -10,12 +10,13 @@ import argparse
 from pathlib import Path
 from typing import Any, Callable, Optional
 
+from .. import demo  # noqa: F401 (registers the demo scenes' "simulated" encoder among the --encoder choices)
 from ..cluster.runner import DEFAULT_RETRIES, INSTALL_HINT, RayOptions
 from ..errors import InputError
-from ..validate import check_number
 from ..highlight_job import DEFAULT_QUERY_PATH, DEFAULT_SPATIAL, VIDEO_FORMATS, HighlightJobOptions
 from ..language.encoders import DTYPES, encoder_names
 from ..pipeline import EncoderConfig
+from ..validate import check_number
 
 
 def bounded(kind: type, low: float | None = None, high: float | None = None, *,

@@ -65,7 +65,7 @@ def _open(args: argparse.Namespace):
     from ..scene.bundle import is_bundle, load_bundle
 
     if args.demo:
-        from ..scene.synthetic import ensure_demo_bundle
+        from ..demo.synthetic import ensure_demo_bundle
         if args.scene is not None:
             raise InputError("give either --demo TEXT or SCENE TEXT, not both", field="scene")
         path = ensure_demo_bundle()

@@ -39,7 +39,7 @@ def run_info(args: argparse.Namespace) -> int:
 def demo_bundle_path():
     """The demo bundle from the synthetic benchmark generator (built into the cache on first use)."""
     try:
-        from ..scene.synthetic import ensure_demo_bundle
+        from ..demo.synthetic import ensure_demo_bundle
     except ImportError as exc:
         raise InputError(f"the demo scene generator is not available ({exc})", field="--demo") from None
     return ensure_demo_bundle()

@@ -211,7 +211,7 @@ class FrameSource:
         if self.input_kind == "rgb":
             out = render_frame(frame, camera, outputs=("rgb",))["rgb"]
         else:
-            from .simulated import render_label_coverage
+            from .coverage import render_label_coverage
             return render_label_coverage(self.scene, camera, t, num_labels=self.num_labels).to(torch.float32)
         return out.detach().to(torch.float32).permute(2, 0, 1).contiguous().clamp_(0.0, 1.0)
 

@@ -128,8 +128,8 @@ def codebook_query_timings(workdir: Path, k: int, margin: float, repeats: int, t
         ts = np.arange(T)
 
         def exact_work() -> tuple[int, int]:
-            sampled = eng._sample_members(QUERY, [held], [sample_count], ts, rng)[0][1].size if sample_count else 0
-            rescored = eng._score_any(QUERY, eng._band_members(picked, ts, ts)[2]).size if picked.size else 0
+            sampled = eng.codebook_path.sample_members(QUERY, [held], [sample_count], ts, rng)[0][1].size if sample_count else 0
+            rescored = eng.scorer.score_any(QUERY, eng.codebook_path.band_members(picked, ts, ts)[2]).size if picked.size else 0
             anon.append(resident_mb("RssAnon"))
             return sampled, rescored
 

@@ -21,11 +21,11 @@ import numpy as np
 
 from ..errors import InputError
 from .camera_paths import Pose, aim, look_at_rotation
-from .effects import (LOCALIZATION_NEEDS, NEED_ACTION_CENTRE, NEED_BEST_VIEW, NEED_TEMPORAL, ShotContext,
-                      get_effect)
+from .effects import LOCALIZATION_NEEDS, NEED_ACTION_CENTRE, NEED_BEST_VIEW, NEED_TEMPORAL, get_effect
 from .framing import Framing, scene_up
 from .plan import CameraKey, HighlightPlan, Shot, TimeKey, merge_ranges
 from .presets import Preset, ShotSpec
+from .shot_context import ShotContext
 
 
 class Localizer(Protocol):

@@ -96,7 +96,6 @@ def reconstruction_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tenso
 
 
 # ------------------------------------------------------------------------------------ training
-AE_DIR = "language"
 AE_CHECKPOINT = "language/autoencoder.ckpt.pt"
 AE_REPORT = "language/autoencoder.json"
 ENCODER_FILE = "language/encoder.pt"

@@ -64,7 +64,7 @@ def register(subparsers: Any) -> None:
 
 def options_from_args(args: argparse.Namespace):
     """:class:`~fourlegs_engine.fit.FitOptions` from parsed arguments (unset knobs keep their defaults)."""
-    from ..fit.fitter import FitOptions
+    from ..fit.options import FitOptions
 
     kw: dict[str, Any] = {"resolution_scale": args.resolution_scale, "seed": args.seed, "device": args.device,
                           "densify": not args.no_densify}

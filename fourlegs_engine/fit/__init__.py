@@ -2,5 +2,5 @@
 from ..lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
-    "Capture": "dataset", "FitEvent": "fitter", "FitOptions": "fitter", "fit_capture": "fitter"
+    "Capture": "dataset", "FitEvent": "options", "FitOptions": "options", "fit_capture": "fitter"
 })

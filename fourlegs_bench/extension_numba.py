@@ -1,6 +1,6 @@
 """CPU seconds of one splat render inside Blender with the extension's bundled numba, and without it.
 
-    python scripts/bench_extension_numba.py [--scene DIR] [--resolution 1280x720] [--repeats 3] [-o DIR]
+    python -m fourlegs_bench.extension_numba [--scene DIR] [--resolution 1280x720] [--repeats 3] [-o DIR]
 
 Builds the linux-x64 extension zip from the cached wheels (``fourlegs build-extension --fetch-wheels
 --platform linux-x64`` downloads them), and for each variant installs it into a fresh Blender user folder

@@ -12,7 +12,7 @@ into the engine's internals, so the engine can reorganize without breaking them:
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from .errors import (Cancelled, FourlegsError, InputError, OutputExistsError, describe_environment_error,
                      exit_code_of, print_error)
@@ -28,7 +28,7 @@ _LAZY = {
     "check_text": "validate",
     "available_presets": "highlights", "load_preset": "highlights", "plan_highlight": "highlights",
     "plan_needs": "highlights",
-    "EncoderConfig": "pipeline", "FieldStep": "pipeline", "QueryOptions": "pipeline",
+    "EncoderOptions": "pipeline", "FieldStep": "pipeline", "QueryOptions": "pipeline",
     "language_field_steps": "pipeline", "ensure_language_field": "pipeline",
     "has_language_field": "pipeline", "open_query_engine": "pipeline", "open_scene": "pipeline",
     "text_encoder": "pipeline",
@@ -47,7 +47,7 @@ if TYPE_CHECKING:
     from .highlight_job import (HighlightJobOptions, StageTimer, finish_highlight_job, plan_digest,
                                 prepare_highlight_job)
     from .highlights import available_presets, load_preset, plan_highlight, plan_needs
-    from .pipeline import (EncoderConfig, FieldStep, QueryOptions, ensure_language_field, has_language_field,
+    from .pipeline import (EncoderOptions, FieldStep, QueryOptions, ensure_language_field, has_language_field,
                            language_field_steps, open_query_engine, open_scene, text_encoder)
     from .query.multiscene import rank_scenes_opening
     from .render import rasterize
@@ -56,4 +56,10 @@ if TYPE_CHECKING:
     from .threads import kernel_threads, torch_threads, usable_cpu_count
     from .validate import check_text
 
-__getattr__, __dir__, __all__ = lazy_exports(__name__, _LAZY, base=__package__)
+_lazy_attribute, __dir__, __all__ = lazy_exports(__name__, _LAZY, base=__package__)
+#: earlier names still used by add-on code being rewritten beside this change (addon/prepare.py)
+_RENAMED = {"EncoderConfig": "EncoderOptions"}
+
+
+def __getattr__(name: str) -> Any:
+    return _lazy_attribute(_RENAMED.get(name, name))

@@ -62,6 +62,7 @@ class HighlightJobOptions:
         resolution: (width, height) of the output; None: :data:`DEMO_RESOLUTION` for the demo, else the preset's.
         fps: output frame rate; None: the preset's.
         format: one of :data:`VIDEO_FORMATS`.
+        effects: only the preset's shots with these effects are kept (empty: all of them).
         no_effect: the preset's shots with these effects are left out.
         query_path / spatial: the query engine's temporal and spatial relevancy paths
             (:class:`~fourlegs_engine.query.options.QueryOptions` ``path`` / ``spatial``).
@@ -78,10 +79,11 @@ class HighlightJobOptions:
     resolution: Optional[tuple[int, int]] = None
     fps: Optional[float] = None
     format: str = "MP4"
+    effects: tuple[str, ...] = ()
     no_effect: tuple[str, ...] = ()
     query_path: str = DEFAULT_QUERY_PATH
     spatial: str = DEFAULT_SPATIAL
-    encoder: pipeline.EncoderConfig = field(default_factory=pipeline.EncoderConfig)
+    encoder: pipeline.EncoderOptions = field(default_factory=pipeline.EncoderOptions)
     render_threads: Optional[int] = 1
 
     def to_json(self) -> str:
@@ -184,11 +186,9 @@ def prepare_highlight_job(options: HighlightJobOptions,
         raise InputError("give either --demo or a scene path, not both", field="scene")
     if options.demo is None and options.scene is None:
         raise InputError("no scene given (a path, or --demo)", field="scene")
+    preset = load_preset(options.preset).select_effects(options.effects, options.no_effect)
     with stage("scene"):
         scene = pipeline.open_scene(options.scene, demo=options.demo)
-    preset = load_preset(options.preset)
-    if options.no_effect:
-        preset = preset.with_shots([s.effect for s in preset.shots if s.effect not in set(options.no_effect)])
     engine = None
     if plan_needs(preset) or preset_needs_relevancy(preset):
         encoder = pipeline.text_encoder(scene, options.encoder)

@@ -16,8 +16,8 @@ from .bundles import (BundleRef, bundle_ref, cached, gpus_for, release_bundle, t
 from .runner import ClusterReport, RayOptions, connect, plan_chunks, run_chunks, worker_slots
 
 if TYPE_CHECKING:
-    from ..language.distill import DistillConfig, DistillResult
-    from ..language.extract import ExtractConfig, ExtractReport
+    from ..language.distill import DistillOptions, DistillResult
+    from ..language.extract import ExtractOptions, ExtractReport
     from ..scene.scene import Scene
 
 
@@ -39,7 +39,7 @@ class ExtractJob:
     bundle: BundleRef
     run_id: str
     encoder_factory: Callable[["Scene"], Any]
-    config: "ExtractConfig"
+    config: "ExtractOptions"
 
 
 def _extract_encoder(job: ExtractJob, scene: "Scene") -> Any:
@@ -63,7 +63,7 @@ def _extract_chunk(job: ExtractJob, chunk: tuple[int, ...], payload: Any) -> dic
             "encode_seconds": rep.encode_seconds, "crops": rep.crops_per_timestep, "files": files}
 
 
-def extract_on_ray(scene: "Scene", encoder_factory: Callable[["Scene"], Any], config: "ExtractConfig | None" = None,
+def extract_on_ray(scene: "Scene", encoder_factory: Callable[["Scene"], Any], config: "ExtractOptions | None" = None,
                    *, timesteps: Any = None, shard: Any = None, overwrite: bool = False, progress: bool = False,
                    options: RayOptions | None = None, device: str | None = None
                    ) -> tuple["ExtractReport", ClusterReport]:
@@ -73,10 +73,10 @@ def extract_on_ray(scene: "Scene", encoder_factory: Callable[["Scene"], Any], co
     must be picklable (a module-level function or a ``functools.partial`` of one). The driver never
     builds the encoder: the features' configuration comes from one small task first.
     """
-    from ..language.extract import ExtractConfig
+    from ..language.extract import ExtractOptions
     from ..language.store import select_timesteps
     options = (options or RayOptions()).check()
-    config = config or ExtractConfig()
+    config = config or ExtractOptions()
     if not 0 < config.frame_scale <= 1:
         raise InputError(f"must be in (0, 1], got {config.frame_scale}", field="frame_scale")
     if scene.root is None:
@@ -131,11 +131,12 @@ def _extract_on_ray(ray: Any, scene: "Scene", job: ExtractJob, steps: list[int],
 class DistillJob:
     bundle: BundleRef
     run_id: str
-    config: "DistillConfig"
+    config: "DistillOptions"
 
 
 def _distill_chunk(job: DistillJob, chunk: tuple[int, ...], payload: dict[str, bytes] | None) -> dict[str, Any]:
-    from ..language.distill import STEPS_DIR, distill_scene
+    from ..language.distill import distill_scene
+    from ..language.latents_file import STEPS_DIR
     scene = task_scene(job.bundle, job.run_id, payload)
     result = distill_scene(scene, config=job.config, timesteps=list(chunk), merge=False, progress=False)
     files = None
@@ -146,7 +147,7 @@ def _distill_chunk(job: DistillJob, chunk: tuple[int, ...], payload: dict[str, b
     return {"timings": result.timings, "files": files}
 
 
-def distill_on_ray(scene: "Scene", config: "DistillConfig", *, timesteps: Any = None, shard: Any = None,
+def distill_on_ray(scene: "Scene", config: "DistillOptions", *, timesteps: Any = None, shard: Any = None,
                    overwrite: bool = False, progress: bool = False, options: RayOptions | None = None
                    ) -> tuple["DistillResult", ClusterReport]:
     """:func:`~.language.distill.distill_scene` (the bundle's own field) with one Ray task per

@@ -1,6 +1,6 @@
 """Command-line options shared by several commands, and their translation into the library's option types.
 
-argparse stays here, at the edge: the library takes :class:`~fourlegs_engine.pipeline.EncoderConfig`,
+argparse stays here, at the edge: the library takes :class:`~fourlegs_engine.pipeline.EncoderOptions`,
 :class:`~fourlegs_engine.query.options.QueryOptions` and
 :class:`~fourlegs_engine.highlight_job.HighlightJobOptions`.
 """
@@ -15,7 +15,7 @@ from ..cluster.runner import DEFAULT_RETRIES, INSTALL_HINT, RayOptions
 from ..errors import InputError
 from ..highlight_job import DEFAULT_QUERY_PATH, DEFAULT_SPATIAL, VIDEO_FORMATS, HighlightJobOptions
 from ..language.encoders import DTYPES, encoder_names
-from ..pipeline import EncoderConfig
+from ..pipeline import EncoderOptions
 from ..validate import check_number
 
 
@@ -67,10 +67,10 @@ def add_encoder_arguments(parser: argparse.ArgumentParser, *, default: str = "vi
                             "default) or 'imagenet' (the statistics ViCLIP was trained with)")
 
 
-def encoder_config_from_args(args: argparse.Namespace) -> EncoderConfig:
-    """The :class:`EncoderConfig` of the options :func:`add_encoder_arguments` defined (missing ones: defaults)."""
-    default = EncoderConfig()
-    return EncoderConfig(name=getattr(args, "encoder", None) or default.name,
+def encoder_options_from_args(args: argparse.Namespace) -> EncoderOptions:
+    """The :class:`EncoderOptions` of the options :func:`add_encoder_arguments` defined (missing ones: defaults)."""
+    default = EncoderOptions()
+    return EncoderOptions(name=getattr(args, "encoder", None) or default.name,
                          checkpoint=getattr(args, "checkpoint", None), vocab=getattr(args, "vocab", None),
                          size=getattr(args, "viclip_size", None) or default.size,
                          device=getattr(args, "device", None) or default.device,
@@ -103,13 +103,32 @@ def parse_resolution(text: Optional[str], field: str = "--resolution", *, even: 
     return w, h
 
 
+def add_demo_argument(parser: argparse.ArgumentParser) -> None:
+    """``--demo``: a flag in every command, the synthetic demo scene instead of a scene path."""
+    parser.add_argument("--demo", action="store_true",
+                        help="use the synthetic demo scene instead of a scene path (generated on first use)")
+
+
+def add_effect_arguments(parser: argparse.ArgumentParser) -> None:
+    """Which of the preset's shots to keep, alike in every command that plans (``plan``, ``highlight``)."""
+    parser.add_argument("--effects", metavar="LIST", default=None,
+                        help="keep only the preset's shots with these effects (comma-separated)")
+    parser.add_argument("--no-effect", action="append", default=[], metavar="EFFECT",
+                        help="leave out the preset's shots with this effect (repeatable)")
+
+
+def effects_of(args: argparse.Namespace) -> tuple[str, ...]:
+    """The ``--effects`` list (empty: every effect)."""
+    return tuple(e.strip() for e in (args.effects or "").split(",") if e.strip())
+
+
 def add_highlight_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of the main job (``fourlegs highlight`` and ``python -m fourlegs_addon.headless``)."""
     p = parser
     p.add_argument("scene", nargs="?", default=None,
                    help="scene: bundle dir, params.npz dir, .ply file or dir of .ply files (or --demo)")
     p.add_argument("query", help="what to find, e.g. \"a ball flying in the air\"")
-    p.add_argument("--demo", action="store_true", help="use the synthetic demo scene (generated on first use)")
+    add_demo_argument(p)
     p.add_argument("--demo-size", default="demo", choices=("tiny", "demo", "bench", "full"),
                    help="size of the synthetic demo scene (default demo: 30k Gaussians, 48 timesteps)")
     p.add_argument("--preset", default="broadcast", help="highlight preset name or .toml file (default broadcast)")
@@ -122,8 +141,7 @@ def add_highlight_arguments(parser: argparse.ArgumentParser) -> None:
                    help="torch threads for the per-frame rasterization (default 1: small per-frame work, "
                         "extra threads mostly wait; 0 = torch's default)")
     p.add_argument("--format", default="MP4", choices=VIDEO_FORMATS, help="video or image sequence")
-    p.add_argument("--no-effect", action="append", default=[], metavar="EFFECT",
-                   help="leave out the preset's shots with this effect (repeatable)")
+    add_effect_arguments(p)
     p.add_argument("--query-path", default=DEFAULT_QUERY_PATH, choices=("exact", "codebook"),
                    help="per-Gaussian relevancy path of the query engine (default %(default)s; see "
                         "`fourlegs bench accuracy-time` for what each costs and scores)")
@@ -140,8 +158,9 @@ def highlight_job_options(args: argparse.Namespace) -> HighlightJobOptions:
     return HighlightJobOptions(
         query=args.query, output=args.output, scene=args.scene, demo=args.demo_size if args.demo else None,
         preset=args.preset, overwrite=args.overwrite, resolution=parse_resolution(args.resolution, even=True),
-        fps=args.fps, format=args.format, no_effect=tuple(args.no_effect), query_path=args.query_path,
-        spatial=args.spatial, encoder=encoder_config_from_args(args), render_threads=args.render_threads or None)
+        fps=args.fps, format=args.format, effects=effects_of(args), no_effect=tuple(args.no_effect),
+        query_path=args.query_path,
+        spatial=args.spatial, encoder=encoder_options_from_args(args), render_threads=args.render_threads or None)
 
 
 # ----------------------------------------------------------------------------------- --ray

@@ -10,8 +10,8 @@
 from ..lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
-    "AETrainConfig": "autoencoder", "train_autoencoder": "autoencoder", "DistillConfig": "distill",
+    "AETrainOptions": "autoencoder", "train_autoencoder": "autoencoder", "DistillOptions": "distill",
     "distill_scene": "distill", "VideoTextEncoder": "encoders", "encoder_names": "encoders",
-    "get_encoder": "encoders", "register_encoder": "encoders", "ExtractConfig": "extract",
+    "get_encoder": "encoders", "register_encoder": "encoders", "ExtractOptions": "extract",
     "extract_features": "extract", "LanguageField": "field", "CANONICAL_PHRASES": "phrases"
 })

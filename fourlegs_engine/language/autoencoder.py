@@ -103,7 +103,7 @@ DECODER_FILE = "language/decoder.pt"
 
 
 @dataclass
-class AETrainConfig:
+class AETrainOptions:
     """Autoencoder training settings (all enter the config hash).
 
     Training data is a *sample* of per-pixel teacher features: ``samples`` pixels drawn uniformly
@@ -157,7 +157,7 @@ def _sample_pixel_features(scene: Any, store: Any, views: list[tuple[int, int]],
     return torch.cat(out)[:total] if len(out) else torch.zeros((0, int(store.config["dim"])))
 
 
-def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwrite: bool = False,
+def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overwrite: bool = False,
                       progress: bool = False, stop_after_epoch: int | None = None,
                       timesteps: Sequence[int] | None = None) -> dict[str, Any]:
     """Train the scene's autoencoder from its extracted features; resumable from per-epoch checkpoints.
@@ -173,7 +173,7 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
     from .extract import feature_store
     from .store import config_hash
 
-    config = config or AETrainConfig()
+    config = config or AETrainOptions()
     if config.epochs < 1 or config.samples < 2 or config.batch_size < 2:
         raise InputError("need epochs >= 1, samples >= 2 and batch size >= 2", field="train-ae")
     root = Path(scene.root)
@@ -244,7 +244,7 @@ def _refuse_or_drop_other_configurations(root: Path, chash: str, overwrite: bool
             path.unlink()
 
 
-def _training_data(scene: Any, store: Any, config: AETrainConfig, steps: list[int]
+def _training_data(scene: Any, store: Any, config: AETrainOptions, steps: list[int]
                    ) -> tuple[torch.Tensor, torch.Tensor, int | None]:
     """(samples, D) training features of every view but the held-out camera's, (heldout_samples, D) of the
     held-out camera, and its index (None with a single camera)."""
@@ -258,7 +258,7 @@ def _training_data(scene: Any, store: Any, config: AETrainConfig, steps: list[in
     return x_train, x_held, holdout
 
 
-def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: torch.Tensor, config: AETrainConfig,
+def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: torch.Tensor, config: AETrainOptions,
                   chash: str, ckpt_path: Path, *, progress: bool, stop_after_epoch: int | None
                   ) -> tuple[list[float], list[float], list[float], int | None]:
     """Adam over shuffled batches, resuming from and saving to ``ckpt_path`` after every epoch.

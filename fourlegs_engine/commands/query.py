@@ -84,8 +84,8 @@ def _open(args: argparse.Namespace, inputs: QueryInputs):
     if not scene.language and not (scene.metadata or {}).get("labels"):
         raise InputError("the scene has no distilled language field; run `fourlegs language` first",
                          file=path, field="language")
-    from .options import encoder_config_from_args
-    encoder = text_encoder(scene, encoder_config_from_args(args))
+    from .options import encoder_options_from_args
+    encoder = text_encoder(scene, encoder_options_from_args(args))
     scene = ensure_language_field(scene, encoder, progress=True)
     options = QueryOptions(path=args.path, codebook_size=args.codebook_size, codebook_refine=args.codebook_refine,
                            negatives=tuple(args.negatives), temporal_stride=args.stride, spatial=args.spatial,

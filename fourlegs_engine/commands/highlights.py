@@ -71,7 +71,8 @@ def run_plan(args: argparse.Namespace) -> int:
         return 0
     if args.demo:
         if len(args.inputs) != 1:
-            raise InputError("give either --demo QUERY or SCENE QUERY, not both", field="inputs")
+            raise InputError("expected --demo QUERY" if not args.inputs else
+                             "give either --demo QUERY or SCENE QUERY, not both", field="inputs")
         scene_path, query = None, args.inputs[0]
     else:
         if len(args.inputs) != 2:

@@ -188,7 +188,7 @@ def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int]
     eng.reference_embeddings()
     t0 = time.perf_counter()
     for t in range(steps):
-        eng._gaussian_relevancy(QUERY, t)
+        eng.gaussian_relevancy(QUERY, t)
     per_t = (time.perf_counter() - t0) / steps
     row = {"path": "exact", "query_s": per_t * T, "timed_timesteps": steps,
            "extrapolated": steps < T, "seconds_per_timestep": per_t, "peak_rss_mb": peak_rss_mb(),

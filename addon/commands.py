@@ -1,7 +1,8 @@
 """``fourlegs highlight`` (the main job) and ``fourlegs build-extension``.
 
-``highlight`` runs ``python -m fourlegs_addon.headless`` in a child process: the engine's process
-never imports bpy, and Blender's state never leaks between runs. Ctrl-C reaches the child too (same
+``highlight`` runs ``python -m fourlegs_addon.headless --options-json FILE`` in a child process: the
+engine's process never imports bpy, Blender's state never leaks between runs, and every option reaches
+the child because the job's options dataclass itself is what crosses the process boundary. Ctrl-C reaches the child too (same
 process group); the language stages resume on the next run.
 """
 from __future__ import annotations
@@ -9,6 +10,8 @@ from __future__ import annotations
 import argparse
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 
 def register(subparsers) -> None:
@@ -40,31 +43,23 @@ def register(subparsers) -> None:
     be.set_defaults(func=run_build_extension)
 
 
-def headless_argv(args: argparse.Namespace) -> list[str]:
-    """Re-create the command line of the headless job from parsed ``fourlegs highlight`` arguments."""
-    argv = [] if args.scene is None else [args.scene]
-    argv += [args.query, "--demo-size", args.demo_size, "--preset", args.preset, "-o", args.output, "--format", args.format,
-             "--query-path", args.query_path, "--spatial", args.spatial]
-    if args.encoder != "auto":  # "auto" is the default, not one of the encoder choices
-        argv += ["--encoder", args.encoder]
-    if args.demo:
-        argv.append("--demo")
-    if args.overwrite:
-        argv.append("--overwrite")
-    for flag, value in (("--resolution", args.resolution), ("--fps", args.fps), ("--checkpoint", args.checkpoint),
-                        ("--vocab", args.vocab), ("--viclip-size", args.viclip_size), ("--device", args.device),
-                        ("--encoder-dtype", args.encoder_dtype),
-                        ("--encoder-batch-size", args.encoder_batch_size),
-                        ("--pixel-normalization", args.pixel_normalization)):
-        if value is not None:
-            argv += [flag, str(value)]
-    for effect in args.no_effect:
-        argv += ["--no-effect", effect]
-    return argv
+def headless_command(options_file: str | Path) -> list[str]:
+    """The child's command line: the job's options travel as data (:meth:`HighlightJobOptions.to_json`)."""
+    return [sys.executable, "-m", "fourlegs_addon.headless", "--options-json", str(options_file)]
 
 
 def run_highlight(args: argparse.Namespace) -> int:
-    cmd = [sys.executable, "-m", "fourlegs_addon.headless", *headless_argv(args)]
+    from fourlegs_engine.commands.options import highlight_job_options
+
+    options = highlight_job_options(args)
+    with tempfile.TemporaryDirectory(prefix="fourlegs-highlight-") as tmp:
+        options_file = Path(tmp) / "options.json"
+        options_file.write_text(options.to_json(), encoding="utf-8")
+        return run_child(headless_command(options_file))
+
+
+def run_child(cmd: list[str]) -> int:
+    """Run the headless job and return its exit code; Ctrl-C stops it for real."""
     proc = subprocess.Popen(cmd)
     try:
         return proc.wait()

@@ -2,8 +2,8 @@
 
     python -m fourlegs_addon.headless --demo "a ball flying in the air" --preset broadcast -o out/
 
-(``fourlegs highlight ...`` runs exactly this in a subprocess, so the engine's process never imports
-bpy.) The engine's half of the job (stages 1-3, the outputs, report.json) is
+(``fourlegs highlight ...`` runs this in a subprocess, so the engine's process never imports bpy, and
+hands it the job's options as data: ``--options-json FILE``, :meth:`HighlightJobOptions.to_json`.) The engine's half of the job (stages 1-3, the outputs, report.json) is
 :mod:`fourlegs_engine.highlight_job` behind the facade; this module is the Blender half. Stages:
 
 1. scene: ``--demo`` generates/reuses the synthetic demo bundle; otherwise SCENE is a bundle,
@@ -39,10 +39,31 @@ from .process import blender_log_silenced, heap_kept
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The job's command line (the same options as ``fourlegs highlight``)."""
+    """The job's command line (the same options as ``fourlegs highlight``, or ``--options-json FILE``)."""
     parser = argparse.ArgumentParser(prog="python -m fourlegs_addon.headless", description=__doc__.splitlines()[0])
+    parser.add_argument("--options-json", metavar="FILE",
+                        help="the job's options as JSON (what `fourlegs highlight` writes), instead of the "
+                             "arguments below")
     add_highlight_arguments(parser)
     return parser
+
+
+def job_options(argv: Optional[Sequence[str]] = None) -> api.HighlightJobOptions:
+    """The job's options: read from ``--options-json FILE``, or built from ``fourlegs highlight``'s arguments."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    first = argparse.ArgumentParser(add_help=False)
+    first.add_argument("--options-json", default=None)
+    known, rest = first.parse_known_args(argv)
+    if known.options_json is None:
+        return highlight_job_options(build_parser().parse_args(argv))
+    if rest:
+        raise api.InputError(f"replaces every other argument, got also {' '.join(rest)}", field="--options-json")
+    path = Path(known.options_json)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise api.InputError(f"cannot read the job's options ({exc})", file=path, field="--options-json") from None
+    return api.HighlightJobOptions.from_json(text, file=path)
 
 
 def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str, Path], fmt: str,
@@ -130,23 +151,12 @@ def run(options: api.HighlightJobOptions) -> dict[str, Any]:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        report = run(highlight_job_options(args))
-    except api.FourlegsError as exc:
-        api.print_error(str(exc))
-        return 2
-    except (OSError, MemoryError, RuntimeError) as exc:
-        message = api.describe_environment_error(exc)
-        if message is None:
-            raise
-        api.print_error(message)
-        return 1
-    except KeyboardInterrupt:
-        print("fourlegs: cancelled; run the same command again to resume", file=sys.stderr)
-        return 130
-    print(f"[fourlegs] done in {report['total_seconds']:.1f} s: {report['outputs'].get('video')}", flush=True)
-    return 0
+    def job() -> int:
+        report = run(job_options(argv))
+        print(f"[fourlegs] done in {report['total_seconds']:.1f} s: {report['outputs'].get('video')}", flush=True)
+        return 0
+
+    return api.exit_code_of(job)
 
 
 if __name__ == "__main__":

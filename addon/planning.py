@@ -4,10 +4,6 @@ from __future__ import annotations
 from typing import Any, Iterable, Optional, Sequence
 
 
-#: effects the panel can switch off (``play`` is always kept: it is the context shot)
-OPTIONAL_EFFECTS = ("zoom_in", "bullet_time", "desaturate_background")
-
-
 def preset_names() -> list[str]:
     from fourlegs_engine import api
 

@@ -341,7 +341,7 @@ def pareto_plot(report: dict[str, Any], path: Path, *, overwrite: bool = True) -
 
 def run_accuracy_time_cli(args: Any) -> int:
     from fourlegs_engine.scene.bundle import load_bundle
-    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
 
     if args.threads:
         torch.set_num_threads(args.threads)

@@ -11,7 +11,7 @@ Gaussians; the box is the box of the best connected component of relevancy > 0.5
 Per-pixel relevancy is computed exactly without materializing the (H, W, 768) feature image
 (:func:`pixel_relevancy`: interpolated dot products plus a Gram-matrix norm), checked against the
 literal path (:func:`~fourlegs_engine.language.pyramid.pixel_features` then
-:func:`~fourlegs_engine.query.relevancy.relevancy`) in the tests.
+:func:`~fourlegs_engine.query.lerf.relevancy`) in the tests.
 
 Knob: ``pixel_stride`` — relevancy is evaluated on every ``pixel_stride``-th pixel and bilinearly
 upsampled to full resolution (1 = exact eq. 2 at every pixel).
@@ -28,7 +28,7 @@ from fourlegs_engine.errors import InputError
 from fourlegs_engine.language.encoders import CANONICAL_PHRASES
 from fourlegs_engine.language.pyramid import (PyramidLayout, crop_layout, lerp_coefficients, pyramid_ratios, resize_crops,
                                 sample_positions, scale_crops, tube_indices, upsample_to_pixels)
-from fourlegs_engine.query.relevancy import RELEVANCY_SCALE, l2_normalize, reference_set
+from fourlegs_engine.query.lerf import RELEVANCY_SCALE, l2_normalize, reference_set
 from fourlegs_engine.query.spatial import best_component_bbox
 from fourlegs_engine.query.temporal import localize_relevancy
 from fourlegs_engine.scene.camera import Camera
@@ -93,7 +93,7 @@ def pixel_relevancy(layout: PyramidLayout, crop_features: torch.Tensor, queries:
     Relevancy needs only the dot products of the normalized pixel feature with the Q query and K
     canonical embeddings; both are linear in the crop features (interpolate the (n, Q+K) crop dot
     products), and the squared norm is ``w^T G w`` with the crops' Gram matrix ``G = F F^T``. The result
-    equals :func:`~fourlegs_engine.query.relevancy.relevancy` on :func:`pixel_features` (tested), at a
+    equals :func:`~fourlegs_engine.query.lerf.relevancy` on :func:`pixel_features` (tested), at a
     fraction of the cost.
 
     Args:

@@ -221,7 +221,7 @@ def bench_render(scene_path: Optional[str], width: int, height: int, frames: int
 
     from fourlegs_addon import convert, importer, render_engine
     from fourlegs_engine.render import rasterize
-    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
 
     if scene_path is None:
         scene_path = str(ensure_demo_bundle("demo"))

@@ -193,10 +193,11 @@ def measure(source: Path, timesteps: str, workers: int, chunk: int | None, share
     import torch
     from fourlegs_engine import cluster
     from fourlegs_engine.language.autoencoder import (AE_CHECKPOINT, AE_REPORT, DECODER_FILE, ENCODER_FILE,
-                                                      AETrainConfig, train_autoencoder)
-    from fourlegs_engine.language.distill import DistillConfig, distill_scene
+                                                      AETrainOptions, train_autoencoder)
+    from fourlegs_engine.language.distill import DistillOptions, distill_scene
+    import fourlegs_engine.demo  # noqa: F401 (registers the "simulated" encoder)
     from fourlegs_engine.language.encoders import get_encoder
-    from fourlegs_engine.language.extract import ExtractConfig, extract_features
+    from fourlegs_engine.language.extract import ExtractOptions, extract_features
     from fourlegs_engine.language.store import select_timesteps
     from fourlegs_engine.scene.bundle import load_bundle
 
@@ -215,18 +216,18 @@ def measure(source: Path, timesteps: str, workers: int, chunk: int | None, share
         with torch_threads(single_threads) if single_threads else contextlib.nullcontext():
             out["single_threads"] = torch.get_num_threads()
             c0, w0 = time.process_time(), time.perf_counter()
-            extract_features(scene, get_encoder("simulated", scene=scene), ExtractConfig(), timesteps=steps,
+            extract_features(scene, get_encoder("simulated", scene=scene), ExtractOptions(), timesteps=steps,
                              progress=progress)
             out["single_extract_s"] = time.perf_counter() - w0
             out["single_extract_cpu_s"] = time.process_time() - c0
             # the same autoencoder serves both runs; its quality does not matter here
-            train_autoencoder(scene, AETrainConfig(epochs=1, samples=8192), timesteps=steps, progress=progress)
+            train_autoencoder(scene, AETrainOptions(epochs=1, samples=8192), timesteps=steps, progress=progress)
             for rel in (AE_REPORT, ENCODER_FILE, DECODER_FILE, AE_CHECKPOINT):
                 if (single / rel).is_file():
                     (multi / rel).parent.mkdir(parents=True, exist_ok=True)
                     shutil.copy2(single / rel, multi / rel)
             c0, w0 = time.process_time(), time.perf_counter()
-            distill_scene(scene, config=DistillConfig(mode="lift"), timesteps=steps, merge=False, progress=progress)
+            distill_scene(scene, config=DistillOptions(mode="lift"), timesteps=steps, merge=False, progress=progress)
             out["single_lift_s"] = time.perf_counter() - w0
             out["single_lift_cpu_s"] = time.process_time() - c0
         # ---- local Ray cluster
@@ -239,7 +240,7 @@ def measure(source: Path, timesteps: str, workers: int, chunk: int | None, share
                                       stage="warm-up", progress=False)
             warm.raise_failures()
             lat = []
-            remote = ray.remote(cluster._run_task).options(num_cpus=1)
+            remote = ray.remote(cluster.run_task).options(num_cpus=1)
             for _ in range(20):
                 s = time.perf_counter()
                 ray.get(remote.remote(_noop, None, (), None))
@@ -255,7 +256,7 @@ def measure(source: Path, timesteps: str, workers: int, chunk: int | None, share
                                               progress=progress)
             ext_wall = time.perf_counter() - w0
             w0 = time.perf_counter()
-            res, dis = cluster.distill_on_ray(mscene, DistillConfig(mode="lift"), timesteps=steps,
+            res, dis = cluster.distill_on_ray(mscene, DistillOptions(mode="lift"), timesteps=steps,
                                               options=options, progress=progress)
             walls = {"extract": ext_wall, "lift": time.perf_counter() - w0}
             gaps = noop.dispatch_gaps()
@@ -283,6 +284,7 @@ def measure(source: Path, timesteps: str, workers: int, chunk: int | None, share
 
 
 def _simulated_encoder(scene: Any) -> Any:
+    import fourlegs_engine.demo  # noqa: F401 (registers the "simulated" encoder)
     from fourlegs_engine.language.encoders import get_encoder
     return get_encoder("simulated", scene=scene)
 
@@ -292,7 +294,7 @@ def run_bench_cluster(args: argparse.Namespace) -> int:
     from fourlegs_engine.errors import InputError
     from fourlegs_engine.fileio import write_bytes_atomic, write_json_atomic
     if args.scene in SYNTHETIC_SIZES:
-        from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+        from fourlegs_engine.demo.synthetic import ensure_demo_bundle
         source = ensure_demo_bundle(args.scene)
     else:
         source = Path(args.scene)

@@ -236,7 +236,7 @@ def _generate(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
-    from fourlegs_engine.scene.synthetic import write_synthetic_bundle
+    from fourlegs_engine.demo.synthetic import write_synthetic_bundle
 
     start = time.perf_counter()
     with tqdm(total=None, desc=f"generating {args.size}", unit="step", leave=False) as bar:

@@ -18,7 +18,7 @@ def run_bench_distill(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.scene in SYNTHETIC_SIZES:
-        from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+        from fourlegs_engine.demo.synthetic import ensure_demo_bundle
         path = ensure_demo_bundle(args.scene)
     else:
         path = Path(args.scene)
@@ -46,7 +46,8 @@ def bench_distill(scene: Any, *, modes: list[str], optimize_iterations: list[int
     import shutil
     import torch
     from fourlegs_engine.language.autoencoder import ENCODER_FILE, load_encoder, train_autoencoder
-    from fourlegs_engine.language.distill import DistillConfig, distill_scene, fidelity_reference, render_fidelity
+    from fourlegs_engine.language.distill import DistillOptions, distill_scene, fidelity_reference, render_fidelity
+    import fourlegs_engine.demo  # noqa: F401 (registers the "simulated" encoder)
     from fourlegs_engine.language.encoders import get_encoder
     from fourlegs_engine.language.extract import extract_features, feature_store
     from fourlegs_engine.language.store import select_timesteps
@@ -59,18 +60,18 @@ def bench_distill(scene: Any, *, modes: list[str], optimize_iterations: list[int
     extract_features(scene, get_encoder("simulated", scene=scene), progress=progress)
     ae = train_autoencoder(scene, progress=progress)
     prep = time.perf_counter() - prep
-    runs: list[tuple[str, DistillConfig]] = []
+    runs: list[tuple[str, DistillOptions]] = []
     for mode in modes:
         if mode == "lift":
-            runs += [(f"lift (teacher stride {s})", DistillConfig(mode="lift", teacher_stride=s))
+            runs += [(f"lift (teacher stride {s})", DistillOptions(mode="lift", teacher_stride=s))
                      for s in teacher_strides]
             runs.append(("lift (views at 0.5x, teacher stride 1)",
-                         DistillConfig(mode="lift", teacher_stride=1, view_scale=0.5)))
+                         DistillOptions(mode="lift", teacher_stride=1, view_scale=0.5)))
         elif mode == "lift+refine":
             runs.append((f"lift+refine {refine_iterations}",
-                         DistillConfig(mode="lift+refine", iterations=refine_iterations)))
+                         DistillOptions(mode="lift+refine", iterations=refine_iterations)))
         elif mode == "optimize":
-            runs += [(f"optimize {n}", DistillConfig(mode="optimize", iterations=n)) for n in optimize_iterations]
+            runs += [(f"optimize {n}", DistillOptions(mode="optimize", iterations=n)) for n in optimize_iterations]
         else:
             raise InputError(f"unknown mode {mode!r}", field="--modes")
     encoder = load_encoder(root / ENCODER_FILE)

@@ -190,16 +190,16 @@ def measure_initialisation(capture, opts) -> dict[str, Any]:
     its points, and the mean PSNR of the training views rendered from it before any optimisation."""
     import torch
 
-    from fourlegs_engine.fit.fitter import _Frames, _initial_model, render_views
+    from fourlegs_engine.fit.model import TrainingFrames, initial_model, render_views
     from fourlegs_engine.fit.losses import psnr
 
     opts = opts.check()
     steps = capture.timestep_range(opts.timesteps)
     cams_idx = capture.camera_indices("train", opts.cameras)
     cameras = [capture.train.cameras[steps.start][c].scaled(opts.resolution_scale) for c in cams_idx]
-    frames = _Frames(capture, steps.start, cams_idx, (cameras[0].width, cameras[0].height), torch.device("cpu"))
+    frames = TrainingFrames(capture, steps.start, cams_idx, (cameras[0].width, cameras[0].height), torch.device("cpu"))
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    model, _ = _initial_model(frames, cameras, opts, torch.device("cpu"))
+    model, _ = initial_model(frames, cameras, opts, torch.device("cpu"))
     wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     with torch.no_grad():
         scores = [psnr(render_views(model, cam, with_seg=False)["rgb"], frames.images[i])

@@ -49,7 +49,7 @@ def scene_labels(scene: Scene) -> list[str]:
 
 def scene_queries(scene: Scene) -> dict[str, list[str]]:
     """{query text: [label names]} from ``queries.json`` (bundle) or the scene metadata."""
-    from fourlegs_engine.scene.synthetic import QUERIES_FILE, read_queries
+    from fourlegs_engine.demo.synthetic import QUERIES_FILE, read_queries
 
     if scene.root is not None and (Path(scene.root) / QUERIES_FILE).is_file():
         queries = read_queries(scene.root)
@@ -110,7 +110,7 @@ class CoverageVideo:
         return self.scene.num_timesteps
 
     def __getitem__(self, t: int) -> torch.Tensor:
-        from fourlegs_engine.language.simulated import render_label_coverage
+        from fourlegs_engine.language.coverage import render_label_coverage
 
         t = int(t)
         if t not in self._frames:

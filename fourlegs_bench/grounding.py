@@ -156,7 +156,7 @@ def _summary(per_view: dict[str, dict[str, dict[str, float]]], queries: Sequence
 
 def build_context(scene: Scene, *, seed: int = 0, progress: bool = False,
                   views: Sequence[str] | None = None, options: dict[str, Any] | None = None) -> BenchmarkContext:
-    from fourlegs_engine.language.simulated import SimulatedTextEncoder, create_encoder
+    from fourlegs_engine.demo.simulated import SimulatedTextEncoder, create_encoder
 
     labels = scene_labels(scene)
     queries = list(scene_queries(scene))
@@ -250,7 +250,7 @@ def run_grounding_benchmark_cli(args: Any) -> int:
     from fourlegs_engine.fileio import write_json_atomic
     from fourlegs_engine.errors import OutputExistsError
     from fourlegs_engine.scene.bundle import load_bundle
-    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
 
     for out in (args.json, getattr(args, "plot", None)):
         if out and Path(out).exists() and not args.overwrite:

@@ -146,7 +146,7 @@ def epoch_sweep(bundle: Path, epochs: Sequence[int], query: str, work: Path) -> 
 
     from fourlegs_engine.highlight_job import DEFAULT_QUERY_PATH, DEFAULT_SPATIAL
     from fourlegs_engine.fileio import read_json, write_json_atomic
-    from fourlegs_engine.language.autoencoder import AETrainConfig, train_autoencoder
+    from fourlegs_engine.language.autoencoder import AETrainOptions, train_autoencoder
     from fourlegs_engine.language.distill import distill_scene
     from fourlegs_engine import pipeline
     from fourlegs_engine.scene.loaders import load_scene
@@ -163,7 +163,7 @@ def epoch_sweep(bundle: Path, epochs: Sequence[int], query: str, work: Path) -> 
         write_json_atomic(root / "scene.json", meta)
         scene = load_scene(root)
         start = time.perf_counter()
-        ae = train_autoencoder(scene, AETrainConfig(epochs=int(count)))
+        ae = train_autoencoder(scene, AETrainOptions(epochs=int(count)))
         trained = time.perf_counter()
         distill_scene(scene, mode="lift", view_scale=pipeline.FIELD_VIEW_SCALE)  # as the job lifts
         lifted = time.perf_counter()

@@ -86,7 +86,7 @@ def codebook_query_timings(workdir: Path, k: int, margin: float, repeats: int, t
     for R_avg, and the re-scoring of ``rescore_share`` of all (t, g) pairs (whole codes picked at random,
     at every timestep: more scattered reads than the few timesteps a real query re-scores).
     """
-    from fourlegs_engine.language.simulated import SimulatedTextEncoder
+    from fourlegs_engine.demo.simulated import SimulatedTextEncoder
     from fourlegs_engine.query.codebook import load_codebook
 
     torch.set_num_threads(threads)
@@ -128,8 +128,8 @@ def codebook_query_timings(workdir: Path, k: int, margin: float, repeats: int, t
         ts = np.arange(T)
 
         def exact_work() -> tuple[int, int]:
-            sampled = eng._sample_members(QUERY, [held], [sample_count], ts, rng)[0][1].size if sample_count else 0
-            rescored = eng._score_any(QUERY, eng._band_members(picked, ts, ts)[2]).size if picked.size else 0
+            sampled = eng.codebook_path.sample_members(QUERY, [held], [sample_count], ts, rng)[0][1].size if sample_count else 0
+            rescored = eng.scorer.score_any(QUERY, eng.codebook_path.band_members(picked, ts, ts)[2]).size if picked.size else 0
             anon.append(resident_mb("RssAnon"))
             return sampled, rescored
 
@@ -150,7 +150,7 @@ def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int]
                     exact_timesteps: int, spatial_scene: str, workdir: Path, progress: bool = True,
                     refine_margins: Sequence[float] = (0.0,), rescore_share: float = 0.0,
                     sample_count: int = 0) -> dict:
-    from fourlegs_engine.language.simulated import SimulatedTextEncoder
+    from fourlegs_engine.demo.simulated import SimulatedTextEncoder
 
     T, N = int(timesteps), int(gaussians)
     if T < 1 or N < 1:
@@ -188,7 +188,7 @@ def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int]
     eng.reference_embeddings()
     t0 = time.perf_counter()
     for t in range(steps):
-        eng._gaussian_relevancy(QUERY, t)
+        eng.gaussian_relevancy(QUERY, t)
     per_t = (time.perf_counter() - t0) / steps
     row = {"path": "exact", "query_s": per_t * T, "timed_timesteps": steps,
            "extrapolated": steps < T, "seconds_per_timestep": per_t, "peak_rss_mb": peak_rss_mb(),
@@ -209,7 +209,7 @@ def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int]
 
 
 def _spatial_timings(size: str, text, repeats: int, workdir: Path) -> list[dict]:
-    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
     from fourlegs_engine.scene.bundle import load_bundle
 
     scene = load_bundle(ensure_demo_bundle(size))

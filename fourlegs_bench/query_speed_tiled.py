@@ -96,7 +96,7 @@ def tiled_query_timings(workdir: Path, size: str, k: int, margin: float, threads
     """Every query on the tiled field in this (fresh) process: seconds (median of ``repeats`` runs, each
     from the text embedding on; this VM's timings of one run vary by up to 2x; the first run, which also
     maps the codebook index pages its codes touch, is kept apart), answers, exact work, memory."""
-    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
     from fourlegs_engine.scene.bundle import load_bundle
     from .query_fixtures import scene_with_field
     from .query_fixtures import flat_scene, peak_rss_mb, resident_mb
@@ -140,7 +140,7 @@ def run_tiled_query_speed(size: str, *, gaussians: int, timesteps: int, codebook
     import multiprocessing
 
     from .ground_truth import scene_queries
-    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
     from fourlegs_engine.scene.bundle import load_bundle
     from .query_fixtures import scene_with_field
     from .query_fixtures import warm_page_cache

@@ -102,7 +102,7 @@ def score(scene: Any, phrase: str, masks: Path, held_out: list[Any], scale: floa
 def run(args: argparse.Namespace) -> int:
     from fourlegs_engine.errors import InputError
     from fourlegs_engine.language.annotations import AnnotationMaskEncoder
-    from fourlegs_engine.language.autoencoder import AETrainConfig, train_autoencoder
+    from fourlegs_engine.language.autoencoder import AETrainOptions, train_autoencoder
     from fourlegs_engine.language.distill import distill_scene
     from fourlegs_engine.language.extract import extract_features
     from fourlegs_engine.scene.bundle import load_bundle
@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
         extract_features(scene, encoder, overwrite=True)
         extract_s = time.perf_counter() - s
         s = time.perf_counter()
-        train_autoencoder(scene, AETrainConfig(epochs=args.ae_epochs), overwrite=True)
+        train_autoencoder(scene, AETrainOptions(epochs=args.ae_epochs), overwrite=True)
         ae_s = time.perf_counter() - s
         for mode in modes:
             s = time.perf_counter()

@@ -34,7 +34,7 @@ OUTPUT_CHOICES = ("rgb", "features", "depth")
 
 
 @dataclass
-class BenchConfig:
+class RenderBenchOptions:
     sizes: tuple[int, ...] = (10_000, 100_000, 300_000)
     outputs: tuple[str, ...] = OUTPUT_CHOICES
     device: str = "cpu"
@@ -171,7 +171,7 @@ def _render_fn(scene: BenchScene, output: str, mode: str, backend: str, options=
 
 
 # ------------------------------------------------------------------------------------------- parts
-def speed_records(cfg: BenchConfig, progress=None) -> list[dict]:
+def speed_records(cfg: RenderBenchOptions, progress=None) -> list[dict]:
     records = []
     for n in cfg.sizes:
         scene = make_bench_scene(n, feature_dim=cfg.channels, seed=cfg.seed, device=cfg.device,
@@ -197,7 +197,7 @@ def _errors(out: torch.Tensor, ref: torch.Tensor) -> tuple[float, float]:
     return float(d.max()), float(d.mean())
 
 
-def small_scene(cfg: BenchConfig) -> BenchScene:
+def small_scene(cfg: RenderBenchOptions) -> BenchScene:
     return make_bench_scene(cfg.small_n, feature_dim=cfg.channels, seed=cfg.seed, device=cfg.device,
                             width=cfg.small_width, height=cfg.small_height)
 
@@ -211,7 +211,7 @@ def oracle_outputs(scene: BenchScene) -> dict[str, torch.Tensor]:
                                    features=scene.features.double(), outputs=("rgb", "features"), tile_size=None)
 
 
-def baseline_records(cfg: BenchConfig, scene: BenchScene, progress=None) -> list[dict]:
+def baseline_records(cfg: RenderBenchOptions, scene: BenchScene, progress=None) -> list[dict]:
     """Oracle vs dense-tile vs fast, forward and forward+backward, at the small N."""
     from fourlegs_engine.render.reference import rasterize_reference
 
@@ -263,7 +263,7 @@ def _colors_only_backward(scene: BenchScene):
     return run
 
 
-def knob_records(cfg: BenchConfig, scene: BenchScene, oracle: dict, progress=None) -> list[dict]:
+def knob_records(cfg: RenderBenchOptions, scene: BenchScene, oracle: dict, progress=None) -> list[dict]:
     """Accuracy knobs: time next to max/mean error against the float64 oracle."""
     from fourlegs_engine.render import RasterOptions, rasterize
 
@@ -289,7 +289,7 @@ def knob_records(cfg: BenchConfig, scene: BenchScene, oracle: dict, progress=Non
     return records
 
 
-def run_bench(cfg: BenchConfig, progress=None) -> list[dict]:
+def run_bench(cfg: RenderBenchOptions, progress=None) -> list[dict]:
     records = speed_records(cfg, progress)
     if cfg.baselines or cfg.knobs:
         scene = small_scene(cfg)
@@ -422,7 +422,7 @@ def run_render_cli(args: argparse.Namespace) -> int:
         raise InputError("must be >= 1", field="--repeats")
     w, h = _resolution(args.resolution, "--resolution")
     sw, sh = _resolution(args.small_resolution, "--small-resolution")
-    cfg = BenchConfig(sizes=_ints(args.sizes, "--sizes"), outputs=outputs, device=args.device, backends=backends,
+    cfg = RenderBenchOptions(sizes=_ints(args.sizes, "--sizes"), outputs=outputs, device=args.device, backends=backends,
                       repeats=args.repeats, channels=args.channels, width=w, height=h, small_n=args.small_n,
                       small_width=sw, small_height=sh, baselines=not args.skip_baselines, knobs=not args.skip_knobs)
     n_cases = len(cfg.sizes) * len(outputs) * len(backends) * 2 + (12 if cfg.baselines else 0) + (14 if cfg.knobs else 0)

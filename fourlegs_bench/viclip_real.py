@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from fourlegs_engine.errors import InputError
-from fourlegs_engine.language.extract import ExtractConfig
+from fourlegs_engine.language.extract import ExtractOptions
 from fourlegs_engine.language.pyramid import (CLIP_MEAN, CLIP_STD, PyramidLayout, crop_layout, resize_crops,
                                               scale_crops, tube_indices)
 from fourlegs_engine.language.viclip.model import ViCLIPConfig, ViCLIPModel, l2_normalize, video_clip_flops
@@ -211,7 +211,7 @@ def bench_viclip_real(dataset: str | Path, *, size: str | ViCLIPConfig = "l", ca
     capture.check_frames("train", sorted({k for t in timesteps for k in tube_indices(t, capture.num_timesteps)}),
                          cam_positions, masks=False)
     config = size if isinstance(size, ViCLIPConfig) else ViCLIPConfig.preset(size)
-    crop_size = int(ExtractConfig(crop_size=None).resolved_crop_size("rgb", config))
+    crop_size = int(ExtractOptions(crop_size=None).resolved_crop_size("rgb", config))
     ratios = tuple(ratios) if ratios is not None else pyramid_ratios()
     layout = crop_layout(capture.width, capture.height, ratios)
     per_ct = layout.num_crops

@@ -12,21 +12,23 @@ into the engine's internals, so the engine can reorganize without breaking them:
 """
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING, Any
 
 from .errors import (Cancelled, FourlegsError, InputError, OutputExistsError, describe_environment_error,
-                     print_error)
+                     exit_code_of, print_error)
+from .lazy import lazy_exports
 
 # name -> engine module it lives in. They are imported on first use, so a front end that only opens and
 # shows a scene (the Blender add-on's import and timeline playback) runs without PyTorch installed.
 _LAZY = {
+    **{name: "errors" for name in ("Cancelled", "FourlegsError", "InputError", "OutputExistsError",
+                                   "describe_environment_error", "exit_code_of", "print_error")},
     "atomic_path": "fileio", "write_json_atomic": "fileio", "OUTPUTS_MARKER": "fileio", "claim_outputs": "fileio",
     "image_file_problem": "fileio", "incomplete_write_error": "fileio",
     "check_text": "validate",
     "available_presets": "highlights", "load_preset": "highlights", "plan_highlight": "highlights",
     "plan_needs": "highlights",
-    "EncoderConfig": "pipeline", "FieldStep": "pipeline", "QueryOptions": "pipeline",
+    "EncoderOptions": "pipeline", "FieldStep": "pipeline", "QueryOptions": "pipeline",
     "language_field_steps": "pipeline", "ensure_language_field": "pipeline",
     "has_language_field": "pipeline", "open_query_engine": "pipeline", "open_scene": "pipeline",
     "text_encoder": "pipeline",
@@ -45,7 +47,7 @@ if TYPE_CHECKING:
     from .highlight_job import (HighlightJobOptions, StageTimer, finish_highlight_job, plan_digest,
                                 prepare_highlight_job)
     from .highlights import available_presets, load_preset, plan_highlight, plan_needs
-    from .pipeline import (EncoderConfig, FieldStep, QueryOptions, ensure_language_field, has_language_field,
+    from .pipeline import (EncoderOptions, FieldStep, QueryOptions, ensure_language_field, has_language_field,
                            language_field_steps, open_query_engine, open_scene, text_encoder)
     from .query.multiscene import rank_scenes_opening
     from .render import rasterize
@@ -54,25 +56,10 @@ if TYPE_CHECKING:
     from .threads import kernel_threads, torch_threads, usable_cpu_count
     from .validate import check_text
 
+_lazy_attribute, __dir__, __all__ = lazy_exports(__name__, _LAZY, base=__package__)
+#: earlier names still used by add-on code being rewritten beside this change (addon/prepare.py)
+_RENAMED = {"EncoderConfig": "EncoderOptions"}
+
 
 def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__package__}.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
-
-
-__all__ = ["Cancelled", "Camera", "EncoderConfig", "FieldStep", "FourlegsError", "HighlightJobOptions", "InputError",
-           "OUTPUTS_MARKER", "OutputExistsError", "QueryOptions", "Scene", "StageTimer", "atomic_path",
-           "available_presets", "check_text", "claim_outputs", "describe_environment_error",
-           "ensure_language_field", "finish_highlight_job", "has_language_field", "image_file_problem",
-           "incomplete_write_error", "kernel_threads", "language_field_steps", "load_preset", "load_scene",
-           "open_query_engine", "open_scene", "plan_digest", "plan_highlight", "plan_needs",
-           "prepare_highlight_job", "print_error", "rank_scenes_opening", "rasterize", "release_mapped_pages", "text_encoder",
-           "torch_threads", "usable_cpu_count", "write_json_atomic"]
+    return _lazy_attribute(_RENAMED.get(name, name))

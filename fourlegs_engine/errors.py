@@ -6,8 +6,8 @@ the problem, so the CLI can print one clear line instead of a traceback.
 from __future__ import annotations
 
 import sys
-
 from pathlib import Path
+from typing import Callable, Optional
 
 
 class FourlegsError(Exception):
@@ -97,3 +97,34 @@ def print_error(message: str) -> None:
     command line) are shown as escapes instead of failing the print."""
     line = f"fourlegs: error: {message}".encode("utf-8", "backslashreplace").decode("utf-8")
     print(line, file=sys.stderr)
+
+
+def exit_code_of(work: Callable[[], Optional[int]]) -> int:
+    """Run a command's ``work`` and turn how it ends into the process's exit code, so every front end
+    (``fourlegs``, the headless main job) reports failures alike:
+
+    - its own return value (None: 0);
+    - 2 for an error the engine raises on purpose (bad input, an existing output), printed as one line;
+    - 130 for Ctrl-C (the stages resume on the next run);
+    - 0 when stdout is a pipe whose reader left (``fourlegs ... | head``);
+    - 1 for the machine's limits (full or read-only disk, no memory: :func:`describe_environment_error`).
+
+    Anything else is a bug and keeps its traceback (re-raised).
+    """
+    try:
+        return int(work() or 0)
+    except FourlegsError as exc:
+        print_error(str(exc))
+        return 2
+    except BrokenPipeError:
+        sys.stderr.close()
+        return 0
+    except KeyboardInterrupt:
+        print("fourlegs: cancelled; run the same command again to resume", file=sys.stderr)
+        return 130
+    except (OSError, MemoryError, RuntimeError) as exc:
+        message = describe_environment_error(exc)
+        if message is None:
+            raise
+        print_error(message)
+        return 1

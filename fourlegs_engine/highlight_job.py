@@ -27,7 +27,7 @@ from typing import Any, Callable, ContextManager, Optional
 from . import pipeline
 from .errors import InputError, OutputExistsError
 from .fileio import OUTPUTS_MARKER, claim_outputs, write_json_atomic
-from .highlights import load_preset, plan_highlight, plan_needs
+from .options_json import options_from_dict, options_to_dict
 from .validate import check_text
 
 __all__ = ["DEFAULT_QUERY_PATH", "DEFAULT_SPATIAL", "DEMO_RESOLUTION", "HighlightJob", "HighlightJobOptions",
@@ -62,6 +62,7 @@ class HighlightJobOptions:
         resolution: (width, height) of the output; None: :data:`DEMO_RESOLUTION` for the demo, else the preset's.
         fps: output frame rate; None: the preset's.
         format: one of :data:`VIDEO_FORMATS`.
+        effects: only the preset's shots with these effects are kept (empty: all of them).
         no_effect: the preset's shots with these effects are left out.
         query_path / spatial: the query engine's temporal and spatial relevancy paths
             (:class:`~fourlegs_engine.query.options.QueryOptions` ``path`` / ``spatial``).
@@ -78,11 +79,26 @@ class HighlightJobOptions:
     resolution: Optional[tuple[int, int]] = None
     fps: Optional[float] = None
     format: str = "MP4"
+    effects: tuple[str, ...] = ()
     no_effect: tuple[str, ...] = ()
     query_path: str = DEFAULT_QUERY_PATH
     spatial: str = DEFAULT_SPATIAL
-    encoder: pipeline.EncoderConfig = field(default_factory=pipeline.EncoderConfig)
+    encoder: pipeline.EncoderOptions = field(default_factory=pipeline.EncoderOptions)
     render_threads: Optional[int] = 1
+
+    def to_json(self) -> str:
+        """Every field as JSON: how ``fourlegs highlight`` hands the job to its Blender child."""
+        return json.dumps(options_to_dict(self), indent=1)
+
+    @classmethod
+    def from_json(cls, text: str, *, file: Optional[str | Path] = None) -> "HighlightJobOptions":
+        """The options :meth:`to_json` wrote; InputError naming ``file`` and the field for malformed JSON,
+        an unknown field or a value of the wrong type."""
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise InputError(f"not valid JSON ({exc})", file=file) from None
+        return options_from_dict(cls, data, file=file)
 
 
 class StageTimer:
@@ -151,6 +167,7 @@ def prepare_highlight_job(options: HighlightJobOptions,
     ``stage`` times each step (a :class:`StageTimer`). OutputExistsError before any work if a finished
     job's outputs (or foreign files of the same names) are there and ``options.overwrite`` is false.
     """
+    from .highlights import load_preset, plan_highlight, plan_needs
     from .query.plots import write_scores_plot
 
     out = job_outputs(options.output, options.format)
@@ -169,11 +186,9 @@ def prepare_highlight_job(options: HighlightJobOptions,
         raise InputError("give either --demo or a scene path, not both", field="scene")
     if options.demo is None and options.scene is None:
         raise InputError("no scene given (a path, or --demo)", field="scene")
+    preset = load_preset(options.preset).select_effects(options.effects, options.no_effect)
     with stage("scene"):
         scene = pipeline.open_scene(options.scene, demo=options.demo)
-    preset = load_preset(options.preset)
-    if options.no_effect:
-        preset = preset.with_shots([s.effect for s in preset.shots if s.effect not in set(options.no_effect)])
     engine = None
     if plan_needs(preset) or preset_needs_relevancy(preset):
         encoder = pipeline.text_encoder(scene, options.encoder)

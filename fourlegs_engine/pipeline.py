@@ -2,7 +2,7 @@
 field -> open the query engine.
 
 The ``fourlegs`` commands, the headless main job and the Blender add-on all go through these functions;
-their options are plain dataclasses (:class:`EncoderConfig`, :class:`~fourlegs_engine.query.options.QueryOptions`)
+their options are plain dataclasses (:class:`EncoderOptions`, :class:`~fourlegs_engine.query.options.QueryOptions`)
 so no command-line type reaches the library::
 
     from fourlegs_engine import pipeline
@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from .query.engine import QueryEngine
     from .scene.scene import Scene
 
-__all__ = ["EncoderConfig", "FieldStep", "QueryOptions", "ensure_language_field", "has_language_field",
+__all__ = ["EncoderOptions", "FieldStep", "QueryOptions", "ensure_language_field", "has_language_field",
            "language_field_steps", "open_query_engine",
            "open_scene", "text_encoder"]
 
@@ -40,13 +40,13 @@ StageReporter = Callable[[str], ContextManager[Any]]
 
 
 #: fraction of each training view's resolution the lift of :func:`ensure_language_field` and
-#: :func:`language_field_steps` splats at (``DistillConfig.view_scale``): the lift's cost is per pixel, and
+#: :func:`language_field_steps` splats at (``DistillOptions.view_scale``): the lift's cost is per pixel, and
 #: the highlight job's answer (segment, peak, best view) is the full-resolution lift's
 FIELD_VIEW_SCALE = 0.5
 
 
 @dataclass(frozen=True)
-class EncoderConfig:
+class EncoderOptions:
     """Which video-text encoder to build, and how.
 
     Attributes:
@@ -82,16 +82,17 @@ class EncoderConfig:
         return (scene.language or {}).get("encoder") or (
             "simulated" if (scene.metadata or {}).get("labels") else "viclip")
 
-    def replace(self, **changes: Any) -> "EncoderConfig":
+    def replace(self, **changes: Any) -> "EncoderOptions":
         return replace(self, **changes)
 
 
-def text_encoder(scene: Optional["Scene"] = None, config: EncoderConfig = EncoderConfig()) -> "VideoTextEncoder":
+def text_encoder(scene: Optional["Scene"] = None, config: EncoderOptions = EncoderOptions()) -> "VideoTextEncoder":
     """Build the encoder ``config`` names for ``scene`` (the simulated encoder reads the scene's labels)."""
     from .language.encoders import get_encoder
 
     name = config.resolved_name(scene)
-    if name == "simulated":
+    if name == "simulated":  # the demo scenes' encoder: the demo package registers it
+        from . import demo  # noqa: F401
         return get_encoder(name, scene=scene)
     if name == "masks":
         return get_encoder(name, masks=list(config.masks), scene=scene)
@@ -118,7 +119,7 @@ def open_scene(source: str | Path | None = None, *, demo: Optional[str] = None) 
     if demo is not None:
         if source is not None:
             raise InputError("give either a demo scene or a scene path, not both", field="scene")
-        from .scene.synthetic import ensure_demo_bundle
+        from .demo.synthetic import ensure_demo_bundle
         source = ensure_demo_bundle(demo)
     elif source is None:
         raise InputError("no scene given (a path, or the demo scene)", field="scene")
@@ -139,7 +140,7 @@ def has_language_field(scene: "Scene") -> bool:
                 and (Path(scene.root) / str(scene.language.get("latents", ""))).is_file())
 
 
-def ensure_language_field(scene: "Scene", encoder: Any = None, *, encoder_config: EncoderConfig = EncoderConfig(),
+def ensure_language_field(scene: "Scene", encoder: Any = None, *, encoder_config: EncoderOptions = EncoderOptions(),
                           mode: str = "lift", progress: bool = False,
                           stage: Optional[StageReporter] = None) -> "Scene":
     """Return ``scene`` with a distilled language field, building it first if the bundle has none.
@@ -174,7 +175,7 @@ def ensure_language_field(scene: "Scene", encoder: Any = None, *, encoder_config
 
 
 def open_query_engine(scene: "Scene", encoder: Any = None, *, options: Optional[QueryOptions] = None,
-                      encoder_config: EncoderConfig = EncoderConfig(),
+                      encoder_config: EncoderOptions = EncoderOptions(),
                       progress: Optional[Callable[[float, str], None]] = None, **engine_kwargs: Any) -> "QueryEngine":
     """A :class:`~fourlegs_engine.query.engine.QueryEngine` on ``scene``'s language field.
 
@@ -226,7 +227,7 @@ class FieldStep:
     total: int
 
 
-def language_field_steps(scene: "Scene", encoder: Any = None, *, encoder_config: EncoderConfig = EncoderConfig(),
+def language_field_steps(scene: "Scene", encoder: Any = None, *, encoder_config: EncoderOptions = EncoderOptions(),
                          mode: str = "lift") -> Iterator[FieldStep]:
     """Build ``scene``'s language field one unit at a time, yielding a :class:`FieldStep` after each.
 
@@ -235,7 +236,7 @@ def language_field_steps(scene: "Scene", encoder: Any = None, *, encoder_config:
     The first step of each stage reports the units already finished (``done`` may start above 0).
     Reopen the scene (:func:`open_scene`) afterwards to see the field.
     """
-    from .language.autoencoder import AETrainConfig, train_autoencoder
+    from .language.autoencoder import AETrainOptions, train_autoencoder
     from .language.distill import distill_scene
     from .language.extract import extract_features
 
@@ -248,7 +249,7 @@ def language_field_steps(scene: "Scene", encoder: Any = None, *, encoder_config:
     for t in range(T):
         report = extract_features(scene, encoder, timesteps=[t])
         yield FieldStep("extract features", t + 1, T)
-    epochs = AETrainConfig().epochs
+    epochs = AETrainOptions().epochs
     for epoch in range(epochs):
         report = train_autoencoder(scene, stop_after_epoch=epoch + 1)
         if "stopped_after_epoch" not in report:  # trained (or found trained): the last epoch is done

@@ -104,7 +104,7 @@ def language_bundle(path: Path, T: int = 6, N: int = 200, query_label: str = "re
     import torch
 
     from fourlegs_engine.language.autoencoder import FeatureDecoder
-    from fourlegs_engine.language.simulated import SimulatedTextEncoder
+    from fourlegs_engine.demo.simulated import SimulatedTextEncoder
     from fourlegs_engine.scene import write_bundle
     from fourlegs_engine.scene.bundle import update_bundle_meta
 

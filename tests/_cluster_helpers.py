@@ -7,6 +7,7 @@ import signal
 from pathlib import Path
 from typing import Any
 
+import fourlegs_engine.demo  # noqa: F401 (registers the "simulated" encoder, in Ray's workers too)
 from fourlegs_engine.language.encoders import get_encoder
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -12,26 +13,107 @@ from _blender_helpers import bpy_addon, child_env, language_bundle  # noqa: F401
 QUERY = "the red cube"
 
 
-def test_cli_process_never_imports_bpy():
+def test_cli_process_never_imports_bpy(tmp_path):
     code = ("import sys; from fourlegs_engine.commands.main import build_parser; p = build_parser(); "
             "a = p.parse_args(['highlight', '--demo', 'a ball', '-o', 'x']); "
-            "from fourlegs_addon.commands import headless_argv; argv = headless_argv(a); "
-            "assert 'bpy' not in sys.modules, 'bpy imported'; print(argv)")
+            "from fourlegs_engine.commands.options import highlight_job_options; "
+            "from fourlegs_addon.commands import headless_command; "
+            f"f = {str(tmp_path / 'o.json')!r}; open(f, 'w').write(highlight_job_options(a).to_json()); "
+            "cmd = headless_command(f); "
+            "assert 'bpy' not in sys.modules, 'bpy imported'; print(cmd)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=child_env(), timeout=120)
     assert proc.returncode == 0, proc.stderr
-    assert "'--demo'" in proc.stdout and "'a ball'" in proc.stdout
+    assert "'--options-json'" in proc.stdout and "'fourlegs_addon.headless'" in proc.stdout
+    assert json.loads((tmp_path / "o.json").read_text())["query"] == "a ball"
 
 
-def test_headless_argv_round_trips_every_option():
+#: option values that need a format (the rest get one derived from their type or choices)
+SAMPLE_VALUES = {"resolution": "320x180", "masks": "a red cube=masks/cube", "device": "cpu"}
+#: options that only mean something beside another one
+COMPANIONS = {"demo_size": ["--demo"]}
+
+
+def _highlight_parser():
+    from fourlegs_engine.commands.main import build_parser
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    return sub.choices["highlight"]
+
+
+def _non_default_argv(action) -> list[str]:
+    """Command-line words that give ``action`` a valid value other than its default."""
+    if action.nargs == 0:  # store_true
+        return [action.option_strings[0]]
+    if action.dest in SAMPLE_VALUES:
+        value = SAMPLE_VALUES[action.dest]
+    elif action.choices:
+        value = next(c for c in action.choices if c != action.default)
+    elif action.type in (int, float):
+        value = str((action.default or 0) + 3)
+    else:
+        value = f"x-{action.dest}"
+    return [action.option_strings[0], value] if action.option_strings else [value]
+
+
+def _options_of(argv: list[str]):
+    from fourlegs_engine.commands.options import highlight_job_options
+
+    return highlight_job_options(_highlight_parser().parse_args(argv))
+
+
+def _options_arguments():
+    return [a for a in _highlight_parser()._actions if a.option_strings and a.dest != "help"]
+
+
+def test_every_option_of_fourlegs_highlight_changes_the_job_options():
+    """An option the parser accepts but the job's options dataclass drops would never reach the child."""
+    baseline = ["scene_dir", "q", "-o", "out"]
+    for action in _options_arguments():
+        extra = COMPANIONS.get(action.dest, [])
+        before = _options_of(baseline + extra)
+        assert _options_of(baseline + extra + _non_default_argv(action)) != before, action.dest
+
+
+def test_every_option_reaches_the_headless_job_through_its_options_json(monkeypatch):
+    """`fourlegs highlight` with every option at a non-default value: the child's dataclass is the parent's."""
+    from fourlegs_addon import commands, headless
+
+    positional = [w for a in _highlight_parser()._actions if not a.option_strings for w in _non_default_argv(a)]
+    argv = positional + [w for a in _options_arguments() if a.dest not in ("demo", "scene")
+                         for w in _non_default_argv(a)]
+    parent = _options_of(argv)
+    assert parent.render_threads == 4 and parent.encoder.masks == (("a red cube", "masks/cube"),)
+    children = []
+
+    def child(cmd):  # the headless job's own reading of its command line, while the parent's file exists
+        assert cmd[:4] == [sys.executable, "-m", "fourlegs_addon.headless", "--options-json"]
+        children.append(headless.job_options(cmd[3:]))
+        return 0
+
+    monkeypatch.setattr(commands, "run_child", child)
+    assert commands.run_highlight(_highlight_parser().parse_args(argv)) == 0
+    assert children == [parent]
+    assert headless.job_options(argv) == parent  # the job's own command line builds the same dataclass
+
+
+@pytest.mark.parametrize("text,problem", [
+    ("{", "not valid JSON"),
+    ('{"query": "q", "output": "o", "colour": "red"}', "unknown field(s) 'colour'"),
+    ('{"query": "q", "output": "o", "fps": "fast"}', "fps: expected a finite number"),
+    ('{"query": "q", "output": "o", "resolution": [640]}', "resolution: expected 2 values"),
+    ('{"query": "q", "output": "o", "encoder": {"batch_size": 1.5}}', "encoder.batch_size: expected an integer"),
+])
+def test_a_malformed_options_file_is_one_line_naming_the_file_and_field(tmp_path, text, problem):
     from fourlegs_addon import headless
-    from fourlegs_addon.commands import headless_argv
+    from fourlegs_engine.errors import InputError
 
-    parser = headless.build_parser()
-    args = parser.parse_args(["scene_dir", "q", "--preset", "subtle_desaturate", "-o", "o", "--overwrite",
-                              "--resolution", "320x180", "--fps", "12", "--no-effect", "zoom_in",
-                              "--encoder", "simulated", "--format", "PNG"])
-    again = parser.parse_args(headless_argv(args))
-    assert vars(again) == vars(args)
+    path = tmp_path / "options.json"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(InputError, match=re.escape(problem)) as info:
+        headless.job_options(["--options-json", str(path)])
+    assert str(path) in str(info.value)
+    with pytest.raises(InputError, match="replaces every other argument"):
+        headless.job_options(["--options-json", str(path), "--overwrite"])
 
 
 @pytest.mark.parametrize("text", ["640", "640x", "0x360", "641x360", "axb"])

@@ -13,13 +13,13 @@ from _language_helpers import micro_bundle
 from fourlegs_bench.metrics import average_precision
 from fourlegs_engine.commands.main import main
 from fourlegs_engine.errors import InputError
-from fourlegs_engine.language.autoencoder import AETrainConfig, train_autoencoder
+from fourlegs_engine.language.autoencoder import AETrainOptions, train_autoencoder
 from fourlegs_engine.language.distill import distill_scene
 from fourlegs_engine.language.annotations import AnnotationMaskEncoder, mask_pairs, phrase_embedding
 from fourlegs_engine.language.encoders import CANONICAL_PHRASES, get_encoder
 from fourlegs_engine.language.extract import extract_features, feature_store
-from fourlegs_engine.language.simulated import render_label_coverage
-from fourlegs_engine.pipeline import EncoderConfig, open_query_engine, text_encoder
+from fourlegs_engine.language.coverage import render_label_coverage
+from fourlegs_engine.pipeline import EncoderOptions, open_query_engine, text_encoder
 from fourlegs_engine.scene.bundle import load_bundle
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "panoptic-basketball"
@@ -64,11 +64,11 @@ def test_masks_lift_to_the_masked_region(tmp_path):
     bundle = micro_bundle(tmp_path / "scene", T=2)
     scene = load_bundle(bundle)
     masks = person_masks(scene, tmp_path / "masks")
-    config = EncoderConfig(name="masks", masks=(("a person", str(tmp_path / "masks")),))
+    config = EncoderOptions(name="masks", masks=(("a person", str(tmp_path / "masks")),))
     encoder = text_encoder(scene, config)
     extract_features(scene, encoder)
     assert feature_store(scene).config["frames"] == "annotation-masks"
-    train_autoencoder(scene, AETrainConfig(epochs=1, samples=1024, heldout_samples=128, batch_size=256))
+    train_autoencoder(scene, AETrainOptions(epochs=1, samples=1024, heldout_samples=128, batch_size=256))
     distill_scene(scene, mode="lift")
     scene = load_bundle(bundle)
     assert scene.language["encoder"] == "masks"
@@ -159,7 +159,7 @@ def test_views_without_masks_give_no_evidence_and_do_not_vote(tmp_path, capsys):
     """Masks for two of the three training cameras: the third camera's feature rows are zero, and the field
     lifted from the full rig equals the one lifted from a rig of the two annotated cameras only."""
     from fourlegs_engine.language.autoencoder import ENCODER_FILE, load_encoder
-    from fourlegs_engine.language.distill import DistillConfig, distill_timestep
+    from fourlegs_engine.language.distill import DistillOptions, distill_timestep
     from fourlegs_engine.language.extract import camera_layouts
     from fourlegs_engine.scene.bundle import write_bundle
     from fourlegs_engine.scene.camera import CameraRig
@@ -192,7 +192,7 @@ def test_views_without_masks_give_no_evidence_and_do_not_vote(tmp_path, capsys):
         assert np.array_equal(sub_feats, np.concatenate([feats[t][rows[0]], feats[t][rows[2]]]))
     encoder = load_encoder(Path(full.root) / ENCODER_FILE)
     for mode in ("lift", "lift+refine"):
-        config = DistillConfig(mode=mode, iterations=3).check()
+        config = DistillOptions(mode=mode, iterations=3).check()
         for t in range(2):
             a, _ = distill_timestep(full, t, encoder, feature_store(full), config)
             b, _ = distill_timestep(sub, t, encoder, feature_store(sub), config)
@@ -212,7 +212,7 @@ def test_no_view_with_evidence_leaves_zero_latents(tmp_path):
     """A timestep no annotated frame reaches (its tube holds none) gets zero latents, like Gaussians no
     training camera sees; the timesteps with evidence are lifted."""
     from fourlegs_engine.language.autoencoder import ENCODER_FILE, load_encoder
-    from fourlegs_engine.language.distill import DistillConfig, distill_timestep
+    from fourlegs_engine.language.distill import DistillOptions, distill_timestep
 
     scene = load_bundle(micro_bundle(tmp_path / "scene", T=6))
     cams = scene.cameras.cameras(0, "train")
@@ -221,13 +221,13 @@ def test_no_view_with_evidence_leaves_zero_latents(tmp_path):
     store = feature_store(scene)
     assert np.abs(store.load(3).astype(np.float32)).sum() > 0        # tube t-4..t+3, clipped to 0..5, holds t=0
     assert not np.any(store.load(5).astype(np.float32))              # tube 1..8 holds no annotated frame
-    train_autoencoder(scene, AETrainConfig(epochs=1, samples=1024, heldout_samples=128, batch_size=256))
+    train_autoencoder(scene, AETrainOptions(epochs=1, samples=1024, heldout_samples=128, batch_size=256))
     encoder = load_encoder(Path(scene.root) / ENCODER_FILE)
     for mode in ("lift", "optimize"):
-        config = DistillConfig(mode=mode, iterations=2).check()
+        config = DistillOptions(mode=mode, iterations=2).check()
         latents, timing = distill_timestep(scene, 5, encoder, store, config)
         assert latents.shape == (scene.num_gaussians, 128) and not np.any(latents)
-    latents, _ = distill_timestep(scene, 0, encoder, store, DistillConfig(mode="lift").check())
+    latents, _ = distill_timestep(scene, 0, encoder, store, DistillOptions(mode="lift").check())
     assert np.isfinite(latents).all() and np.abs(latents).sum() > 0
 
 

@@ -14,7 +14,7 @@ def _engine_for(scene):
     """A real QueryEngine over a small hand-made language field (fixed random decoder, seeded latents)."""
     from fourlegs_engine.language.autoencoder import FeatureDecoder
     from fourlegs_engine.language.field import LanguageField
-    from fourlegs_engine.language.simulated import SimulatedTextEncoder
+    from fourlegs_engine.demo.simulated import SimulatedTextEncoder
     from fourlegs_engine.query.engine import QueryEngine
 
     torch.manual_seed(0)
@@ -171,13 +171,13 @@ def test_missing_dependency_message_names_the_install_command():
 
 
 def test_viclip_weights_come_from_the_scene_properties(bl, tmp_path):
-    """The add-on's encoder is the commands' EncoderConfig; its ViCLIP paths are the scene's properties."""
+    """The add-on's encoder is the commands' EncoderOptions; its ViCLIP paths are the scene's properties."""
     from fourlegs_addon import querying
-    from fourlegs_engine.pipeline import EncoderConfig
+    from fourlegs_engine.pipeline import EncoderOptions
 
     props = bl.context.scene.fourlegs
     props.encoder_checkpoint, props.encoder_vocab = "", ""
-    assert querying.encoder_config(props) == EncoderConfig()
+    assert querying.encoder_config(props) == EncoderOptions()
     props.encoder_checkpoint = str(tmp_path / "ViClip-InternVid-10M-FLT.pth")
     props.encoder_vocab = str(tmp_path / "bpe_simple_vocab_16e6.txt.gz")
     config = querying.encoder_config(props)

@@ -15,6 +15,7 @@ import torch
 from _cluster_helpers import KillOnceFactory, count_then_fail, simulated_factory
 from _language_helpers import micro_bundle
 from fourlegs_engine import cluster
+from fourlegs_engine.cluster import stages
 from fourlegs_engine.commands.main import main
 from fourlegs_engine.language.distill import distill_scene
 from fourlegs_engine.scene.bundle import load_bundle
@@ -138,7 +139,7 @@ def test_a_bundle_the_workers_cannot_see_fails_with_a_clear_line(reference, ray_
     ref = cluster.bundle_ref(ray_cluster, path, cluster.RayOptions())
     ref.scene_json_sha = "0" * 64                                  # as if another bundle were mounted there
     job = cluster.ExtractJob(ref, "run", simulated_factory, None)
-    report = cluster.run_chunks(cluster._extract_config_task, job, [()], options=cluster.RayOptions(),
+    report = cluster.run_chunks(stages.extract_config_task, job, [()], options=cluster.RayOptions(),
                                 stage="extract-config", progress=False)
     assert len(report.failures) == 1 and "--ray-no-shared-fs" in report.failures[0].error
 

@@ -9,10 +9,10 @@ from hypothesis import strategies as st
 
 from fourlegs_engine.errors import InputError
 from fourlegs_bench.baseline2d import Features2D, pixel_relevancy, pixel_taps
-from fourlegs_engine.scene.synthetic import LABELS
+from fourlegs_engine.demo.synthetic import LABELS
 from fourlegs_engine.language.pyramid import crop_layout, pixel_features, pyramid_ratios
-from fourlegs_engine.language.simulated import SimulatedTextEncoder, SimulatedVideoEncoder
-from fourlegs_engine.query.relevancy import relevancy
+from fourlegs_engine.demo.simulated import SimulatedTextEncoder, SimulatedVideoEncoder
+from fourlegs_engine.query.lerf import relevancy
 
 
 def _literal(layout, feats, q, c, stride):

@@ -12,7 +12,7 @@ from fourlegs_bench.baseline2d import ViewPrediction, inclusive_to_exclusive
 from fourlegs_bench.ground_truth import (VISIBILITY_THRESHOLD, CoverageVideo, ensure_ground_truth,
                                                label_ids, scene_queries, segments_of, visible_masks)
 from fourlegs_bench.metrics import METRIC_NAMES, mask_to_box
-from fourlegs_engine.scene.synthetic import LABELS, SCRIPT, _frames_of, write_synthetic_bundle
+from fourlegs_engine.demo.synthetic import LABELS, SCRIPT, _frames_of, write_synthetic_bundle
 from fourlegs_engine.render import rasterize
 from fourlegs_engine.scene import load_bundle
 

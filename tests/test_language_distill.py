@@ -17,11 +17,13 @@ import torch
 from _language_helpers import kill_after_first_step, micro_bundle, one_thread  # noqa: F401 (one_thread: autouse fixture)
 from fourlegs_engine.commands.main import main
 from fourlegs_engine.errors import ConfigMismatchError, InputError
-from fourlegs_engine.language.autoencoder import AETrainConfig, train_autoencoder
-from fourlegs_engine.language.distill import (DistillConfig, distill_scene, lift_latents,
-                                              optimize_latents, view_operator)
+from fourlegs_engine.language.autoencoder import AETrainOptions, train_autoencoder
+from fourlegs_engine.language.distill import DistillOptions, distill_scene
+import fourlegs_engine.demo  # noqa: F401 (registers the "simulated" encoder)
 from fourlegs_engine.language.encoders import get_encoder
-from fourlegs_engine.language.extract import ExtractConfig, check_features, extract_features
+from fourlegs_engine.language.latent_solvers import lift_latents, optimize_latents
+from fourlegs_engine.language.view_operator import view_operator
+from fourlegs_engine.language.extract import ExtractOptions, check_features, extract_features
 from fourlegs_engine.language.field import LanguageField
 from fourlegs_engine.render import rasterize
 from fourlegs_engine.scene.bundle import load_bundle
@@ -101,14 +103,14 @@ def test_optimize_decreases_the_loss_and_is_deterministic():
     teacher = torch.nn.functional.normalize(torch.randn(64 * 24, 16), dim=1)
     nbr = torch.arange(5)[:, None].repeat(1, 2)
     nbr[:, 1] = (nbr[:, 0] + 1) % 5
-    cfg = DistillConfig(mode="optimize", iterations=60, lr_latents=0.05).check()
+    cfg = DistillOptions(mode="optimize", iterations=60, lr_latents=0.05).check()
     a, loss_a = optimize_latents([op], [teacher], nbr, cfg, seed=3)
     b, loss_b = optimize_latents([op], [teacher], nbr, cfg, seed=3)
     assert torch.equal(a, b) and loss_a == loss_b
     first = float((op.render(torch.zeros(5, 16)) - teacher).abs().mean())
     assert loss_a < first
     for smoothing in ("none", "blur"):
-        c, _ = optimize_latents([op], [teacher], nbr, DistillConfig(mode="optimize", iterations=5,
+        c, _ = optimize_latents([op], [teacher], nbr, DistillOptions(mode="optimize", iterations=5,
                                                                    smoothing=smoothing).check(), seed=3)
         assert c.shape == (5, 16) and torch.isfinite(c).all()
 
@@ -144,15 +146,15 @@ def test_lift_knn_blur_option(prepared, tmp_path):
     filled = (z0.norm(dim=1) == 0) & (z0[nb].norm(dim=2) > 0).any(1)  # unseen, with a seen neighbour
     assert bool((z1[filled].norm(dim=1) > 0.99).all())
     # existing fields keep their hash: the option is absent from the config while off
-    assert "lift_smoothing" not in DistillConfig(mode="lift").to_dict()
-    assert "neighbours" not in DistillConfig(mode="lift").to_dict()
-    on = DistillConfig(mode="lift", lift_smoothing="blur", neighbours=6).to_dict()
+    assert "lift_smoothing" not in DistillOptions(mode="lift").to_dict()
+    assert "neighbours" not in DistillOptions(mode="lift").to_dict()
+    on = DistillOptions(mode="lift", lift_smoothing="blur", neighbours=6).to_dict()
     assert on["lift_smoothing"] == "blur" and on["neighbours"] == 6
     assert blur.config_hash != plain.config_hash
     with pytest.raises(InputError, match="lift-smoothing"):
-        DistillConfig(mode="optimize", lift_smoothing="blur").check()
+        DistillOptions(mode="optimize", lift_smoothing="blur").check()
     with pytest.raises(InputError, match="lift-smoothing"):
-        DistillConfig(mode="lift", lift_smoothing="attention").check()
+        DistillOptions(mode="lift", lift_smoothing="attention").check()
     path = _copy(prepared, tmp_path / "cli")
     assert main(["distill", str(path), "--lift-smoothing", "blur", "--neighbours", "6", "--no-progress"]) == 0
     assert load_bundle(path).language["config"]["lift_smoothing"] == "blur"
@@ -216,17 +218,17 @@ def test_config_changes_are_refused_unless_overwrite(prepared, tmp_path, capsys)
         distill_scene(load_bundle(path), mode="lift")                  # merged latents of stride 1
     enc = get_encoder("simulated", scene=scene)
     with pytest.raises(ConfigMismatchError, match="ratios"):
-        extract_features(scene, enc, ExtractConfig(ratios=(0.2, 0.5)))
+        extract_features(scene, enc, ExtractOptions(ratios=(0.2, 0.5)))
     with pytest.raises(ConfigMismatchError):
-        train_autoencoder(scene, AETrainConfig(epochs=3, samples=2048, batch_size=256))
+        train_autoencoder(scene, AETrainOptions(epochs=3, samples=2048, batch_size=256))
     with pytest.raises(InputError, match="--mode"):
-        DistillConfig(mode="magic").check()
+        DistillOptions(mode="magic").check()
 
 
 def test_autoencoder_resumes_from_its_checkpoint(prepared, tmp_path):
     a = _copy(prepared, tmp_path / "a")
     b = _copy(prepared, tmp_path / "b")
-    cfg = AETrainConfig(epochs=2, samples=1024, heldout_samples=256, batch_size=256)
+    cfg = AETrainOptions(epochs=2, samples=1024, heldout_samples=256, batch_size=256)
     full = train_autoencoder(load_bundle(a), cfg, overwrite=True)
     assert train_autoencoder(load_bundle(b), cfg, overwrite=True, stop_after_epoch=1) == {"stopped_after_epoch": 1}
     resumed = train_autoencoder(load_bundle(b), cfg)
@@ -263,7 +265,7 @@ def test_resume_after_a_real_kill_gives_the_uninterrupted_result(prepared, tmp_p
 
 def test_teacher_latents_at_reduced_resolution_and_strides(prepared):
     from fourlegs_engine.language.autoencoder import load_encoder
-    from fourlegs_engine.language.distill import teacher_latents
+    from fourlegs_engine.language.latent_solvers import teacher_latents
     from fourlegs_engine.language.extract import feature_store, load_step_features
     scene = load_bundle(prepared)
     enc = load_encoder(prepared / "language" / "encoder.pt")
@@ -300,7 +302,7 @@ def test_rgb_encoder_path_with_a_tiny_viclip(tmp_path):
     enc = ViCLIPEncoder(model, BPETokenizer(write_tiny_vocab(tmp_path / "bpe.txt.gz")), batch_size=64)
     path = micro_bundle(tmp_path / "rgb", T=2, cameras=2)
     scene = load_bundle(path)
-    cfg = ExtractConfig(ratios=(0.4, 0.6), batch_size=50)
+    cfg = ExtractOptions(ratios=(0.4, 0.6), batch_size=50)
     report = extract_features(scene, enc, cfg)
     assert report.timesteps_done == [0, 1]
     store = feature_store(scene)
@@ -315,8 +317,16 @@ def test_rgb_encoder_path_with_a_tiny_viclip(tmp_path):
     expected = enc.encode_video(clip)[0].numpy()
     got = feats[layout.num_crops + g.offset + 3].astype(np.float32)
     np.testing.assert_allclose(got, expected, atol=2e-3)
-    ae = train_autoencoder(scene, AETrainConfig(epochs=1, samples=512, heldout_samples=64, batch_size=128))
+    ae = train_autoencoder(scene, AETrainOptions(epochs=1, samples=512, heldout_samples=64, batch_size=128))
     assert ae["heldout_camera"] == 1
     res = distill_scene(scene, mode="lift")
     assert LanguageField.open(path).decode(torch.zeros(3, 128)).shape == (3, enc.dim)
     assert res.latents is not None
+
+
+def test_distill_settings_come_either_as_a_config_or_as_keywords():
+    """A keyword beside ``config=`` used to be dropped without a word."""
+    with pytest.raises(InputError, match=r"either as config= or as keywords.*iterations, view_scale"):
+        distill_scene(object(), config=DistillOptions(mode="lift"), iterations=5, view_scale=0.5)
+    with pytest.raises(InputError, match=r"also given: mode"):
+        distill_scene(object(), "optimize", config=DistillOptions(mode="lift"))

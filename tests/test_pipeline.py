@@ -6,7 +6,7 @@ import pytest
 
 from fourlegs_engine import pipeline
 from fourlegs_engine.errors import InputError
-from fourlegs_engine.pipeline import EncoderConfig
+from fourlegs_engine.pipeline import EncoderOptions
 from fourlegs_engine.scene import Scene, is_bundle, load_bundle
 from fourlegs_engine.scene.ply import write_ply_scene
 
@@ -16,12 +16,12 @@ from _scene_helpers import random_scene
 
 def test_auto_encoder_is_the_fields_then_simulated_for_synthetic_scenes_then_viclip():
     scene = micro_scene(T=2)
-    assert EncoderConfig().resolved_name(scene) == "simulated"  # synthetic: labels in the metadata
+    assert EncoderOptions().resolved_name(scene) == "simulated"  # synthetic: labels in the metadata
     scene.language = {"encoder": "viclip-b16"}
-    assert EncoderConfig().resolved_name(scene) == "viclip-b16"  # the encoder the field was distilled with
-    assert EncoderConfig(name="simulated").resolved_name(scene) == "simulated"  # an explicit name wins
+    assert EncoderOptions().resolved_name(scene) == "viclip-b16"  # the encoder the field was distilled with
+    assert EncoderOptions(name="simulated").resolved_name(scene) == "simulated"  # an explicit name wins
     plain = Scene(gaussians=scene.gaussians, cameras=scene.cameras, name="plain")
-    assert EncoderConfig().resolved_name(plain) == "viclip" and EncoderConfig().resolved_name(None) == "viclip"
+    assert EncoderOptions().resolved_name(plain) == "viclip" and EncoderOptions().resolved_name(None) == "viclip"
     with pytest.raises(InputError, match="--checkpoint"):  # ViCLIP weights are never guessed
         pipeline.text_encoder(plain)
 

@@ -6,7 +6,7 @@ import pytest
 
 from fourlegs_engine.errors import InputError
 from fourlegs_engine.query.engine import QueryEngine, QueryOptions
-from fourlegs_engine.query.relevancy import relevancy_reference
+from fourlegs_engine.query.lerf import relevancy_reference
 from fourlegs_engine.query.temporal import localize_relevancy
 
 from _query_helpers import CANON, two_cluster_scene
@@ -132,8 +132,8 @@ def test_exact_map_decodes_the_empty_pixels_once_and_equals_decoding_every_pixel
     empty = int((got["alpha"] == 0).sum())
     assert 0 < empty < H * W and eng.stats["decoded_pixels"] == H * W - empty + 1
     lat = torch.from_numpy(np.asarray(field.latents[1], dtype=np.float32))
-    pix = eng._rasterize(1, wide, lat, ("features", "alpha"))["features"].reshape(H * W, -1)
-    want = eng._score_latents_many(pix, eng.embed_query(Q)[None])[:, 0].reshape(H, W).clamp(0, 1).numpy()
+    pix = eng.maps.rasterize(1, wide, lat, ("features", "alpha"))["features"].reshape(H * W, -1)
+    want = eng.scorer.score_latents_many(pix, eng.embed_query(Q)[None])[:, 0].reshape(H, W).clamp(0, 1).numpy()
     np.testing.assert_array_equal(got["relevancy"], want)
 
 
@@ -218,9 +218,9 @@ def test_codebook_refine_samples_at_the_scored_timesteps_only(setup, tmp_path):
     T, N = scene.num_timesteps, scene.num_gaussians
     ts = np.arange(0, T, 2)
     seen = []
-    score_pairs = eng._score_pairs
-    eng._score_pairs = lambda q, flat, window=None: seen.append(flat) or score_pairs(q, flat, window)
-    (codes_a, scores_a), (codes_b, scores_b) = eng._sample_members(Q, [np.array([0]), np.array([1])], [7, 5], ts,
+    score_pairs = eng.scorer.score_pairs
+    eng.scorer.score_pairs = lambda q, flat, window=None: seen.append(flat) or score_pairs(q, flat, window)
+    (codes_a, scores_a), (codes_b, scores_b) = eng.codebook_path.sample_members(Q, [np.array([0]), np.array([1])], [7, 5], ts,
                                                                    np.random.default_rng(0))
     assert len(seen) == 1  # both groups decoded in one batch
     flat = np.sort(seen[0])
@@ -235,7 +235,7 @@ def test_codebook_refine_samples_at_the_scored_timesteps_only(setup, tmp_path):
     flat, _ = eng.codebook.sample_members(np.arange(2), 10 ** 9, np.random.default_rng(1))
     np.testing.assert_array_equal(np.sort(flat), np.arange(T * N))  # every member when they fit
     seen.clear()
-    [(codes_all, _)] = eng._sample_members(Q, [np.arange(2)], [len(ts) * N], ts, np.random.default_rng(2))
+    [(codes_all, _)] = eng.codebook_path.sample_members(Q, [np.arange(2)], [len(ts) * N], ts, np.random.default_rng(2))
     np.testing.assert_array_equal(np.sort(seen[0]), np.flatnonzero(np.isin(np.arange(T * N) // N, ts)))
     with pytest.raises(InputError, match="samples"):
         QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_refine=0.1, codebook_samples=1))
@@ -259,7 +259,7 @@ def test_codebook_refine_on_a_memmapped_field_reads_the_same_rows(setup, tmp_pat
     mm = np.load(tmp_path / "latents.npy", mmap_mode="r")
     mapped = LinearField(mm, field.weight.numpy())
     eng = QueryEngine(scene, mapped, enc, QueryOptions(path="codebook", codebook_size=3, codebook_refine=1.0, codebook_samples=10 ** 9), codebook_dir=tmp_path)
-    assert eng._rows().path == str(tmp_path / "latents.npy")  # read from the file, not the mapping
+    assert eng.scorer.rows().path == str(tmp_path / "latents.npy")  # read from the file, not the mapping
     exact = QueryEngine(scene, mapped, enc).temporal(Q)
     res = eng.temporal(Q)
     np.testing.assert_array_equal(res.positive, exact.positive)
@@ -297,10 +297,10 @@ def test_scattered_exact_reads_do_not_stay_resident(tmp_path):
     _, _, enc, _ = two_cluster_scene(D=16)
     eng = QueryEngine(flat_scene(T, N), field, enc, QueryOptions(path="codebook", codebook_size=4, codebook_refine=0.01))
     flat = np.sort(rng.choice(T * N, size=4000, replace=False))
-    got = eng._score_pairs(Q, flat)
+    got = eng.scorer.score_pairs(Q, flat)
     assert _mapped_rss_kb(path) < 1024
     t_of, g_of = np.divmod(flat, N)
-    want = eng._score_latents(np.asarray(mm[t_of, g_of], dtype=np.float32), eng.embed_query(Q)).double().numpy()
+    want = eng.scorer.score_latents(np.asarray(mm[t_of, g_of], dtype=np.float32), eng.embed_query(Q)).double().numpy()
     np.testing.assert_array_equal(got, want)
 
 
@@ -377,4 +377,4 @@ def test_temporal_on_concurrent_streams_equals_one_stream(setup, chunk):
         assert one.segment == two.segment and one.peak == two.peak
     for q in queries:
         for t in range(scene.num_timesteps):
-            np.testing.assert_array_equal(engines[1]._temporal_scores[q][t], engines[2]._temporal_scores[q][t])
+            np.testing.assert_array_equal(engines[1].temporal_pass.scores_at(q, t), engines[2].temporal_pass.scores_at(q, t))

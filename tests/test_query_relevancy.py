@@ -6,7 +6,7 @@ import torch
 from hypothesis import given, strategies as st
 from hypothesis.extra.numpy import arrays
 
-from fourlegs_engine.query.relevancy import relevancy, relevancy_margin, relevancy_reference
+from fourlegs_engine.query.lerf import relevancy, relevancy_margin, relevancy_reference
 
 rng = np.random.default_rng(0)
 
@@ -99,7 +99,7 @@ def test_property_bounded_finite_and_monotone_in_margin(feats, q, scale):
 
 
 def test_unit_feature_fast_path_equals_general_form():
-    from fourlegs_engine.query.relevancy import l2_normalize, reference_set, relevancy_of_unit_features
+    from fourlegs_engine.query.lerf import l2_normalize, reference_set, relevancy_of_unit_features
     feats = l2_normalize(torch.tensor(rng.normal(size=(100, 12))))
     q = l2_normalize(torch.tensor(rng.normal(size=12)))
     canon, neg = torch.tensor(rng.normal(size=(4, 12))), torch.tensor(rng.normal(size=(2, 12)))
@@ -108,7 +108,7 @@ def test_unit_feature_fast_path_equals_general_form():
 
 
 def test_many_queries_in_one_product_equal_one_at_a_time():
-    from fourlegs_engine.query.relevancy import l2_normalize, reference_set, relevancy_many
+    from fourlegs_engine.query.lerf import l2_normalize, reference_set, relevancy_many
     feats = torch.tensor(rng.normal(size=(50, 12)))
     feats[0] = 0
     qs = l2_normalize(torch.tensor(rng.normal(size=(3, 12))))

@@ -171,7 +171,7 @@ def test_an_interrupted_distill_overwrite_keeps_the_old_field(distilled, tmp_pat
 
 
 def test_a_swap_cut_short_leaves_a_readable_field_and_is_finished_later(distilled, tmp_path, monkeypatch):
-    import fourlegs_engine.language.distill as distill
+    import fourlegs_engine.language.latents_file as distill
 
     path = _copy(distilled, tmp_path / "b")
 

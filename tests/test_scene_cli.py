@@ -55,7 +55,7 @@ def test_info_on_ply(tmp_path, capsys):
 
 
 def test_info_demo_uses_the_synthetic_demo_bundle(bundle, capsys, monkeypatch):
-    import fourlegs_engine.scene.synthetic as synthetic
+    import fourlegs_engine.demo.synthetic as synthetic
     _, path = bundle
     calls = []
     monkeypatch.setattr(synthetic, "ensure_demo_bundle", lambda *a, **k: calls.append((a, k)) or path)

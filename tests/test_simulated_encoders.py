@@ -10,11 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fourlegs_engine.errors import InputError
-from fourlegs_engine.scene.synthetic import LABELS, QUERIES, generate_scene
+from fourlegs_engine.demo.synthetic import LABELS, QUERIES, generate_scene
 from fourlegs_engine.language.encoders import CANONICAL_PHRASES, get_encoder
-from fourlegs_engine.language.simulated import (EMBED_DIM, SimulatedTextEncoder, SimulatedVideoEncoder,
-                                                label_coverage_tube, lemmatize, render_label_coverage)
-from fourlegs_engine.query.relevancy import relevancy_reference
+from fourlegs_engine.demo.simulated import SimulatedTextEncoder, SimulatedVideoEncoder
+from fourlegs_engine.language.coverage import label_coverage_tube, render_label_coverage
+from fourlegs_engine.language.phrase_space import EMBED_DIM, lemmatize
+from fourlegs_engine.query.lerf import relevancy_reference
 
 TEXT = SimulatedTextEncoder()
 BACKGROUND = ["floor", "wall", "wooden box", "bench"]
@@ -171,7 +172,7 @@ def test_label_coverage_is_a_partition_of_alpha_and_matches_labels():
 @settings(max_examples=25, deadline=None)
 @given(st.integers(0, 2**64 - 1), st.integers(1, 40), st.integers(1, 120), st.integers(0, 5000))
 def test_hash_kernels_are_bit_identical_to_the_numpy_reference(head, batch, width, first_counter):
-    from fourlegs_engine.language import simulated, simulated_kernels
+    from fourlegs_engine.demo import simulated, simulated_kernels
 
     if not simulated_kernels.available():
         pytest.skip("numba is not installed")
@@ -189,7 +190,7 @@ def test_hash_kernels_are_bit_identical_to_the_numpy_reference(head, batch, widt
 
 def test_encoder_features_do_not_depend_on_the_hash_kernels(monkeypatch):
     """The numba path and the numpy fallback give the same bits (the fallback serves where numba is missing)."""
-    from fourlegs_engine.language import simulated_kernels
+    from fourlegs_engine.demo import simulated_kernels
 
     enc = SimulatedVideoEncoder(LABELS, background_labels=BACKGROUND, camera="cam01")
     cov = torch.rand(37, 8, len(LABELS), dtype=torch.float64) / len(LABELS)

@@ -8,8 +8,8 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from fourlegs_engine.errors import InputError, OutputExistsError
-from fourlegs_engine.scene import synthetic
-from fourlegs_engine.scene.synthetic import (LABELS, QUERIES, SCRIPT, bundle_digest, ensure_demo_bundle,
+from fourlegs_engine.demo import synthetic
+from fourlegs_engine.demo.synthetic import (LABELS, QUERIES, SCRIPT, bundle_digest, ensure_demo_bundle,
                                             generate_scene, matrix_to_quaternion, read_queries,
                                             write_synthetic_bundle)
 from fourlegs_engine.scene import load_bundle, quaternion_to_matrix

@@ -8,7 +8,7 @@ import torch
 
 from fourlegs_engine.errors import InputError, OutputExistsError
 from fourlegs_engine.language import encoders
-from fourlegs_engine.commands.options import add_encoder_arguments, encoder_config_from_args
+from fourlegs_engine.commands.options import add_encoder_arguments, encoder_options_from_args
 from fourlegs_engine.language.encoders import CANONICAL_PHRASES, VideoTextEncoder, get_encoder
 from fourlegs_engine.pipeline import text_encoder
 from fourlegs_engine.language.viclip import BPETokenizer, ViCLIPEncoder, ViCLIPModel, save_viclip
@@ -149,15 +149,15 @@ def test_encoder_from_command_line_options(files):
     add_encoder_arguments(parser)
     args = parser.parse_args(["--encoder", "viclip", "--checkpoint", str(checkpoint), "--vocab", str(vocab),
                               "--device", "cpu", "--encoder-batch-size", "3", "--pixel-normalization", "imagenet"])
-    enc = text_encoder(None, encoder_config_from_args(args))
+    enc = text_encoder(None, encoder_options_from_args(args))
     assert enc.batch_size == 3 and enc.normalization == "imagenet"
     assert enc.encode_text(["hello"]).shape == (1, 48)
     # a parser that defined only some of the options still works (defaults fill the rest)
     bare = argparse.Namespace(encoder="viclip", checkpoint=str(checkpoint), vocab=str(vocab))
-    assert text_encoder(None, encoder_config_from_args(bare).replace(device="cpu")).dim == 48
+    assert text_encoder(None, encoder_options_from_args(bare).replace(device="cpu")).dim == 48
     missing = parser.parse_args(["--vocab", str(vocab), "--device", "cpu"])
     with pytest.raises(InputError, match="--checkpoint"):
-        text_encoder(None, encoder_config_from_args(missing))
+        text_encoder(None, encoder_options_from_args(missing))
 
 
 def test_device_resolution():

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from ..errors import InputError
+from .options import add_ray_arguments, ray_options_from_args, uses_ray
 
 
 def parse_timesteps(text: str) -> tuple[int, int]:
@@ -57,15 +58,13 @@ def register(subparsers: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--overwrite", action="store_true", help="replace SCENE / restart a partial fit with other options")
-    from ..cluster import add_ray_arguments
-
     add_ray_arguments(p)
     p.set_defaults(func=run_fit)
 
 
 def options_from_args(args: argparse.Namespace):
     """:class:`~fourlegs_engine.fit.FitOptions` from parsed arguments (unset knobs keep their defaults)."""
-    from ..fit.fitter import FitOptions
+    from ..fit.options import FitOptions
 
     kw: dict[str, Any] = {"resolution_scale": args.resolution_scale, "seed": args.seed, "device": args.device,
                           "densify": not args.no_densify}
@@ -101,7 +100,7 @@ def fit_one(job: tuple[str, str], *, options: Any, overwrite: bool, progress: bo
 
 
 def run_fit(args: argparse.Namespace) -> int:
-    from ..cluster import map_on_ray, options_from_args as ray_options_from_args, uses_ray
+    from ..cluster.runner import map_on_ray
 
     options = options_from_args(args)
     jobs = [(str(d), str(o)) for d, o in zip(args.dataset, scene_outputs(args.dataset, args.output))]

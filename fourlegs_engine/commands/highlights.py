@@ -6,9 +6,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .options import encoder_config_from_args, parse_resolution
+from .options import (add_demo_argument, add_effect_arguments, add_encoder_arguments, effects_of,
+                      encoder_options_from_args, parse_resolution)
 from ..errors import InputError
-from ..pipeline import EncoderConfig, QueryOptions
+from ..pipeline import EncoderOptions, QueryOptions
 
 
 def register(subparsers: Any) -> None:
@@ -17,14 +18,14 @@ def register(subparsers: Any) -> None:
         description="Plan a highlight of a text query: SCENE \"text\" (a scene with a distilled language "
                     "field), or --demo \"text\" for the bundled synthetic demo scene. Writes the plan JSON "
                     "(docs/CONTRACTS.md) and optionally a contact-sheet preview rendered by the engine.")
-    p.add_argument("inputs", nargs="*", metavar="SCENE QUERY", help="scene path and query text")
-    p.add_argument("--demo", metavar="QUERY", help="plan on the synthetic demo scene (generated on first use)")
+    p.add_argument("inputs", nargs="*", metavar="SCENE QUERY",
+                   help="scene path and query text (the query alone with --demo)")
+    add_demo_argument(p)
     p.add_argument("--preset", default="broadcast", help="preset name or .toml path (default: broadcast)")
     p.add_argument("--preset-dir", action="append", default=[], metavar="DIR",
                    help="extra preset directory (searched first; also $FOURLEGS_PRESETS)")
     p.add_argument("--list-presets", action="store_true", help="list the available presets and exit")
-    p.add_argument("--effects", metavar="LIST",
-                   help="keep only the preset's shots with these effects (comma-separated)")
+    add_effect_arguments(p)
     p.add_argument("-o", "--output", metavar="PLAN.json", help="where to write the plan")
     p.add_argument("--preview", metavar="PNG", help="also write a contact sheet of sampled frames")
     p.add_argument("--overlay", action="store_true", help="overlay relevancy on every preview tile")
@@ -39,16 +40,11 @@ def register(subparsers: Any) -> None:
                         "paper) or fast (1-channel per-Gaussian relevancy render; default, it scores the "
                         "same as exact on the bench scene, see `fourlegs bench accuracy-time`)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
-    enc = p.add_argument_group("encoder (only used when the scene has no language field yet, and for queries)")
-    enc.add_argument("--encoder", default="auto",
-                     help="video-text encoder: auto (the one the field was distilled with), simulated, viclip")
-    enc.add_argument("--checkpoint", help="ViCLIP weights (never downloaded)")
-    enc.add_argument("--vocab", help="CLIP BPE vocabulary bpe_simple_vocab_16e6.txt.gz")
-    enc.add_argument("--device", default="auto", help="cpu, cuda or auto")
+    add_encoder_arguments(p, default="auto")  # 'auto': the encoder the field was distilled with
     p.set_defaults(func=run_plan)
 
 
-def open_scene_and_localizer(scene_path: str | Path | None, *, demo: bool, encoder: EncoderConfig = EncoderConfig(),
+def open_scene_and_localizer(scene_path: str | Path | None, *, demo: bool, encoder: EncoderOptions = EncoderOptions(),
                              options: QueryOptions = QueryOptions()):
     """The scene (or the demo scene) and a query engine on it, through :mod:`fourlegs_engine.pipeline`
     (a scene without a language field gets one first). Returns (scene, engine)."""
@@ -73,10 +69,11 @@ def run_plan(args: argparse.Namespace) -> int:
             preset = load_preset(path)
             print(f"{name:20s} {preset.description}  [{path}]")
         return 0
-    if args.demo is not None:
-        if args.inputs:
-            raise InputError("give either --demo QUERY or SCENE QUERY, not both", field="inputs")
-        scene_path, query = None, args.demo
+    if args.demo:
+        if len(args.inputs) != 1:
+            raise InputError("expected --demo QUERY" if not args.inputs else
+                             "give either --demo QUERY or SCENE QUERY, not both", field="inputs")
+        scene_path, query = None, args.inputs[0]
     else:
         if len(args.inputs) != 2:
             raise InputError("expected SCENE QUERY (or --demo QUERY)", field="inputs")
@@ -95,20 +92,11 @@ def run_plan(args: argparse.Namespace) -> int:
     if args.per_shot < 1 or args.preview_width < 16:
         raise InputError("--per-shot must be >= 1 and --preview-width >= 16", field="preview")
 
-    preset = load_preset(args.preset, args.preset_dir)
-    if args.effects:
-        from ..highlights.effects import EFFECTS
-        wanted = [e.strip() for e in args.effects.split(",") if e.strip()]
-        unknown = [e for e in wanted if e not in EFFECTS]
-        if unknown:
-            raise InputError(f"unknown effects {unknown} (one of {', '.join(EFFECTS)})", field="--effects")
-        preset = preset.with_shots(wanted)
-        if not preset.shots:
-            raise InputError(f"preset {preset.name!r} has no shot with the effects {wanted}", field="--effects")
+    preset = load_preset(args.preset, args.preset_dir).select_effects(effects_of(args), args.no_effect)
 
     from ..highlights.planner import plan_highlight
-    scene, localizer = open_scene_and_localizer(scene_path, demo=args.demo is not None,
-                                                encoder=encoder_config_from_args(args),
+    scene, localizer = open_scene_and_localizer(scene_path, demo=args.demo,
+                                                encoder=encoder_options_from_args(args),
                                                 options=QueryOptions(path=args.query_path, spatial=args.spatial))
     plan = plan_highlight(scene, localizer, query, preset, resolution=parse_resolution(args.resolution),
                           fps=args.fps)

@@ -11,11 +11,15 @@ import functools
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable
 
-from ..cluster import add_ray_arguments
 from ..errors import InputError
+from .options import add_demo_argument, add_ray_arguments, ray_options_from_args
 
+if TYPE_CHECKING:
+    from ..language.distill import DistillOptions, DistillResult
+    from ..language.extract import ExtractOptions, ExtractReport
+    from ..scene.scene import Scene
 
 
 # ------------------------------------------------------------------------------------ parsers
@@ -85,7 +89,7 @@ def register(subparsers: Any) -> None:
 
 def _scene_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", nargs="?", help="scene bundle directory")
-    p.add_argument("--demo", action="store_true", help="use the built-in demo scene (generated on first use)")
+    add_demo_argument(p)
 
 
 def _split_arguments(p: argparse.ArgumentParser) -> None:
@@ -133,7 +137,7 @@ def resolve_bundle(args: argparse.Namespace):
     if bool(getattr(args, "demo", False)) == bool(args.scene):
         raise InputError("give either a scene bundle or --demo (exactly one)", field="scene")
     if args.demo:
-        from ..scene.synthetic import ensure_demo_bundle
+        from ..demo.synthetic import ensure_demo_bundle
         return load_bundle(ensure_demo_bundle())
     path = Path(args.scene)
     if not is_bundle(path):
@@ -164,23 +168,23 @@ def _crop_size(value: str | None) -> int | str | None:
 
 
 def _encoder(args: argparse.Namespace, scene: Any):
-    from .options import encoder_config_from_args
+    from .options import encoder_options_from_args
     from ..pipeline import text_encoder
-    return text_encoder(scene, encoder_config_from_args(args))
+    return text_encoder(scene, encoder_options_from_args(args))
 
 
-def _ae_config(args: argparse.Namespace):
-    from ..language.autoencoder import AETrainConfig
-    return AETrainConfig(epochs=args.epochs, samples=args.samples, batch_size=args.ae_batch_size, lr=args.lr,
+def _ae_options(args: argparse.Namespace):
+    from ..language.autoencoder import AETrainOptions
+    return AETrainOptions(epochs=args.epochs, samples=args.samples, batch_size=args.ae_batch_size, lr=args.lr,
                          holdout_camera=args.holdout_camera, seed=args.seed)
 
 
-def _distill_config(args: argparse.Namespace):
-    from ..language.distill import DistillConfig
+def _distill_options(args: argparse.Namespace):
+    from ..language.distill import DistillOptions
     if args.no_attention and args.blur:
         raise InputError("choose at most one of --no-attention and --blur", field="--blur")
     smoothing = "none" if args.no_attention else ("blur" if args.blur else "attention")
-    return DistillConfig(mode=args.mode, iterations=args.iterations, smoothing=smoothing,
+    return DistillOptions(mode=args.mode, iterations=args.iterations, smoothing=smoothing,
                          smoothness=args.smoothness, neighbours=args.neighbours,
                          views_per_iteration=args.views_per_iteration, teacher_stride=args.teacher_stride,
                          view_scale=args.view_scale, seed=args.distill_seed,
@@ -201,17 +205,16 @@ def _print_check(report: dict[str, Any]) -> int:
 
 # ----------------------------------------------------------------------------------- commands
 def run_extract(args: argparse.Namespace) -> int:
-    from ..language.extract import ExtractConfig, check_features, extract_features
+    from ..language.extract import ExtractOptions, check_features, extract_features
     scene = resolve_bundle(args)
     if args.check:
         return _print_check(check_features(scene))
     if args.batch_size is not None and args.batch_size < 1:
         raise InputError(f"must be >= 1, got {args.batch_size}", field="--batch-size")
-    config = ExtractConfig(ratios=_ratios(args.ratios, args.steps), crop_size=_crop_size(args.crop_size),
+    config = ExtractOptions(ratios=_ratios(args.ratios, args.steps), crop_size=_crop_size(args.crop_size),
                            batch_size=args.batch_size, frame_scale=args.frame_scale)
     if args.ray is not None:
-        from ..cluster import cli_extract
-        report = cli_extract(args, scene, functools.partial(_encoder, args), config, timesteps=args.timesteps,
+        report = extract_with_ray(args, scene, functools.partial(_encoder, args), config, timesteps=args.timesteps,
                              shard=args.shard)
     else:
         encoder = _encoder(args, scene)
@@ -227,7 +230,7 @@ def run_extract(args: argparse.Namespace) -> int:
 def run_train_ae(args: argparse.Namespace) -> int:
     from ..language.autoencoder import train_autoencoder
     scene = resolve_bundle(args)
-    report = train_autoencoder(scene, _ae_config(args), overwrite=args.overwrite, progress=True)
+    report = train_autoencoder(scene, _ae_options(args), overwrite=args.overwrite, progress=True)
     if args.json:
         print(json.dumps(report, indent=2))
     else:
@@ -245,15 +248,14 @@ def run_distill(args: argparse.Namespace) -> int:
         report = check_distill(scene)
         if report.get("missing") == [] and not report.get("bad") and not report.get("merged"):
             # every timestep is finished (workers split the work): merge now
-            result = distill_scene(scene, config=_distill_config(args), progress=False)
+            result = distill_scene(scene, config=_distill_options(args), progress=False)
             report = check_distill(scene)
             report["merged_into"] = result.latents
         return _print_check(report)
     if args.ray is not None:
-        from ..cluster import cli_distill
-        result = cli_distill(args, scene, _distill_config(args), timesteps=args.timesteps, shard=args.shard)
+        result = distill_with_ray(args, scene, _distill_options(args), timesteps=args.timesteps, shard=args.shard)
     else:
-        result = distill_scene(scene, config=_distill_config(args), timesteps=args.timesteps, shard=args.shard,
+        result = distill_scene(scene, config=_distill_options(args), timesteps=args.timesteps, shard=args.shard,
                                overwrite=args.overwrite, progress=not args.no_progress)
     done = len(result.timings)
     msg = f"distill ({result.mode}): {done} timestep(s) distilled, {len(result.skipped)} already done"
@@ -270,27 +272,48 @@ def run_distill(args: argparse.Namespace) -> int:
 def run_language(args: argparse.Namespace) -> int:
     from ..language.autoencoder import train_autoencoder
     from ..language.distill import distill_scene
-    from ..language.extract import ExtractConfig, extract_features
+    from ..language.extract import ExtractOptions, extract_features
     scene = resolve_bundle(args)
     progress = not args.no_progress
     t0 = time.perf_counter()
     encoder = _encoder(args, scene)
     if args.ray is not None:
-        from ..cluster import cli_extract
-        rep = cli_extract(args, scene, functools.partial(_encoder, args), ExtractConfig(frame_scale=args.frame_scale))
+        rep = extract_with_ray(args, scene, functools.partial(_encoder, args), ExtractOptions(frame_scale=args.frame_scale))
     else:
-        rep = extract_features(scene, encoder, ExtractConfig(frame_scale=args.frame_scale),
+        rep = extract_features(scene, encoder, ExtractOptions(frame_scale=args.frame_scale),
                                overwrite=args.overwrite, progress=progress)
     _print_evidence(encoder, scene)
     t1 = time.perf_counter()
-    ae = train_autoencoder(scene, _ae_config(args), overwrite=args.overwrite, progress=progress)
+    ae = train_autoencoder(scene, _ae_options(args), overwrite=args.overwrite, progress=progress)
     t2 = time.perf_counter()
     if args.ray is not None:
-        from ..cluster import cli_distill
-        result = cli_distill(args, scene, _distill_config(args))
+        result = distill_with_ray(args, scene, _distill_options(args))
     else:
-        result = distill_scene(scene, config=_distill_config(args), overwrite=args.overwrite, progress=progress)
+        result = distill_scene(scene, config=_distill_options(args), overwrite=args.overwrite, progress=progress)
     t3 = time.perf_counter()
     print(f"language: extract {t1 - t0:.1f} s ({len(rep.timesteps_done)} new), train-ae {t2 - t1:.1f} s "
           f"(held-out cosine {ae.get('heldout_cosine')}), distill {t3 - t2:.1f} s; latents: {result.latents}")
     return 0
+
+
+def extract_with_ray(args: argparse.Namespace, scene: "Scene", encoder_factory: Callable[["Scene"], Any],
+                config: "ExtractOptions", *, timesteps: Any = None, shard: Any = None) -> "ExtractReport":
+    """``fourlegs extract|language --ray``: extraction on the cluster; prints a one-line task summary."""
+    from ..cluster.stages import extract_on_ray as run_on_ray
+
+    report, tasks = run_on_ray(scene, encoder_factory, config, timesteps=timesteps, shard=shard,
+                               overwrite=args.overwrite, progress=not args.no_progress,
+                               options=ray_options_from_args(args), device=getattr(args, "device", None))
+    print(tasks.summary(), flush=True)
+    return report
+
+
+def distill_with_ray(args: argparse.Namespace, scene: "Scene", config: "DistillOptions", *, timesteps: Any = None,
+                shard: Any = None) -> "DistillResult":
+    """``fourlegs distill|language --ray``: distillation on the cluster, merged when complete."""
+    from ..cluster.stages import distill_on_ray as run_on_ray
+
+    result, tasks = run_on_ray(scene, config, timesteps=timesteps, shard=shard, overwrite=args.overwrite,
+                               progress=not args.no_progress, options=ray_options_from_args(args))
+    print(tasks.summary(), flush=True)
+    return result

@@ -5,9 +5,7 @@ optionally ``register_bench(bench_subparsers)``). Other installed
 packages (the Blender add-on, the benchmarks) add theirs through the entry-point group
 ``fourlegs.commands`` (pyproject.toml), so the engine never imports them by name. Heavy imports happen
 inside the command functions so ``fourlegs --help`` stays fast. Errors from bad input print one line
-(no traceback), and so do the machine's limits: an OS error (full or read-only disk, an output parent
-that is a file) names the path, and running out of memory says so
-(:func:`~fourlegs_engine.errors.describe_environment_error`).
+(no traceback), and so do the machine's limits (:func:`~fourlegs_engine.errors.exit_code_of`).
 """
 from __future__ import annotations
 
@@ -19,7 +17,7 @@ from types import ModuleType
 from typing import Iterator, Sequence
 
 from .. import __version__
-from ..errors import FourlegsError, describe_environment_error, print_error
+from ..errors import exit_code_of
 
 COMMAND_MODULES = (
     "fourlegs_engine.commands.scene",
@@ -67,23 +65,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    try:
-        return int(args.func(args) or 0)
-    except FourlegsError as exc:
-        print_error(str(exc))
-        return 2
-    except BrokenPipeError:  # output piped into e.g. `head`
-        sys.stderr.close()
-        return 0
-    except KeyboardInterrupt:
-        print("fourlegs: cancelled; run the same command again to resume", file=sys.stderr)
-        return 130
-    except (OSError, MemoryError, RuntimeError) as exc:
-        message = describe_environment_error(exc)
-        if message is None:  # not a condition of the machine or the input: a bug, keep its traceback
-            raise
-        print_error(message)
-        return 1
+    return exit_code_of(lambda: args.func(args))
 
 
 if __name__ == "__main__":

@@ -4,11 +4,12 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Optional
 
 def register(subparsers: Any) -> None:
-    from .options import bounded
-    from ..query.engine import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_TIMESTEP_ARGUMENT
+    from .options import add_demo_argument, bounded
+    from ..query.options import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_TIMESTEP_ARGUMENT
 
     p = subparsers.add_parser(
         "query", help="when and where a text query happens in a scene (segment, peak, maps)",
@@ -19,8 +20,7 @@ def register(subparsers: Any) -> None:
                    help="bundle directory(ies) with a language field, then the query, e.g. \"a ball flying in "
                         "the air\"; with several scenes they are ranked by max_t s_t (paper §6.2, on every "
                         "--scene-stride-th timestep) and the query is localized in the best one")
-    p.add_argument("--demo", action="store_true",
-                   help="use the synthetic demo scene (built, with its language field, on first use)")
+    add_demo_argument(p)
     p.add_argument("--json", metavar="PATH", help="write the localization as JSON")
     p.add_argument("--plot", metavar="PATH", help="s_t plot (PNG); default beside --json as *.st.png")
     p.add_argument("--exr", metavar="DIR", help="write relevancy/depth/alpha EXR maps into DIR")
@@ -59,35 +59,33 @@ def register(subparsers: Any) -> None:
 
 
 # ------------------------------------------------------------------------------------ query
-def _open(args: argparse.Namespace):
+def _open(args: argparse.Namespace, inputs: QueryInputs):
     from ..errors import InputError
     from ..pipeline import QueryOptions, ensure_language_field, open_query_engine, text_encoder
     from ..scene.bundle import is_bundle, load_bundle
 
     if args.demo:
-        from ..scene.synthetic import ensure_demo_bundle
-        if args.scene is not None:
-            raise InputError("give either --demo TEXT or SCENE TEXT, not both", field="scene")
+        from ..demo.synthetic import ensure_demo_bundle
         path = ensure_demo_bundle()
     else:
-        if args.scene is None or args.text is None:
+        if inputs.scene is None or inputs.text is None:
             raise InputError("expected SCENE TEXT (or --demo TEXT)", field="arguments")
-        path = Path(args.scene)
+        path = Path(inputs.scene)
         if not is_bundle(path):
             raise InputError("not a scene bundle (scene.json missing); `fourlegs query` reads bundles only: "
                              "`fourlegs plan` and `fourlegs highlight` take this scene directly (they convert "
                              "it), or write a bundle with fourlegs_engine.scene.write_bundle(load_scene(PATH), "
                              "OUT) and run `fourlegs language OUT`", file=path)
     from ..validate import check_text
-    check_text(args.text, "text")
-    if not args.text or not args.text.strip():
+    check_text(inputs.text, "text")
+    if not inputs.text or not inputs.text.strip():
         raise InputError("the query text is empty", field="text")
     scene = load_bundle(path)
     if not scene.language and not (scene.metadata or {}).get("labels"):
         raise InputError("the scene has no distilled language field; run `fourlegs language` first",
                          file=path, field="language")
-    from .options import encoder_config_from_args
-    encoder = text_encoder(scene, encoder_config_from_args(args))
+    from .options import encoder_options_from_args
+    encoder = text_encoder(scene, encoder_options_from_args(args))
     scene = ensure_language_field(scene, encoder, progress=True)
     options = QueryOptions(path=args.path, codebook_size=args.codebook_size, codebook_refine=args.codebook_refine,
                            negatives=tuple(args.negatives), temporal_stride=args.stride, spatial=args.spatial,
@@ -97,36 +95,43 @@ def _open(args: argparse.Namespace):
     return scene, open_query_engine(scene, encoder, options=options)
 
 
-def _split_inputs(args: argparse.Namespace) -> list[str]:
-    """``SCENE... TEXT`` into ``args.text`` (and ``args.scene`` for one scene); returns the scene paths."""
+@dataclass(frozen=True)
+class QueryInputs:
+    """``SCENE... TEXT`` of ``fourlegs query``: the scene paths, the one scene (None for the demo or
+    several scenes) and the query text."""
+
+    scenes: tuple[str, ...]
+    scene: Optional[str]
+    text: Optional[str]
+
+
+def _split_inputs(args: argparse.Namespace) -> QueryInputs:
+    """``SCENE... TEXT`` (the ``scene`` positional) into :class:`QueryInputs`; usage errors as InputError."""
     from ..errors import InputError
 
     items = list(args.scene or [])
-    args.text = items.pop() if items else None
-    args.scene = items[0] if len(items) == 1 else None
+    text = items.pop() if items else None
     if args.demo and items:
         raise InputError("give either --demo TEXT or SCENE TEXT, not both", field="scene")
     if not args.demo and not items:
         raise InputError("expected SCENE TEXT (or SCENE SCENE... TEXT, or --demo TEXT)", field="arguments")
     if len(set(map(str, items))) != len(items):
         raise InputError("a scene is given twice", field="scene")
-    return items
+    return QueryInputs(tuple(items), items[0] if len(items) == 1 else None, text)
 
 
 def run_query(args: argparse.Namespace) -> int:
-    scenes = _split_inputs(args)
-    if len(scenes) > 1:
-        return run_multiscene(args, scenes)
+    inputs = _split_inputs(args)
+    if len(inputs.scenes) > 1:
+        return run_multiscene(args, inputs)
     if args.scene_stride is not None:
         from ..errors import InputError
         raise InputError("--scene-stride ranks several scenes; give at least two", field="--scene-stride")
-    return _run_one(args)
+    return _run_one(args, inputs)
 
 
-def run_multiscene(args: argparse.Namespace, scenes: list[str]) -> int:
-    """Rank ``scenes`` by max_t s_t of ``args.text`` and localize it in the best one (paper §6.2)."""
-    import copy
-
+def run_multiscene(args: argparse.Namespace, inputs: QueryInputs) -> int:
+    """Rank the scenes by max_t s_t of the query and localize it in the best one (paper §6.2)."""
     from ..errors import InputError, OutputExistsError
     from ..fileio import write_json_atomic
     from ..query.multiscene import DEFAULT_SCENE_STRIDE, rank_scenes_opening
@@ -137,15 +142,15 @@ def run_multiscene(args: argparse.Namespace, scenes: list[str]) -> int:
     if args.json and Path(args.json).exists() and not args.overwrite:
         raise OutputExistsError(args.json)
     from ..validate import check_text
-    check_text(args.text, "text")
-    if not args.text or not args.text.strip():
+    check_text(inputs.text, "text")
+    if not inputs.text or not inputs.text.strip():
         raise InputError("the query text is empty", field="text")
+
+    scenes = list(inputs.scenes)
 
     def opener(path: str):
         def open_engine():
-            one = copy.copy(args)
-            one.scene = path
-            return _open(one)[1]
+            return _open(args, QueryInputs((path,), path, inputs.text))[1]
         return open_engine
 
     stride = args.scene_stride or DEFAULT_SCENE_STRIDE
@@ -155,9 +160,9 @@ def run_multiscene(args: argparse.Namespace, scenes: list[str]) -> int:
             raise InputError("not a scene bundle (scene.json missing)", file=path)
     need = {"temporal"} if args.no_spatial else {"temporal", "best_view", "action_centre"}
     start = time.perf_counter()
-    ranked = rank_scenes_opening({p: opener(p) for p in scenes}, args.text, stride=stride, need=need,
+    ranked = rank_scenes_opening({p: opener(p) for p in scenes}, inputs.text, stride=stride, need=need,
                                  on_scene=lambda name, r: print(f"scored {name}: max_t s_t = {r:.4f}", flush=True))
-    print(f'"{args.text}" in {len(scenes)} scenes (ranked by max_t s_t on every {stride}th timestep, '
+    print(f'"{inputs.text}" in {len(scenes)} scenes (ranked by max_t s_t on every {stride}th timestep, '
           f"{time.perf_counter() - start:.1f} s)")
     width = max(len(p) for p in scenes)
     print(f"{'rank':>4}  {'scene':<{width}}  max_t s_t")
@@ -172,13 +177,13 @@ def run_multiscene(args: argparse.Namespace, scenes: list[str]) -> int:
               + (f", best view {loc.best_view}" if loc.best_view else ""))
     if args.json:
         result = ranked.to_dict()
-        result.update(query=args.text, scene_stride=stride)
+        result.update(query=inputs.text, scene_stride=stride)
         write_json_atomic(args.json, result, overwrite=args.overwrite)
         print(f"wrote {args.json}")
     return 0
 
 
-def _run_one(args: argparse.Namespace) -> int:
+def _run_one(args: argparse.Namespace, inputs: QueryInputs) -> int:
     from ..errors import OutputExistsError
     from ..fileio import output_group, write_json_atomic
     from ..query.exr import write_exr
@@ -189,14 +194,14 @@ def _run_one(args: argparse.Namespace) -> int:
     for out in (args.json, plot):
         if out is not None and Path(out).exists() and not args.overwrite:
             raise OutputExistsError(out)
-    scene, engine = _open(args)
+    scene, engine = _open(args, inputs)
     _timesteps_of_frames(args.frames or [], scene)  # before the query: a bad --frames costs nothing
     need = {"temporal"} if args.no_spatial else {"temporal", "best_view", "action_centre"}
     start = time.perf_counter()
-    loc = engine.localize(args.text, need)
+    loc = engine.localize(inputs.text, need)
     loc.timings["total"] = time.perf_counter() - start
     tmp = loc.temporal
-    print(f'"{args.text}" in {scene.name} (T={scene.num_timesteps}, N={scene.num_gaussians}, path={args.path})')
+    print(f'"{inputs.text}" in {scene.name} (T={scene.num_timesteps}, N={scene.num_gaussians}, path={args.path})')
     print(f"s_t |{sparkline(tmp.scores, 80)}|")
     if tmp.found:
         a, b = tmp.segment
@@ -216,7 +221,7 @@ def _run_one(args: argparse.Namespace) -> int:
     result = loc.to_dict()
     with output_group() as written:  # a failure part-way leaves none of this run's outputs behind
         if args.exr:
-            result["exr"] = _write_maps(args, scene, engine, loc, write_exr, written)
+            result["exr"] = _write_maps(args, inputs.text, scene, engine, loc, write_exr, written)
         if args.json:
             if not Path(args.json).exists():
                 written.append(Path(args.json))
@@ -225,7 +230,7 @@ def _run_one(args: argparse.Namespace) -> int:
         if plot is not None:
             if not plot.exists():
                 written.append(plot)
-            plot_temporal(tmp, plot, query=args.text, overwrite=args.overwrite)
+            plot_temporal(tmp, plot, query=inputs.text, overwrite=args.overwrite)
             print(f"wrote {plot}")
     return 0
 
@@ -248,7 +253,7 @@ def _timesteps_of_frames(values: list[str], scene) -> list[int]:
     return out
 
 
-def _write_maps(args, scene, engine, loc, write_exr, written: list[Path]) -> list[str]:
+def _write_maps(args, text: str, scene, engine, loc, write_exr, written: list[Path]) -> list[str]:
     from ..errors import InputError
 
     frames: list[int] = []
@@ -270,7 +275,7 @@ def _write_maps(args, scene, engine, loc, write_exr, written: list[Path]) -> lis
     for t in frames:
         for name in names:
             cam = scene.cameras.find(name, t)
-            maps = engine.relevancy_map(args.text, cam, t)
+            maps = engine.relevancy_map(text, cam, t)
             path = Path(args.exr) / f"{name or 'view'}_t{t:04d}.exr"
             if not path.exists():
                 written.append(path)

@@ -8,6 +8,7 @@ import sys
 from typing import Any
 
 from ..errors import InputError
+from .options import add_demo_argument
 
 
 def register(subparsers: Any) -> None:
@@ -17,7 +18,7 @@ def register(subparsers: Any) -> None:
                     "footprint and whether a language field is present. PATH: a bundle directory, a Dynamic "
                     "3D Gaussians directory (params.npz), a 3DGS .ply file or a directory of per-frame .ply files.")
     p.add_argument("path", nargs="?", help="scene to describe")
-    p.add_argument("--demo", action="store_true", help="describe the built-in demo scene (generated on first use)")
+    add_demo_argument(p)
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=run_info)
 
@@ -39,7 +40,7 @@ def run_info(args: argparse.Namespace) -> int:
 def demo_bundle_path():
     """The demo bundle from the synthetic benchmark generator (built into the cache on first use)."""
     try:
-        from ..scene.synthetic import ensure_demo_bundle
+        from ..demo.synthetic import ensure_demo_bundle
     except ImportError as exc:
         raise InputError(f"the demo scene generator is not available ({exc})", field="--demo") from None
     return ensure_demo_bundle()

@@ -1,5 +1,6 @@
 """Fit dynamic 3D Gaussians to a calibrated multiview video (``fourlegs fit``)."""
-from .dataset import Capture
-from .fitter import FitEvent, FitOptions, fit_capture
+from ..lazy import lazy_exports
 
-__all__ = ["Capture", "FitEvent", "FitOptions", "fit_capture"]
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "Capture": "dataset", "FitEvent": "options", "FitOptions": "options", "fit_capture": "fitter"
+})

@@ -16,16 +16,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from ..errors import InputError
-from ..fileio import read_json
 from ..scene.camera import Camera
-from ..scene.dynamic3dgs import meta_matrix
+from ..scene.dynamic3dgs import META_FILES, read_camera_meta
 
-META_FILES = {"train": "train_meta.json", "test": "test_meta.json"}
 #: Panoptic rigs render with near 1.0, far 100 (Dynamic 3D Gaussians' setting)
 NEAR, FAR = 1.0, 100.0
 
@@ -160,54 +158,6 @@ def _open_image(path: Path):
 
 
 def _read_split(path: Path) -> tuple[CaptureSplit, int, int]:
-    meta: Any = read_json(path)
-    if not isinstance(meta, dict):
-        raise InputError("top level must be a JSON object", file=path)
-    for key in ("w", "h", "k", "w2c", "fn"):
-        if key not in meta:
-            raise InputError("missing key", file=path, field=key)
-    try:
-        width, height = int(meta["w"]), int(meta["h"])
-    except (TypeError, ValueError):
-        raise InputError(f"image size must be integers, got w={meta['w']!r} h={meta['h']!r}", file=path,
-                         field="w/h") from None
-    if width <= 0 or height <= 0:
-        raise InputError(f"image size must be positive, got {width}x{height}", file=path, field="w/h")
-    ks, w2cs, fns = meta["k"], meta["w2c"], meta["fn"]
-    ids = meta.get("cam_id")
-    T = len(ks) if isinstance(ks, list) else -1
-    for key, value in (("k", ks), ("w2c", w2cs), ("fn", fns)) + ((("cam_id", ids),) if ids is not None else ()):
-        if not isinstance(value, list) or not value:
-            raise InputError("must be a non-empty list over timesteps", file=path, field=key)
-        if len(value) != T:
-            raise InputError(f"has {len(value)} timesteps, k has {T}", file=path, field=key)
-    cameras, files, cam_ids = [], [], []
-    for t in range(T):
-        n = len(ks[t]) if isinstance(ks[t], list) else -1
-        for key, value in (("w2c", w2cs[t]), ("fn", fns[t])) + ((("cam_id", ids[t]),) if ids is not None else ()):
-            if not isinstance(value, list) or len(value) != n:
-                raise InputError(f"must list one entry per camera ({n})", file=path, field=f"{key}[{t}]")
-        row, names = [], []
-        for c in range(n):
-            K = meta_matrix(ks[t][c], (3, 3), path, f"k[{t}][{c}]")
-            w2c = meta_matrix(w2cs[t][c], (4, 4), path, f"w2c[{t}][{c}]")
-            name = str(ids[t][c]) if ids is not None else str(fns[t][c]).split("/")[0]
-            cam = Camera(K=K, w2c=w2c, width=width, height=height, near=NEAR, far=FAR, name=name)
-            try:
-                cam.validate()
-            except InputError as exc:
-                where = f"w2c[{t}][{c}]" if "w2c" in (exc.field or "") else f"k[{t}][{c}]"
-                raise InputError(f"{exc.problem} (camera {name})", file=path, field=where) from None
-            row.append(cam)
-            names.append(name)
-            if not isinstance(fns[t][c], str) or not fns[t][c] or ".." in Path(fns[t][c]).parts:
-                raise InputError(f"must be a relative file name, got {fns[t][c]!r}", file=path, field=f"fn[{t}][{c}]")
-        if len(set(names)) != len(names):
-            raise InputError("camera ids repeat", file=path, field=f"cam_id[{t}]")
-        if t and names != cam_ids[0]:
-            raise InputError(f"cameras differ from timestep 0 ({names} vs {cam_ids[0]})", file=path,
-                             field=f"cam_id[{t}]")
-        cameras.append(row)
-        files.append([str(f) for f in fns[t]])
-        cam_ids.append(names)
-    return CaptureSplit(cameras, files, cam_ids), width, height
+    """One split's cameras, image files and names, and the image size (:func:`read_camera_meta`)."""
+    meta = read_camera_meta(path, require_files=True, static_rig=True, near=NEAR, far=FAR)
+    return CaptureSplit(meta.cameras, meta.files, meta.names), meta.width, meta.height

@@ -194,14 +194,38 @@ def triangulate_matches(cameras: list[Camera], keypoints: list[np.ndarray], matc
     Returns:
         :class:`Triangulated` (M points; empty arrays when nothing survives).
     """
-    cv2 = require_cv2()
     V = len(cameras)
     P = np.stack([projection_matrix(c) for c in cameras])
-    centers = np.stack([c.center for c in cameras])
     offsets = np.concatenate([[0], np.cumsum([len(k) for k in keypoints])]).astype(np.int64)
-    all_uv = np.concatenate([np.asarray(k, np.float64).reshape(-1, 2) for k in keypoints] + [np.zeros((0, 2))])
-    all_view = np.repeat(np.arange(V), np.diff(offsets))
-    cand_pts, cand_ga, cand_gb = [], [], []
+    empty = Triangulated(np.zeros((0, 3)), np.zeros((0, V), bool), np.zeros(0))
+    cand, ga, gb = _pair_candidates(cameras, keypoints, matches, P, offsets, reprojection_px, min_angle_deg)
+    if not len(cand):
+        return empty
+    observations = _Observations(
+        uv=np.concatenate([np.asarray(k, np.float64).reshape(-1, 2) for k in keypoints] + [np.zeros((0, 2))]),
+        view=np.repeat(np.arange(V), np.diff(offsets)))
+    chosen = _best_candidate_per_track(cand, ga, gb, observations, P, reprojection_px, min_views)
+    if chosen is None:
+        return empty
+    return _refined_points(*chosen, observations, P, reprojection_px)
+
+
+@dataclass
+class _Observations:
+    """Every keypoint of every view, flattened: pixel coordinates (K,2) and view index (K,)."""
+
+    uv: np.ndarray
+    view: np.ndarray
+
+
+def _pair_candidates(cameras: list[Camera], keypoints: list[np.ndarray], matches: dict[tuple[int, int], np.ndarray],
+                     P: np.ndarray, offsets: np.ndarray, reprojection_px: float, min_angle_deg: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points triangulated from each matched pair that both views see in front, within ``reprojection_px``
+    and with enough parallax: (M,3) points and the flat keypoint indices (M,), (M,) of the two views."""
+    cv2 = require_cv2()
+    centers = np.stack([c.center for c in cameras])
+    cand_pts, cand_ga, cand_gb = [np.zeros((0, 3))], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     cos_min = np.cos(np.radians(min_angle_deg))
     for (i, j), idx in matches.items():
         idx = np.asarray(idx, np.int64).reshape(-1, 2)
@@ -222,15 +246,24 @@ def triangulate_matches(cameras: list[Camera], keypoints: list[np.ndarray], matc
         cand_pts.append(X[ok])
         cand_ga.append(offsets[i] + idx[ok, 0])
         cand_gb.append(offsets[j] + idx[ok, 1])
-    empty = Triangulated(np.zeros((0, 3)), np.zeros((0, V), bool), np.zeros(0))
-    if not cand_pts or not sum(len(c) for c in cand_pts):
-        return empty
-    cand = np.concatenate(cand_pts)
-    ga, gb = np.concatenate(cand_ga), np.concatenate(cand_gb)
+    return np.concatenate(cand_pts), np.concatenate(cand_ga), np.concatenate(cand_gb)
+
+
+def _best_candidate_per_track(cand: np.ndarray, ga: np.ndarray, gb: np.ndarray, obs_all: _Observations,
+                              P: np.ndarray, reprojection_px: float, min_views: int) -> tuple | None:
+    """Tracks are the connected components of the matched keypoints; every candidate is checked against
+    every observation of its track (one vote per view: its best observation) and each track keeps the
+    candidate most views agree with (ties: the smaller mean error). None when no track has ``min_views``.
+
+    Returns:
+        (candidates (C,3), the kept ones (B,) into them, votes (W,) into the pairs, pair candidate (Q,),
+        pair view (Q,), pair observation (Q,)).
+    """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    n_kp = int(offsets[-1])
+    V = P.shape[0]
+    n_kp = int(obs_all.uv.shape[0])
     graph = coo_matrix((np.ones(len(ga)), (ga, gb)), shape=(n_kp, n_kp))
     _, label = connected_components(graph, directed=False)
     obs = np.unique(np.concatenate([ga, gb]))
@@ -245,15 +278,15 @@ def triangulate_matches(cameras: list[Camera], keypoints: list[np.ndarray], matc
     keep_c = ~big[pos]
     cand, cand_track, pos = cand[keep_c], cand_track[keep_c], pos[keep_c]
     if not len(cand):
-        return empty
+        return None
     # every candidate against every observation of its track
     n_pairs = counts[pos]
     pair_cand = np.repeat(np.arange(len(cand)), n_pairs)
     within = np.arange(n_pairs.sum()) - np.repeat(np.cumsum(n_pairs) - n_pairs, n_pairs)
     pair_obs = obs[starts[pos][pair_cand] + within]
-    pair_view = all_view[pair_obs]
+    pair_view = obs_all.view[pair_obs]
     uv, z = _reproject(P[pair_view], cand[pair_cand])
-    err = np.linalg.norm(uv - all_uv[pair_obs], axis=1)
+    err = np.linalg.norm(uv - obs_all.uv[pair_obs], axis=1)
     good = (z > 0) & (err <= reprojection_px)
     # one vote per (candidate, view): the view's best observation
     gi = np.nonzero(good)[0]
@@ -272,13 +305,21 @@ def triangulate_matches(cameras: list[Camera], keypoints: list[np.ndarray], matc
     best = best_order[first_of_track]
     best = best[n_views[best] >= max(2, min_views)]
     if not len(best):
-        return empty
-    # linear multi-view re-solve over the agreeing views (rows of other views stay zero)
+        return None
+    return cand, best, vote, pair_cand, pair_view, pair_obs
+
+
+def _refined_points(cand: np.ndarray, best: np.ndarray, vote: np.ndarray, pair_cand: np.ndarray,
+                    pair_view: np.ndarray, pair_obs: np.ndarray, obs_all: _Observations, P: np.ndarray,
+                    reprojection_px: float) -> Triangulated:
+    """A linear multi-view re-solve of each kept candidate over the views that voted for it; the refined
+    point where it still agrees with every one of them, else the candidate."""
+    V = P.shape[0]
     rank = np.full(len(cand), -1)
     rank[best] = np.arange(len(best))
     sel = vote[rank[pair_cand[vote]] >= 0]
-    row_t, row_v, row_uv = rank[pair_cand[sel]], pair_view[sel], all_uv[pair_obs[sel]]
-    A = np.zeros((len(best), V, 2, 4))
+    row_t, row_v, row_uv = rank[pair_cand[sel]], pair_view[sel], obs_all.uv[pair_obs[sel]]
+    A = np.zeros((len(best), V, 2, 4))  # rows of views that did not vote stay zero
     A[row_t, row_v, 0] = row_uv[:, :1] * P[row_v, 2] - P[row_v, 0]
     A[row_t, row_v, 1] = row_uv[:, 1:] * P[row_v, 2] - P[row_v, 1]
     A = A.reshape(len(best), 2 * V, 4)
@@ -289,7 +330,6 @@ def triangulate_matches(cameras: list[Camera], keypoints: list[np.ndarray], matc
         refined = h[:, :3] / h[:, 3:4]
     inliers = np.zeros((len(best), V), bool)
     inliers[row_t, row_v] = True
-    # keep the refined point where it still agrees with every view that voted, else the candidate
     ok = np.isfinite(refined).all(1)
     r_uv, r_z = _reproject(P[row_v], np.where(ok[:, None], refined, 0.0)[row_t])
     bad_row = (r_z <= 0) | (np.linalg.norm(r_uv - row_uv, axis=1) > reprojection_px)

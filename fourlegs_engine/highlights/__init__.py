@@ -8,9 +8,10 @@
 - :mod:`.camera_paths`, :mod:`.timing` — poses, orbits, dollies, easing, time remapping.
 - :mod:`.preview` — contact sheet rendered by the engine's rasterizer.
 """
-from .plan import PLAN_FORMAT, PLAN_VERSION, CameraKey, HighlightPlan, Shot, TimeKey
-from .planner import Localizer, plan_highlight, plan_needs
-from .presets import Preset, available_presets, load_preset, parse_preset
+from ..lazy import lazy_exports
 
-__all__ = ["PLAN_FORMAT", "PLAN_VERSION", "CameraKey", "HighlightPlan", "Localizer", "Preset", "Shot", "TimeKey",
-           "available_presets", "load_preset", "parse_preset", "plan_highlight", "plan_needs"]
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "PLAN_FORMAT": "plan", "PLAN_VERSION": "plan", "CameraKey": "plan", "HighlightPlan": "plan", "Shot": "plan",
+    "TimeKey": "plan", "Localizer": "planner", "plan_highlight": "planner", "plan_needs": "planner",
+    "Preset": "presets", "available_presets": "presets", "load_preset": "presets", "parse_preset": "presets"
+})

@@ -22,20 +22,19 @@ so the camera never jumps at a shot boundary.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any, Callable, Optional
+from dataclasses import dataclass
+from typing import Any, Optional
 
 import numpy as np
 
 from ..errors import InputError
 from . import timing
-from .camera_paths import (WORLD_UP, Pose, aim, dolly_path, hold_path, interpolate_poses, look_at_rotation,
-                           orbit_path, slerp_rotations)
-from .framing import Framing
+from .camera_paths import Pose, aim, dolly_path, hold_path, interpolate_poses, orbit_path, slerp_rotations
+from .framed_moves import framed_orbit, framed_zoom, upright
+from .shot_context import ShotContext, ShotPath
 
 TIME_ANCHORS = ("start", "end", "segment_start", "segment_end", "peak")
 LOCALIZED_ANCHORS = ("segment_start", "segment_end", "peak")
-CAMERA_SPECIAL = ("previous", "best_view")
 
 NEED_TEMPORAL = "temporal"
 NEED_BEST_VIEW = "best_view"
@@ -140,83 +139,6 @@ class Effect:
         raise NotImplementedError
 
 
-# ----------------------------------------------------------------------------------- context
-@dataclass
-class ShotContext:
-    """What a shot builder may use (filled by the planner with only what was computed).
-
-    Attributes:
-        num_timesteps, scene_fps, output_fps: the two clocks.
-        segment: (start, end) inclusive timesteps of the localized action, or None.
-        peak: peak timestep, or None.
-        action_centre: (3,) world point, or None.
-        anchor: the best view's pose (re-aimed at the action centre when it is known), or None.
-        anchor_focal: its focal length in output pixels.
-        previous: the previous shot's last pose, or None for the first shot.
-        previous_focal: the previous shot's last focal length (output pixels).
-        camera_pose: resolves a scene camera name to (pose, focal) at output resolution.
-        up: (3,) the scene's up direction (orbits turn about it, swings pivot about it).
-        framing: the action region and the scene's Gaussians at the peak (:mod:`.framing`), or None
-            (then zoom and orbit follow the best view's geometry alone).
-        resolution: (width, height) of the output.
-    """
-
-    num_timesteps: int
-    scene_fps: float
-    output_fps: float
-    segment: Optional[tuple[int, int]] = None
-    peak: Optional[int] = None
-    action_centre: Optional[np.ndarray] = None
-    anchor: Optional[Pose] = None
-    anchor_focal: Optional[float] = None
-    previous: Optional[Pose] = None
-    previous_focal: Optional[float] = None
-    camera_pose: Optional[Callable[[str], tuple[Pose, float]]] = None
-    up: np.ndarray = field(default_factory=lambda: WORLD_UP.copy())
-    framing: Optional[Framing] = None
-    resolution: tuple[int, int] = (1280, 720)
-    messages: list[str] = field(default_factory=list)
-
-    def timestep(self, anchor: str, offset_s: float) -> float:
-        base = {"start": 0.0, "end": float(self.num_timesteps - 1)}.get(anchor)
-        if base is None:
-            value = {"segment_start": None if self.segment is None else self.segment[0],
-                     "segment_end": None if self.segment is None else self.segment[1],
-                     "peak": self.peak}[anchor]
-            if value is None:
-                raise InputError(f"time anchor {anchor!r} needs a temporal localization", field="from/to")
-            base = float(value)
-        return timing.clamp_timestep(base + timing.seconds_to_timesteps(offset_s, self.scene_fps),
-                                     self.num_timesteps)
-
-    def start_camera(self) -> tuple[Pose, float]:
-        if self.previous is not None:
-            return self.previous, float(self.previous_focal)
-        if self.anchor is None:
-            raise InputError("the first shot needs a camera (best view not computed)", field="camera")
-        return self.anchor, float(self.anchor_focal)
-
-    def require_centre(self, effect: str) -> np.ndarray:
-        if self.action_centre is None:
-            raise InputError(f"effect {effect!r} needs the 3D action centre", field="action_centre")
-        return self.action_centre
-
-
-@dataclass
-class ShotPath:
-    """A built shot: per-frame poses, focal lengths (output px) and fractional timesteps."""
-
-    poses: list[Pose]
-    focals: np.ndarray
-    timesteps: np.ndarray
-    params: dict[str, Any]
-    desaturation: Optional[np.ndarray] = None  # (n,) weights in [0,1] or None
-
-    def __post_init__(self) -> None:
-        n = len(self.poses)
-        if len(self.focals) != n or len(self.timesteps) != n:
-            raise ValueError("poses, focals and timesteps must have one entry per frame")
-
 
 # ----------------------------------------------------------------------------------- time
 def shot_progress(easing: str, n: int, *, continuing: bool) -> np.ndarray:
@@ -272,7 +194,7 @@ def _camera_move(p: dict[str, Any], ctx: ShotContext, n: int) -> tuple[list[Pose
         # sides would look away half-way), level about the scene's up; the previous pose's roll is
         # carried along and levelled over the swing
         c = ctx.framing.centre
-        level = [_upright(q.position, c, ctx.up) for q in poses]
+        level = [upright(q.position, c, ctx.up) for q in poses]
         offset = level[0].T @ ctx.previous.rotation
         poses = [Pose(q.position, slerp_rotations(R @ offset, R, [wi])[0]) for q, R, wi in zip(poses, level, w)]
         poses[0] = ctx.previous
@@ -441,174 +363,6 @@ def desaturation_weights(times: np.ndarray, segment: Optional[tuple[int, int]], 
         if b + k < len(w):
             w[b + k] = float(timing.ease(easing, 1.0 - k / (fade_out + 1)))
     return np.clip(w * strength, 0.0, 1.0)
-
-
-# ----------------------------------------------------------------------------------- framed shots
-def _cylindrical(point: np.ndarray, centre: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float, float]:
-    """(ex, ey) horizontal basis about ``up``, and the angle, horizontal radius and height of ``point``."""
-    ez = up / np.linalg.norm(up)
-    ex = np.eye(3)[int(np.argmin(np.abs(ez)))]
-    ex = ex - (ex @ ez) * ez
-    ex /= np.linalg.norm(ex)
-    ey = np.cross(ez, ex)
-    r = np.asarray(point, dtype=np.float64) - centre
-    return ex, ey, math.atan2(r @ ey, r @ ex), math.hypot(r @ ex, r @ ey), float(r @ ez)
-
-
-def _spherical_frame(point: np.ndarray, centre: np.ndarray, up: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float]:
-    """Basis (ex, ey, ez = up) about ``centre`` and ``point``'s azimuth, elevation (radians) and distance."""
-    ex, ey, azimuth, horizontal, height = _cylindrical(point, centre, up)
-    return ex, ey, np.cross(ex, ey), azimuth, math.atan2(height, horizontal), max(math.hypot(horizontal, height), 1e-9)
-
-
-def _spherical_points(centre, ex, ey, ez, azimuth, elevation, distance) -> np.ndarray:
-    """(n,3) points at (n,) azimuth/elevation (radians) and distance from ``centre``."""
-    az, el, d = (np.broadcast_to(np.asarray(v, dtype=np.float64), np.shape(azimuth)) for v in (azimuth, elevation, distance))
-    horiz = d * np.cos(el)
-    return (centre[None] + (horiz * np.cos(az))[:, None] * ex + (horiz * np.sin(az))[:, None] * ey
-            + (d * np.sin(el))[:, None] * ez)
-
-
-def _upright(eye: np.ndarray, centre: np.ndarray, up: np.ndarray) -> np.ndarray:
-    return look_at_rotation(eye, centre, up)
-
-
-MAX_ELEVATION = math.radians(75.0)
-
-
-def framed_zoom(p: dict[str, Any], ctx: ShotContext, times: np.ndarray, facts: dict[str, Any], start: Pose,
-                f0: float, e: np.ndarray) -> ShotPath:
-    """Zoom onto the action region: end where its sphere fills the frame (never nearer than the preset's
-    magnification allows), with a clear line of sight and every Gaussian beyond the near plane on
-    every frame. The end direction is the start's unless that path is blocked; then the nearest
-    direction around the action (other azimuth, higher elevation) whose path is clear, else a shorter
-    zoom. The camera ends level (upright about the scene's up) and aimed at the region's centre."""
-    fr = ctx.framing
-    c, up = fr.centre, ctx.up
-    ex, ey, ez, az0, el0, d0 = _spherical_frame(start.position, c, up)
-    d_fit = fr.framing_distance(f0, ctx.resolution, fill=0.9) if p["mode"] == "dolly" else d0
-    d_end = min(d0, max(d_fit, d0 / p["factor"], fr.region.radius + fr.near + p["min_distance_m"]))
-    if p["mode"] == "focal":
-        return _framed_focal_zoom(p, ctx, times, facts, start, f0, e)
-    candidates = []
-    for d_scale in (1.0, 1.15, 1.3, 1.5):
-        d1 = min(d0, d_end * d_scale)
-        for del_deg in (0, 10, 20, 30, 45):
-            el1 = min(el0 + math.radians(del_deg), MAX_ELEVATION) if del_deg else el0
-            for daz_deg in (0, 20, -20, 40, -40, 60, -60, 90, -90):
-                cost = abs(daz_deg) / 90 + del_deg / 45 + (d_scale - 1.0) * 2
-                candidates.append((cost, d1, el1, math.radians(daz_deg)))
-    candidates.sort(key=lambda c_: c_[0])
-    best, best_bad, chosen = None, math.inf, None
-    for cost, d1, el1, daz in candidates:
-        az = az0 + daz * e
-        el = el0 + (el1 - el0) * e
-        dist = d0 * (d1 / d0) ** e
-        eyes = _spherical_points(c, ex, ey, ez, az, el, dist)
-        eyes[0] = start.position if e[0] == 0 else eyes[0]
-        coarse = np.unique(np.linspace(0, len(e) - 1, min(len(e), 9)).round().astype(int))
-        if best is not None and fr.path_badness(eyes[coarse]) > 0:
-            continue
-        bad = fr.path_badness(eyes)
-        if bad < best_bad:
-            best, best_bad, chosen = eyes, bad, (d1, el1, daz)
-        if bad == 0.0:
-            break
-    eyes = best
-    end_rot = _upright(eyes[-1], c, up)
-    rots = slerp_rotations(start.rotation, end_rot, e)
-    poses = [Pose(q, R) for q, R in zip(eyes, rots)]
-    d1, el1, daz = chosen
-    if best_bad > 0:
-        ctx.messages.append("zoom_in: no approach keeps a clear view of the action on every frame; the least "
-                            "obstructed one is used")
-    elif d1 > d_end + 1e-9:
-        ctx.messages.append(f"zoom_in: shortened to end {d1:.2f} m from the action (a closer end is obstructed)")
-    return ShotPath(poses, np.full(len(poses), f0), times, {
-        **p, **facts, "distance_start": d0, "distance_end": float(np.linalg.norm(eyes[-1] - c)),
-        "framed_centre": [float(v) for v in c], "region_radius": fr.region.radius,
-        "end_turn_deg": math.degrees(daz), "end_elevation_deg": math.degrees(el1), "clear": best_bad == 0.0})
-
-
-def _framed_focal_zoom(p, ctx, times, facts, start, f0, e) -> ShotPath:
-    """Focal-length zoom: magnify up to ``factor`` but no further than the region filling the frame."""
-    fr = ctx.framing
-    c = fr.centre
-    d0 = float(np.linalg.norm(start.position - c))
-    half = math.atan(0.5 * min(ctx.resolution) / f0)
-    fit_half = math.asin(min(0.999, fr.region.radius / max(d0, 1e-9)) / 0.9) if fr.region.radius < d0 * 0.9 else half
-    magnification_fit = max(1.0, math.tan(half) / math.tan(max(fit_half, 1e-6)))
-    mag = min(p["factor"], magnification_fit) ** e
-    end = Pose(start.position, _upright(start.position, c, ctx.up))
-    poses = interpolate_poses(start, end, np.clip(e * 4.0, 0.0, 1.0))
-    return ShotPath(poses, f0 * mag, times, {**p, **facts, "distance_start": d0, "distance_end": d0,
-                                             "framed_centre": [float(v) for v in c],
-                                             "region_radius": fr.region.radius})
-
-
-def framed_orbit(p: dict[str, Any], ctx: ShotContext, times: np.ndarray, facts: dict[str, Any], start: Pose,
-                 f0: float, e: np.ndarray) -> ShotPath:
-    """Bullet-time orbit about the up axis through the action region's centre, at a distance that frames
-    the region, with a clear view and every Gaussian beyond the near plane on every frame.
-
-    Tries the preset's arc at the start's distance and elevation first, then higher elevations, longer
-    distances and the opposite direction; the move to the chosen distance/elevation happens over the
-    first sixth of the arc. When no orbit is clear, the preset's (or the least obstructed of those checked
-    on every frame) is used, with a message.
-    """
-    fr = ctx.framing
-    c, up = fr.centre, ctx.up
-    ex, ey, ez, az0, el0, d0 = _spherical_frame(start.position, c, up)
-    arc = math.radians(p["arc_deg"])
-    ramp = np.clip(e / (1.0 / 6.0), 0.0, 1.0)
-    ramp = ramp * ramp * (3.0 - 2.0 * ramp)
-    candidates = []
-    for lens in (1.0, 0.8, 0.65, 0.5):   # a wider lens frames the region from closer in
-        # never a closer framing than the shot it continues (the zoom's end sets the magnification)
-        d_fit = max(fr.framing_distance(f0 * lens, ctx.resolution, fill=0.9), fr.region.radius + 2 * fr.near,
-                    d0 * lens)
-        for sign in (1.0, -1.0):
-            for d_scale in (1.0, 1.15):
-                for del_deg in (0, 15, 30, 45, 60):
-                    el1 = float(min(el0 + math.radians(del_deg), MAX_ELEVATION))
-                    d1 = d_fit * d_scale * p["radius_scale"]
-                    cost = (1.0 - lens) * 4 + (sign < 0) * 1.5 + (d_scale - 1.0) * 3 + abs(del_deg) / 30
-                    candidates.append((cost, sign, d1, el1, lens))
-    candidates.sort(key=lambda c_: c_[0])
-    best, best_bad, chosen = None, math.inf, None
-    coarse = np.unique(np.linspace(0, len(e) - 1, min(len(e), 13)).round().astype(int))
-    for cost, sign, d1, el1, lens in candidates:
-        az = az0 + sign * arc * e
-        el = el0 + (el1 - el0) * ramp
-        dist = d0 + (d1 - d0) * ramp
-        eyes = _spherical_points(c, ex, ey, ez, az, el, dist)
-        if fr.path_badness(eyes[coarse]) > 0:   # cheap look at a few frames first
-            if best is None:
-                best, best_bad, chosen = eyes, fr.path_badness(eyes), (sign, d1, el1, lens)
-            continue
-        bad = fr.path_badness(eyes)
-        if bad < best_bad:
-            best, best_bad, chosen = eyes, bad, (sign, d1, el1, lens)
-        if bad == 0.0:
-            break
-    eyes = best
-    sign, d1, el1, lens = chosen
-    focals = f0 * lens ** ramp
-    upright = [_upright(q, c, up) for q in eyes]
-    # a start that is not level (e.g. a best view turned by the smallest rotation) is carried along
-    # rigidly and levelled over the ramp
-    offset = upright[0].T @ start.rotation
-    poses = [Pose(q, slerp_rotations(R @ offset, R, [w])[0]) for q, R, w in zip(eyes, upright, ramp)]
-    poses[0] = start
-    if best_bad > 0:
-        ctx.messages.append("bullet_time: no orbit keeps a clear view of the action on every frame; the "
-                            "preset's orbit (or the least obstructed one checked in full) is used")
-    return ShotPath(poses, focals, times, {
-        **p, **facts, "centre": [float(v) for v in c], "region_radius": fr.region.radius, "lens_scale": lens,
-        "rigid": False,
-        "radius": float(d1 * math.cos(el1)), "height": float(d1 * math.sin(el1)),
-        "arc_deg_used": math.degrees(sign * arc), "elevation_deg": math.degrees(el1), "clear": best_bad == 0.0})
 
 
 EFFECTS: dict[str, Effect] = {e.name: e for e in (Play(), ZoomIn(), BulletTime(), DesaturateBackground())}

@@ -22,7 +22,6 @@ from .camera_paths import Pose
 PLAN_FORMAT = "fourlegs-highlight-plan"
 PLAN_VERSION = 1
 DEFAULT_SENSOR_WIDTH_MM = 36.0
-PASS_NAMES = ("rgb", "depth", "relevancy")
 
 
 def _finite(x: Any, what: str) -> float:

@@ -14,17 +14,18 @@ the peak its centre.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
 from typing import Any, Optional, Protocol, Sequence
 
 import numpy as np
 
 from ..errors import InputError
 from .camera_paths import Pose, aim, look_at_rotation
-from .effects import (LOCALIZATION_NEEDS, NEED_ACTION_CENTRE, NEED_BEST_VIEW, NEED_TEMPORAL, ShotContext,
-                      get_effect)
+from .effects import LOCALIZATION_NEEDS, NEED_ACTION_CENTRE, NEED_BEST_VIEW, NEED_TEMPORAL, get_effect
 from .framing import Framing, scene_up
 from .plan import CameraKey, HighlightPlan, Shot, TimeKey, merge_ranges
 from .presets import Preset, ShotSpec
+from .shot_context import ShotContext
 
 
 class Localizer(Protocol):
@@ -96,7 +97,8 @@ def _framing_at(scene, localizer, query: str, t: int, up: np.ndarray, messages: 
 
 def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Preset, *,
                    resolution: Optional[Sequence[int]] = None, fps: Optional[float] = None) -> HighlightPlan:
-    """Plan a highlight of ``query`` in ``scene`` with ``preset``.
+    """Plan a highlight of ``query`` in ``scene`` with ``preset``: localize what the shots need, place the
+    anchor camera, build the shots one after the other, merge their render passes.
 
     Args:
         scene: a :class:`fourlegs_engine.scene.Scene` (cameras, fps, timesteps, name, root).
@@ -114,121 +116,173 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
     out_fps = float(fps if fps is not None else preset.fps)
     if not out_fps > 0 or not np.isfinite(out_fps):
         raise InputError(f"must be positive, got {out_fps}", field="fps")
-    T = int(scene.num_timesteps)
     messages: list[str] = []
-
     per_shot = shot_needs(preset)
-    need = set().union(*per_shot) if per_shot else set()
-    loc = None
-    if need:
-        if localizer is None:
-            raise InputError(f"preset {preset.name!r} needs a localization ({', '.join(sorted(need))}) but no "
-                             "query engine was given", field="localizer")
-        loc = localizer.localize(query, set(need))
-        tmp = getattr(loc, "temporal", None)
-        skip = {getattr(tmp, "message", None)} if tmp is not None else set()
-        messages.extend(str(m) for m in (getattr(loc, "messages", None) or []) if m not in skip)
+    found = _localize(scene, localizer, query, preset, per_shot, messages)
+    specs = _shots_with_what_was_found(scene, query, preset, per_shot, found, messages)
+    up = scene_up(scene.cameras.cameras(0, "all") if scene.cameras.num_timesteps else [])
+    framing = None
+    if found.centre is not None and specs and any(NEED_ACTION_CENTRE in needs for _, needs in specs):
+        framing = _framing_at(scene, localizer, query, found.view_t, up, messages)
+        if framing is not None:
+            found.centre = framing.centre
+    anchor, anchor_focal = _anchor_camera(scene, found, framing, resolution, preset, up, messages)
+    if not specs:  # nothing localized survived: show the whole sequence from a sensible camera
+        specs, anchor, anchor_focal = _context_shot(scene, anchor, anchor_focal, resolution, preset, messages)
 
-    temporal = getattr(loc, "temporal", None) if loc is not None else None
-    found = bool(temporal is not None and temporal.found)
-    segment = tuple(int(v) for v in temporal.segment) if found and temporal.segment is not None else None
-    peak = int(temporal.peak) if found and temporal.peak is not None else None
-    best_name = getattr(loc, "best_view", None) if loc is not None else None
-    centre = getattr(loc, "action_centre", None) if loc is not None else None
+    def camera_pose(name: str) -> tuple[Pose, float]:
+        cam = _find_camera(scene, name, found.view_t)
+        return Pose.from_camera(cam), _focal_for_output(cam, resolution, preset.fov_fit)
+
+    context = ShotContext(num_timesteps=int(scene.num_timesteps), scene_fps=float(scene.fps), output_fps=out_fps,
+                          segment=found.segment, peak=found.peak, action_centre=found.centre, anchor=anchor,
+                          anchor_focal=anchor_focal, previous=None, previous_focal=None, camera_pose=camera_pose,
+                          up=up, framing=framing, resolution=resolution)
+    shots = _build_shots([spec for spec, _ in specs], context, preset, messages)
+    passes, desaturate = _merge_passes(shots)
+    plan = HighlightPlan(
+        scene={"name": scene.name, "path": None if scene.root is None else str(scene.root),
+               "num_timesteps": int(scene.num_timesteps), "fps": float(scene.fps)},
+        query=query, localization=_localization_record(found, up, framing), fps=out_fps, resolution=resolution,
+        frame_start=int(preset.frame_start), frame_end=shots[-1].frame_end, shots=shots, passes=passes,
+        desaturate=desaturate, messages=messages, preset=preset.name)
+    return plan.validate()
+
+
+@dataclass
+class _Found:
+    """What the localizer found for the plan: the parts asked for (``need``), the temporal answer, the
+    segment and peak (when found), the best view's name, the action centre (finite or None) and the
+    timestep the view and centre belong to."""
+
+    need: set[str]
+    temporal: Any = None
+    segment: Optional[tuple[int, int]] = None
+    peak: Optional[int] = None
+    best_view: Optional[str] = None
+    centre: Optional[np.ndarray] = None
+    view_t: int = 0
+
+    @property
+    def found(self) -> bool:
+        return bool(self.temporal is not None and self.temporal.found)
+
+    def available(self) -> set[str]:
+        """The localization parts the shots can use."""
+        return ({NEED_TEMPORAL} if self.found else set()) | ({NEED_BEST_VIEW} if self.best_view is not None else
+                                                             set()) | \
+            ({NEED_ACTION_CENTRE} if self.centre is not None else set())
+
+
+def _localize(scene, localizer: Optional[Localizer], query: str, preset: Preset, per_shot: list[set[str]],
+              messages: list[str]) -> _Found:
+    """Ask the localizer for exactly what the shots need (nothing when they need nothing)."""
+    need = set().union(*per_shot) if per_shot else set()
+    if not need:
+        return _Found(need)
+    if localizer is None:
+        raise InputError(f"preset {preset.name!r} needs a localization ({', '.join(sorted(need))}) but no "
+                         "query engine was given", field="localizer")
+    loc = localizer.localize(query, set(need))
+    temporal = getattr(loc, "temporal", None)
+    skip = {getattr(temporal, "message", None)} if temporal is not None else set()
+    messages.extend(str(m) for m in (getattr(loc, "messages", None) or []) if m not in skip)
+    found = _Found(need, temporal, best_view=getattr(loc, "best_view", None))
+    if found.found:
+        found.segment = tuple(int(v) for v in temporal.segment) if temporal.segment is not None else None
+        found.peak = int(temporal.peak) if temporal.peak is not None else None
+    centre = getattr(loc, "action_centre", None)
     centre = None if centre is None else np.asarray(centre, dtype=np.float64).reshape(3)
     if centre is not None and not np.all(np.isfinite(centre)):
         messages.append("the action centre was not finite and is ignored")
         centre = None
-    view_t = getattr(loc, "t", None) if loc is not None else None
-    view_t = int(view_t) if view_t is not None else (peak if peak is not None else 0)
+    found.centre = centre
+    view_t = getattr(loc, "t", None)
+    found.view_t = int(view_t) if view_t is not None else (found.peak if found.peak is not None else 0)
+    return found
 
-    # Which shots can be built with what was found.
-    available = set()
-    if found:
-        available.add(NEED_TEMPORAL)
-    if best_name is not None:
-        available.add(NEED_BEST_VIEW)
-    if centre is not None:
-        available.add(NEED_ACTION_CENTRE)
-    specs = []
-    dropped = []
+
+def _shots_with_what_was_found(scene, query: str, preset: Preset, per_shot: list[set[str]], found: _Found,
+                               messages: list[str]) -> list[tuple[ShotSpec, set[str]]]:
+    """The preset's shots whose needs were met; a message for the ones left out."""
+    available = found.available()
+    specs, dropped = [], []
     for spec, needs in zip(preset.shots, per_shot):
         (specs if needs <= available else dropped).append((spec, needs))
-    if NEED_TEMPORAL in need and not found:
+    if NEED_TEMPORAL in found.need and not found.found:
+        temporal = found.temporal
         why = (temporal.message if temporal is not None and temporal.message else "no timestep is positive")
         messages.append(f"query {query!r} was not found in scene {scene.name!r} ({why}); the plan has no "
                         "localized effects" + (f" (left out: {', '.join(s.name for s, _ in dropped)})"
                                                if dropped else ""))
-    elif dropped:
+    else:
         for spec, needs in dropped:
             missing = sorted(needs - available)
             messages.append(f"shot {spec.name!r} ({spec.effect}) left out: {', '.join(missing)} could not be "
                             "determined")
+    return specs
 
-    up = scene_up(scene.cameras.cameras(0, "all") if scene.cameras.num_timesteps else [])
-    framing = None
-    if centre is not None and specs and any(NEED_ACTION_CENTRE in needs for _, needs in specs):
-        framing = _framing_at(scene, localizer, query, view_t, up, messages)
-        if framing is not None:
-            centre = framing.centre
 
-    # The anchor camera: the best view, turned onto the action centre (§6.1) when it is known; with the
-    # action region known, turned level (upright about the scene's up) onto the region's centre.
-    anchor, anchor_focal = None, None
-    if best_name is not None:
-        cam = _find_camera(scene, str(best_name), view_t)
-        anchor, anchor_focal = Pose.from_camera(cam), _focal_for_output(cam, resolution, preset.fov_fit)
-        if centre is not None and preset.recentre:
-            if anchor.depth_of(centre) <= 0:
-                messages.append(f"the action centre lies behind the best view {best_name!r}; that camera is "
-                                "turned round to face it")
-            if framing is not None:
-                eye, clear = framing.nearest_clear_position(anchor.position)
-                if not clear:
-                    messages.append(f"no viewpoint near the best view {best_name!r} sees the action without "
-                                    "scene Gaussians in the way")
-                elif not np.allclose(eye, anchor.position):
-                    messages.append(f"the best view {best_name!r} sees the action through other scene "
-                                    f"Gaussians; the shots start from the nearest clear viewpoint "
-                                    f"({np.linalg.norm(eye - anchor.position):.2f} m away)")
-                anchor = Pose(eye, look_at_rotation(eye, centre, up, previous=anchor.rotation))
-                fit = framing.fitting_focal(float(np.linalg.norm(eye - centre)), resolution)
-                if fit < anchor_focal:
-                    messages.append(f"the action region does not fit the best view's lens; its lens is widened "
-                                    f"x{fit / anchor_focal:.2f} to show all of it")
-                    anchor_focal = fit
-            else:
-                anchor = aim(anchor, centre)
+def _anchor_camera(scene, found: _Found, framing: Optional[Framing], resolution: tuple[int, int], preset: Preset,
+                   up: np.ndarray, messages: list[str]) -> tuple[Optional[Pose], Optional[float]]:
+    """The best view, turned onto the action centre (§6.1) when it is known; with the action region known,
+    moved to the nearest clear viewpoint, turned level (upright about the scene's up) onto the region's
+    centre and widened until the region fits. (None, None) without a best view."""
+    if found.best_view is None:
+        return None, None
+    name, centre = found.best_view, found.centre
+    cam = _find_camera(scene, str(name), found.view_t)
+    anchor, anchor_focal = Pose.from_camera(cam), _focal_for_output(cam, resolution, preset.fov_fit)
+    if centre is None or not preset.recentre:
+        return anchor, anchor_focal
+    if anchor.depth_of(centre) <= 0:
+        messages.append(f"the action centre lies behind the best view {name!r}; that camera is turned round to "
+                        "face it")
+    if framing is None:
+        return aim(anchor, centre), anchor_focal
+    eye, clear = framing.nearest_clear_position(anchor.position)
+    if not clear:
+        messages.append(f"no viewpoint near the best view {name!r} sees the action without scene Gaussians in "
+                        "the way")
+    elif not np.allclose(eye, anchor.position):
+        messages.append(f"the best view {name!r} sees the action through other scene Gaussians; the shots "
+                        f"start from the nearest clear viewpoint ({np.linalg.norm(eye - anchor.position):.2f} m away)")
+    anchor = Pose(eye, look_at_rotation(eye, centre, up, previous=anchor.rotation))
+    fit = framing.fitting_focal(float(np.linalg.norm(eye - centre)), resolution)
+    if fit < anchor_focal:
+        messages.append(f"the action region does not fit the best view's lens; its lens is widened "
+                        f"x{fit / anchor_focal:.2f} to show all of it")
+        anchor_focal = fit
+    return anchor, anchor_focal
 
-    def camera_pose(name: str) -> tuple[Pose, float]:
-        cam = _find_camera(scene, name, view_t)
-        return Pose.from_camera(cam), _focal_for_output(cam, resolution, preset.fov_fit)
 
-    if not specs:  # nothing localized survived: show the whole sequence from a sensible camera
-        fallback = get_effect("play").resolve({"from": "start", "to": "end", "min_duration_s": 0.0})
-        if anchor is None:
-            cams = scene.cameras.cameras(0, "train") or scene.cameras.cameras(0, "all")
-            if not cams:
-                raise InputError("the scene has no cameras to film from", field="cameras")
-            anchor, anchor_focal = Pose.from_camera(cams[0]), _focal_for_output(cams[0], resolution, preset.fov_fit)
-            fallback["camera"] = "previous"
-            messages.append(f"context shot of the whole sequence from camera {cams[0].name or 0!r}")
-        specs = [(ShotSpec("context", "play", fallback), set())]
+def _context_shot(scene, anchor: Optional[Pose], anchor_focal: Optional[float], resolution: tuple[int, int],
+                  preset: Preset, messages: list[str]) -> tuple[list[tuple[ShotSpec, set[str]]], Pose, float]:
+    """One "play" shot of the whole sequence, from the anchor or else the first training camera."""
+    fallback = get_effect("play").resolve({"from": "start", "to": "end", "min_duration_s": 0.0})
+    if anchor is None:
+        cams = scene.cameras.cameras(0, "train") or scene.cameras.cameras(0, "all")
+        if not cams:
+            raise InputError("the scene has no cameras to film from", field="cameras")
+        anchor, anchor_focal = Pose.from_camera(cams[0]), _focal_for_output(cams[0], resolution, preset.fov_fit)
+        fallback["camera"] = "previous"
+        messages.append(f"context shot of the whole sequence from camera {cams[0].name or 0!r}")
+    return [(ShotSpec("context", "play", fallback), set())], anchor, anchor_focal
 
+
+def _build_shots(specs: list[ShotSpec], context: ShotContext, preset: Preset, messages: list[str]) -> list[Shot]:
+    """The shots one after the other on the timeline, each starting where the previous camera ended."""
     shots: list[Shot] = []
     frame = int(preset.frame_start)
-    prev_pose, prev_focal = None, None
-    for spec, _ in specs:
-        ctx = ShotContext(num_timesteps=T, scene_fps=float(scene.fps), output_fps=out_fps, segment=segment,
-                          peak=peak, action_centre=centre, anchor=anchor, anchor_focal=anchor_focal,
-                          previous=prev_pose, previous_focal=prev_focal, camera_pose=camera_pose, up=up,
-                          framing=framing, resolution=resolution)
+    width = context.resolution[0]
+    for spec in specs:
+        ctx = replace(context, messages=[])
         effect = get_effect(spec.effect)
         path = effect.build(spec.params, ctx)
         messages.extend(f"{spec.name}: {m}" if not m.startswith(spec.name) else m for m in ctx.messages)
         n = len(path.poses)
         frames = range(frame, frame + n)
-        keys = [CameraKey.make(f, pose, focal, resolution[0], preset.sensor_width_mm)
+        keys = [CameraKey.make(f, pose, focal, width, preset.sensor_width_mm)
                 for f, pose, focal in zip(frames, path.poses, path.focals)]
         times = [TimeKey(f, float(t)) for f, t in zip(frames, path.timesteps)]
         passes: dict[str, list[list[int]]] = {"rgb": [[frame, frame + n - 1]]}
@@ -240,50 +294,50 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
             passes["relevancy"] = merge_ranges([[f, f] for f in on])
             params["desaturation_weights"] = [float(w) for w in path.desaturation]
         shots.append(Shot(spec.name, spec.effect, frame, frame + n - 1, keys, times, "linear", params, passes))
-        prev_pose, prev_focal = path.poses[-1], float(path.focals[-1])
+        context = replace(context, previous=path.poses[-1], previous_focal=float(path.focals[-1]))
         frame += n
+    return shots
 
+
+def _merge_passes(shots: list[Shot]) -> tuple[dict[str, list[list[int]]], Optional[dict[str, Any]]]:
+    """The plan's render passes (each shot's frame ranges merged per pass) and its desaturation (the
+    per-frame weights of every desaturating shot, with the first one's fades and strength)."""
     all_passes: dict[str, list[list[int]]] = {}
     for s in shots:
         for k, ranges in s.passes.items():
             all_passes.setdefault(k, []).extend(ranges)
     all_passes = {k: merge_ranges(v) for k, v in all_passes.items()}
-
-    desaturate = None
-    weights = {}
-    first_desat = None
+    weights, first_desat = {}, None
     for s in shots:
         w = s.params.pop("desaturation_weights", None)
         if w is None:
             continue
         first_desat = first_desat or s
         weights.update({str(f): float(x) for f, x in zip(range(s.frame_start, s.frame_end + 1), w) if x > 0})
-    if weights:
-        desaturate = {"ranges": all_passes.get("relevancy", []),
-                      "fade_in": int(first_desat.params["fade_in_frames"]),
-                      "fade_out": int(first_desat.params["fade_out_frames"]),
-                      "strength": float(first_desat.params["strength"]), "weights": weights}
+    if not weights:
+        return all_passes, None
+    return all_passes, {"ranges": all_passes.get("relevancy", []),
+                        "fade_in": int(first_desat.params["fade_in_frames"]),
+                        "fade_out": int(first_desat.params["fade_out_frames"]),
+                        "strength": float(first_desat.params["strength"]), "weights": weights}
 
-    localization = {
-        "found": found if temporal is not None else None,
+
+def _localization_record(found: _Found, up: np.ndarray, framing: Optional[Framing]) -> dict[str, Any]:
+    """The plan's ``localization`` block."""
+    temporal, centre = found.temporal, found.centre
+    return {
+        "found": found.found if temporal is not None else None,
         "message": (temporal.message if temporal is not None else "no localization was needed"),
-        "segment": None if segment is None else list(segment),
-        "peak": peak,
+        "segment": None if found.segment is None else list(found.segment),
+        "peak": found.peak,
         "segments": [] if temporal is None else [[int(a), int(b)] for a, b in temporal.segments],
         "scores": [] if temporal is None else [float(v) for v in np.asarray(temporal.scores).reshape(-1)],
         "action_centre": None if centre is None else [float(v) for v in centre],
-        "best_view": None if best_name is None else str(best_name),
-        "t": view_t if (best_name is not None or centre is not None) else None,
-        "computed": sorted(need, key=LOCALIZATION_NEEDS.index),
+        "best_view": None if found.best_view is None else str(found.best_view),
+        "t": found.view_t if (found.best_view is not None or centre is not None) else None,
+        "computed": sorted(found.need, key=LOCALIZATION_NEEDS.index),
         "up": [float(v) for v in up],
         "action_region": None if framing is None else {
             "centre": [float(v) for v in framing.centre], "radius": float(framing.region.radius),
             "gaussians": int(framing.region.members.sum())},
     }
-    plan = HighlightPlan(
-        scene={"name": scene.name, "path": None if scene.root is None else str(scene.root),
-               "num_timesteps": T, "fps": float(scene.fps)},
-        query=query, localization=localization, fps=out_fps, resolution=resolution,
-        frame_start=int(preset.frame_start), frame_end=frame - 1, shots=shots, passes=all_passes,
-        desaturate=desaturate, messages=messages, preset=preset.name)
-    return plan.validate()

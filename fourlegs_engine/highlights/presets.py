@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any, Iterable, Optional, Sequence
 
 from ..errors import InputError
-from .effects import get_effect
+from .effects import EFFECTS, get_effect
 
 ENV_PRESETS = "FOURLEGS_PRESETS"
 _PACKAGE_DIR = Path(__file__).resolve().parent
@@ -65,6 +65,17 @@ class Preset:
     frame_start: int = 1
     sensor_width_mm: float = 36.0
     source: Optional[str] = None
+
+    def select_effects(self, keep: Sequence[str] = (), drop: Sequence[str] = ()) -> "Preset":
+        """A copy with only the shots whose effect is in ``keep`` (every effect when empty) and not in
+        ``drop``. InputError for an unknown effect name, or for a ``keep`` that no shot of the preset has."""
+        for field, names in (("effects", keep), ("no_effect", drop)):
+            unknown = [e for e in names if e not in EFFECTS]
+            if unknown:
+                raise InputError(f"unknown effects {unknown} (one of {', '.join(EFFECTS)})", field=field)
+        if keep and not any(s.effect in keep for s in self.shots):
+            raise InputError(f"preset {self.name!r} has no shot with the effects {list(keep)}", field="effects")
+        return self.with_shots([s.effect for s in self.shots if (not keep or s.effect in keep) and s.effect not in drop])
 
     def with_shots(self, effects: Iterable[str]) -> "Preset":
         """A copy keeping only the shots whose effect is in ``effects``."""

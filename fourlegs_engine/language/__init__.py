@@ -7,13 +7,11 @@
 - :mod:`.field` — :class:`LanguageField`, a distilled field opened from a bundle.
 - :mod:`.simulated`, :mod:`.viclip` — the encoders (simulated for synthetic scenes, ViCLIP).
 """
-from .autoencoder import AETrainConfig, train_autoencoder
-from .distill import DistillConfig, distill_scene
-from .encoders import VideoTextEncoder, encoder_names, get_encoder, register_encoder
-from .extract import ExtractConfig, extract_features
-from .field import LanguageField
-from .phrases import CANONICAL_PHRASES
+from ..lazy import lazy_exports
 
-__all__ = ["AETrainConfig", "CANONICAL_PHRASES", "DistillConfig", "ExtractConfig", "LanguageField",
-           "VideoTextEncoder", "distill_scene", "encoder_names", "extract_features", "get_encoder",
-           "register_encoder", "train_autoencoder"]
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "AETrainOptions": "autoencoder", "train_autoencoder": "autoencoder", "DistillOptions": "distill",
+    "distill_scene": "distill", "VideoTextEncoder": "encoders", "encoder_names": "encoders",
+    "get_encoder": "encoders", "register_encoder": "encoders", "ExtractOptions": "extract",
+    "extract_features": "extract", "LanguageField": "field", "CANONICAL_PHRASES": "phrases"
+})

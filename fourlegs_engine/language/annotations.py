@@ -46,12 +46,12 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from .phrase_space import (BACKGROUND_PHRASE, EMBED_DIM, GENERIC_AXIS, GENERIC_SHARE, PhraseEncoder,
+                           lemma_embedding, phrase_basis)
 from .phrases import CANONICAL_PHRASES
 
 ENCODER_NAME = "masks"
 DEFAULT_SALIENCE = 6.0
-EMBED_DIM = 768
-GENERIC_SHARE = 0.3
 MASK_PATTERN = "{camera}/{t:06d}.png"
 
 
@@ -65,14 +65,12 @@ def normalize_phrase(text: str) -> str:
 @lru_cache(maxsize=4096)
 def phrase_embedding(text: str) -> np.ndarray:
     """(768,) float64 unit embedding of a phrase (see the module docstring)."""
-    from .simulated import _GENERIC_AXIS, BACKGROUND_PHRASE, _basis
-    from .simulated import phrase_embedding as simulated_embedding
     key = normalize_phrase(text)
     if key in CANONICAL_PHRASES or key == BACKGROUND_PHRASE:
-        return simulated_embedding(key)
+        return lemma_embedding(key)
     digest = hashlib.sha256(("fourlegs-annotations:" + key).encode()).digest()
     h = np.random.default_rng(int.from_bytes(digest[:8], "little")).normal(size=EMBED_DIM)
-    e = math.sqrt(GENERIC_SHARE) * _basis()[_GENERIC_AXIS] + math.sqrt(1 - GENERIC_SHARE) * h / np.linalg.norm(h)
+    e = math.sqrt(GENERIC_SHARE) * phrase_basis()[GENERIC_AXIS] + math.sqrt(1 - GENERIC_SHARE) * h / np.linalg.norm(h)
     return e / np.linalg.norm(e)
 
 
@@ -119,7 +117,7 @@ def read_mask(path: Path) -> np.ndarray:
     return arr != 0 if arr.ndim == 2 else np.any(arr != 0, axis=2)
 
 
-class AnnotationMaskEncoder:
+class AnnotationMaskEncoder(PhraseEncoder):
     """Per-pixel annotation masks as crop features (``input_kind = "labels"``: the clips hold coverage).
 
     Args:
@@ -133,8 +131,8 @@ class AnnotationMaskEncoder:
     """
 
     name = ENCODER_NAME
-    dim = EMBED_DIM
     input_kind = "labels"
+    phrase_embedding = staticmethod(phrase_embedding)
 
     def __init__(self, masks: Mapping[str, Any] | Iterable[Any] | None = None, *,
                  base_dir: str | Path | None = None, salience: float = DEFAULT_SALIENCE):
@@ -173,15 +171,6 @@ class AnnotationMaskEncoder:
         return hashlib.sha256(repr(listing).encode()).hexdigest()[:16]
 
     # ----------------------------------------------------------------------------- text
-    def encode_text(self, texts: Sequence[str] | str) -> torch.Tensor:
-        """n strings -> (n, 768) float32, L2-normalized; the same phrase always gives the same vector."""
-        if isinstance(texts, str):
-            texts = [texts]
-        texts = list(texts)
-        if not texts:
-            return torch.zeros(0, EMBED_DIM)
-        return torch.from_numpy(np.stack([phrase_embedding(t) for t in texts])).float()
-
     # ----------------------------------------------------------------------------- masks
     def mask_path(self, phrase_index: int, camera: str, t: int) -> Path:
         return self.folders[phrase_index] / MASK_PATTERN.format(camera=camera, t=int(t))

@@ -96,7 +96,6 @@ def reconstruction_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tenso
 
 
 # ------------------------------------------------------------------------------------ training
-AE_DIR = "language"
 AE_CHECKPOINT = "language/autoencoder.ckpt.pt"
 AE_REPORT = "language/autoencoder.json"
 ENCODER_FILE = "language/encoder.pt"
@@ -104,7 +103,7 @@ DECODER_FILE = "language/decoder.pt"
 
 
 @dataclass
-class AETrainConfig:
+class AETrainOptions:
     """Autoencoder training settings (all enter the config hash).
 
     Training data is a *sample* of per-pixel teacher features: ``samples`` pixels drawn uniformly
@@ -158,7 +157,7 @@ def _sample_pixel_features(scene: Any, store: Any, views: list[tuple[int, int]],
     return torch.cat(out)[:total] if len(out) else torch.zeros((0, int(store.config["dim"])))
 
 
-def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwrite: bool = False,
+def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overwrite: bool = False,
                       progress: bool = False, stop_after_epoch: int | None = None,
                       timesteps: Sequence[int] | None = None) -> dict[str, Any]:
     """Train the scene's autoencoder from its extracted features; resumable from per-epoch checkpoints.
@@ -169,18 +168,17 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
     epoch buys and costs). Returns that report. ``stop_after_epoch`` stops early (tests of resumption);
     ``timesteps`` restricts the training data to those timesteps (benchmarks on a few timesteps).
     """
-    from ..errors import ConfigMismatchError, InputError
+    from ..errors import InputError
     from ..fileio import atomic_path, read_json, write_json_atomic
     from .extract import feature_store
     from .store import config_hash
 
-    config = config or AETrainConfig()
+    config = config or AETrainOptions()
     if config.epochs < 1 or config.samples < 2 or config.batch_size < 2:
         raise InputError("need epochs >= 1, samples >= 2 and batch size >= 2", field="train-ae")
     root = Path(scene.root)
     store = feature_store(scene)
-    T = scene.num_timesteps
-    steps = list(range(T)) if timesteps is None else sorted({int(t) for t in timesteps})
+    steps = list(range(scene.num_timesteps)) if timesteps is None else sorted({int(t) for t in timesteps})
     missing = store.missing(steps)
     if missing:
         from .store import format_ranges
@@ -190,8 +188,50 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
     if timesteps is not None:
         cfg["timesteps"] = steps
     chash = config_hash(cfg)
-    report_path, ckpt_path = root / AE_REPORT, root / AE_CHECKPOINT
-    for path in (report_path, ckpt_path):
+    report_path = root / AE_REPORT
+    _refuse_or_drop_other_configurations(root, chash, overwrite)
+    if report_path.is_file() and not overwrite:
+        report = read_json(report_path)
+        report["skipped"] = True
+        return report
+
+    start = time.perf_counter()
+    x_train, x_held, holdout = _training_data(scene, store, config, steps)
+    sample_seconds = time.perf_counter() - start
+    torch.manual_seed(config.seed)
+    model = FeatureAutoencoder(int(store.config["dim"]), config.latent_dim, config.hidden)
+    x_monitor = x_held if x_held.shape[0] else x_train[:config.heldout_samples]
+    run = _train_epochs(model, x_train, x_monitor, config, chash, root / AE_CHECKPOINT, progress=progress,
+                        stop_after_epoch=stop_after_epoch)
+    history, cosine_history, epoch_seconds, stopped_after = run
+    if stopped_after is not None:
+        return {"stopped_after_epoch": stopped_after}
+    model.eval()
+    report = {"config_hash": chash, "config": cfg, "epochs": config.epochs, "loss_history": history,
+              "cosine_history": cosine_history, "cosine_history_set": "heldout" if x_held.shape[0] else "train",
+              "epoch_seconds": epoch_seconds,
+              "train_samples": int(x_train.shape[0]), "heldout_camera": holdout,
+              "heldout_samples": int(x_held.shape[0]),
+              "train_cosine": reconstruction_cosine(model, x_train[:config.heldout_samples]),
+              "heldout_cosine": reconstruction_cosine(model, x_held) if x_held.shape[0] else None,
+              "sample_seconds": sample_seconds, "seconds": time.perf_counter() - start,
+              "encoder": ENCODER_FILE, "decoder": DECODER_FILE}
+    with atomic_path(root / ENCODER_FILE) as tmp:
+        torch.save(model.encoder.state_dict(), tmp)
+    with atomic_path(root / DECODER_FILE) as tmp:
+        torch.save(model.decoder.state_dict(), tmp)
+    write_json_atomic(report_path, report)
+    (root / AE_CHECKPOINT).unlink(missing_ok=True)
+    return report
+
+
+def _refuse_or_drop_other_configurations(root: Path, chash: str, overwrite: bool) -> None:
+    """ConfigMismatchError for a report or checkpoint of another configuration, unless ``overwrite``
+    (then they are removed)."""
+    from ..errors import ConfigMismatchError
+    from ..fileio import read_json
+
+    for path in (root / AE_REPORT, root / AE_CHECKPOINT):
         if not path.is_file():
             continue
         old = (read_json(path).get("config_hash") if path.suffix == ".json"
@@ -202,12 +242,12 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
                     f"{path}: an autoencoder of another configuration exists (hash {old}, now {chash}); "
                     "pass --overwrite to retrain, or use the same settings")
             path.unlink()
-    if report_path.is_file() and not overwrite:
-        report = read_json(report_path)
-        report["skipped"] = True
-        return report
 
-    start = time.perf_counter()
+
+def _training_data(scene: Any, store: Any, config: AETrainOptions, steps: list[int]
+                   ) -> tuple[torch.Tensor, torch.Tensor, int | None]:
+    """(samples, D) training features of every view but the held-out camera's, (heldout_samples, D) of the
+    held-out camera, and its index (None with a single camera)."""
     num_cams = scene.cameras.num_cameras(store.config.get("split", "train"))
     holdout = config.holdout_camera % num_cams if num_cams > 1 else None
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, 0xAE]))
@@ -215,13 +255,22 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
     held_views = [(t, holdout) for t in steps] if holdout is not None else []
     x_train = _sample_pixel_features(scene, store, train_views, config.samples, rng)
     x_held = _sample_pixel_features(scene, store, held_views, config.heldout_samples, rng)
-    sample_seconds = time.perf_counter() - start
+    return x_train, x_held, holdout
 
-    torch.manual_seed(config.seed)
-    model = FeatureAutoencoder(int(store.config["dim"]), config.latent_dim, config.hidden)
+
+def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: torch.Tensor, config: AETrainOptions,
+                  chash: str, ckpt_path: Path, *, progress: bool, stop_after_epoch: int | None
+                  ) -> tuple[list[float], list[float], list[float], int | None]:
+    """Adam over shuffled batches, resuming from and saving to ``ckpt_path`` after every epoch.
+
+    Returns per epoch the mean loss, the reconstruction cosine on ``x_monitor`` (what the epochs buy) and
+    the training seconds (what they cost), and the epochs done when stopped early by ``stop_after_epoch``
+    (else None).
+    """
+    from ..fileio import atomic_path
+
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     history: list[float] = []
-    # per epoch: held-out reconstruction cosine (what the epochs buy) and training seconds (what they cost)
     cosine_history: list[float] = []
     epoch_seconds: list[float] = []
     first_epoch = 0
@@ -238,7 +287,6 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
         from tqdm import tqdm
         epochs = tqdm(epochs, desc="train-ae", unit="epoch", initial=first_epoch, total=config.epochs)
     n = x_train.shape[0]
-    x_monitor = x_held if x_held.shape[0] else x_train[:config.heldout_samples]
     for epoch in epochs:
         epoch_start = time.perf_counter()
         model.train()
@@ -265,24 +313,8 @@ def train_autoencoder(scene: Any, config: AETrainConfig | None = None, *, overwr
                         "optimizer": opt.state_dict(), "history": history, "cosine_history": cosine_history,
                         "epoch_seconds": epoch_seconds}, tmp)
         if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch and epoch + 1 < config.epochs:
-            return {"stopped_after_epoch": epoch + 1}
-
-    model.eval()
-    report = {"config_hash": chash, "config": cfg, "epochs": config.epochs, "loss_history": history,
-              "cosine_history": cosine_history, "cosine_history_set": "heldout" if x_held.shape[0] else "train",
-              "epoch_seconds": epoch_seconds,
-              "train_samples": int(n), "heldout_camera": holdout, "heldout_samples": int(x_held.shape[0]),
-              "train_cosine": reconstruction_cosine(model, x_train[:config.heldout_samples]),
-              "heldout_cosine": reconstruction_cosine(model, x_held) if x_held.shape[0] else None,
-              "sample_seconds": sample_seconds, "seconds": time.perf_counter() - start,
-              "encoder": ENCODER_FILE, "decoder": DECODER_FILE}
-    with atomic_path(root / ENCODER_FILE) as tmp:
-        torch.save(model.encoder.state_dict(), tmp)
-    with atomic_path(root / DECODER_FILE) as tmp:
-        torch.save(model.decoder.state_dict(), tmp)
-    write_json_atomic(report_path, report)
-    ckpt_path.unlink(missing_ok=True)
-    return report
+            return history, cosine_history, epoch_seconds, epoch + 1
+    return history, cosine_history, epoch_seconds, None
 
 
 def _read_checkpoint(path: Path) -> dict[str, Any]:

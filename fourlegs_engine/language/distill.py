@@ -43,10 +43,7 @@ and written only when finished), merged into ``language/latents.npy`` (T, N, 128
 from __future__ import annotations
 
 import math
-import os
-import shutil
 import time
-import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -56,25 +53,22 @@ import numpy as np
 import torch
 
 from ..errors import ConfigMismatchError, InputError
-from ..fileio import atomic_path, load_npy, read_json
+from ..fileio import load_npy, read_json
 from ..render.options import RasterOptions
 from ..scene.scene import Scene
 from ..threads import torch_threads
-from .attention import NeighbourhoodAttention, knn_indices, neighbour_blur, smoothness_loss
-from .autoencoder import (AE_REPORT, DECODER_FILE, ENCODER_FILE, FeatureEncoder, l2_normalize, load_decoder,
-                          load_encoder, weights_fingerprint)
-from .encoders import CANONICAL_PHRASES
+from .attention import knn_indices
+from .autoencoder import AE_REPORT, ENCODER_FILE, FeatureEncoder, l2_normalize, load_encoder
 from .extract import feature_store, load_step_features, view_has_evidence
-from .pyramid import PyramidLayout, interpolate_grid, sample_positions, upsample_to_pixels
+from .latent_solvers import lift_latents, optimize_latents, smooth_lift, teacher_latents, timestep_seed
+from .latents_file import LANGUAGE_DIR, finish_swap, forget_merged, merge_latents, merged_hash
+from .pyramid import PyramidLayout
 from .store import StepStore, config_hash, format_ranges, select_timesteps
+from .view_operator import ViewOperator, view_operator
 
 MODES = ("optimize", "lift", "lift+refine")
 SMOOTHING = ("attention", "none", "blur")
 LIFT_SMOOTHING = ("none", "blur")
-LANGUAGE_DIR = "language"
-STEPS_DIR = "language/steps"
-LATENTS_FILE = "language/latents.npy"
-NEXT_LATENTS_NAME = "latents.next.npy"  # a merged field on its way in (see _swap_in_latents)
 DEFAULT_ITERATIONS = {"optimize": 2000, "lift": 0, "lift+refine": 200}
 #: lift's splat pass: 64-entry chunks are faster for the wide (d+1)-channel splat; same result up to
 #: float32 summation order
@@ -84,7 +78,7 @@ LIFT_STREAMS = 2
 
 
 @dataclass
-class DistillConfig:
+class DistillOptions:
     """Distillation settings; :meth:`to_dict` (the hashed part) keeps only what affects the result.
 
     Attributes:
@@ -118,7 +112,7 @@ class DistillConfig:
     split: str = "train"
     lift_smoothing: str = "none"
 
-    def check(self) -> "DistillConfig":
+    def check(self) -> "DistillOptions":
         if self.mode not in MODES:
             raise InputError(f"unknown mode {self.mode!r} (choose from {', '.join(MODES)})", field="--mode")
         if self.smoothing not in SMOOTHING:
@@ -200,184 +194,8 @@ class DistillResult:
                 "timings": [dict(asdict(t), seconds_per_iteration=t.seconds_per_iteration) for t in self.timings]}
 
 
-# ------------------------------------------------------------------------------ rendering map
-class ViewOperator:
-    """Rendering of per-Gaussian features for one view with frozen geometry, as sparse matrices.
-
-    ``render(L)`` = A @ L with A (P×N), A[p,i] = α_i T_i at pixel p — what the rasterizer's
-    ``features`` output computes (background 0) — and ``splat(E)`` = Aᵀ @ E. Only the Gaussians the
-    view sees (``columns``, sorted ids) are stored; :meth:`render_columns` takes their values directly.
-    """
-
-    def __init__(self, pixel: torch.Tensor, gaussian: torch.Tensor, weight: torch.Tensor, num_pixels: int,
-                 num_gaussians: int):
-        pixel, gaussian = pixel.long(), gaussian.long()
-        weight = weight.detach().to(torch.float32)
-        self.num_pixels, self.num_gaussians = int(num_pixels), int(num_gaussians)
-        if pixel.numel() > 1 and not bool((pixel[1:] >= pixel[:-1]).all()):  # the rasterizer's rows are sorted
-            order = torch.argsort(pixel, stable=True)
-            pixel, gaussian, weight = pixel[order], gaussian[order], weight[order]
-        self.columns = torch.unique(gaussian)                              # (C,) sorted ids seen by the view
-        column = torch.searchsorted(self.columns, gaussian)
-        C = int(self.columns.numel())
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            self.A = torch.sparse_csr_tensor(_crow(pixel, num_pixels), column, weight, (num_pixels, C))
-            by_c = torch.argsort(column, stable=True)
-            self.At = torch.sparse_csr_tensor(_crow(column[by_c], C), pixel[by_c], weight[by_c], (C, num_pixels))
-        self.weight_sum = torch.bincount(gaussian, weights=weight.double(), minlength=num_gaussians).float()
-        self.nnz = int(weight.numel())
-
-    @staticmethod
-    def from_weights(weights: Any, num_gaussians: int) -> "ViewOperator":
-        return ViewOperator(weights.pixel, weights.gaussian, weights.weight, weights.width * weights.height,
-                            num_gaussians)
-
-    def render(self, latents: torch.Tensor) -> torch.Tensor:
-        """(N,d) -> (P,d), differentiable w.r.t. the latents."""
-        return _SparseRender.apply(latents.index_select(0, self.columns), self)
-
-    def render_columns(self, values: torch.Tensor) -> torch.Tensor:
-        """(C,d) values of the ``columns`` Gaussians -> (P,d), differentiable."""
-        return _SparseRender.apply(values, self)
-
-    def splat(self, values: torch.Tensor) -> torch.Tensor:
-        """(P,d) -> (N,d): Σ_p w_i(p) values(p)."""
-        out = values.new_zeros(self.num_gaussians, values.shape[1])
-        out[self.columns] = self.At @ values
-        return out
-
-
-def _crow(sorted_rows: torch.Tensor, num_rows: int) -> torch.Tensor:
-    crow = torch.zeros(num_rows + 1, dtype=torch.long)
-    crow[1:] = torch.cumsum(torch.bincount(sorted_rows, minlength=num_rows), 0)
-    return crow
-
-
-class _SparseRender(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx: Any, latents: torch.Tensor, op: ViewOperator) -> torch.Tensor:  # noqa: D401
-        ctx.op = op
-        return op.A @ latents
-
-    @staticmethod
-    def backward(ctx: Any, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
-        return ctx.op.At @ grad.contiguous(), None
-
-
-def view_operator(frame: Any, camera: Any) -> ViewOperator:
-    """Blending weights of one view from the rasterizer, as a :class:`ViewOperator`."""
-    from ..render import rasterize
-    with torch.no_grad():
-        out = rasterize(frame.means, frame.rotations, frame.log_scales, frame.opacity_logits, camera,
-                        outputs=("weights",))
-    return ViewOperator.from_weights(out["weights"], frame.num_gaussians)
-
-
-# ------------------------------------------------------------------------------------ teacher
-@torch.no_grad()
-def teacher_latents(encoder: FeatureEncoder, layout: PyramidLayout, crop_features: np.ndarray | torch.Tensor,
-                    stride: int = 1, width: int | None = None, height: int | None = None) -> torch.Tensor:
-    """Encoded per-pixel teacher of one view: (num_crops, D) crop features -> (h*w, d) unit latents.
-
-    ``width``/``height`` (default the layout's) give the resolution of the rendered view; pixel
-    centres of a smaller view map to (x + 0.5) * W / width - 0.5 in the full-resolution pyramid.
-    """
-    width = layout.width if width is None else int(width)
-    height = layout.height if height is None else int(height)
-    crops = torch.from_numpy(np.array(crop_features, dtype=np.float32))
-    h = encoder.first_layer()(crops)                                  # (n, hidden) exact before interp.
-    xs = (sample_positions(width, stride) + 0.5) * (layout.width / width) - 0.5
-    ys = (sample_positions(height, stride) + 0.5) * (layout.height / height) - 0.5
-    grid = interpolate_grid(layout, h, xs, ys)                        # (h', w', hidden)
-    z = encoder.after_first_layer(grid.reshape(-1, grid.shape[-1])).view(grid.shape[0], grid.shape[1], -1)
-    if stride > 1:
-        z = l2_normalize(upsample_to_pixels(z, width, height, stride))
-    return z.reshape(width * height, -1).contiguous()
-
-
-# ---------------------------------------------------------------------------------- per step
-def timestep_seed(seed: int, t: int) -> int:
-    return int(np.random.SeedSequence([int(seed), int(t), 0x4C45]).generate_state(1)[0])
-
-
-def lift_latents(ops: Sequence[ViewOperator], teachers: Sequence[torch.Tensor]) -> torch.Tensor:
-    """Rendering-weighted average of the teacher latents per Gaussian, L2-normalized: -> (N,d)."""
-    num = None
-    den = None
-    for op, e in zip(ops, teachers):
-        part = op.splat(e)
-        num = part if num is None else num + part
-        den = op.weight_sum if den is None else den + op.weight_sum
-    seen = den > 1e-12
-    out = torch.zeros_like(num)
-    out[seen] = num[seen] / den[seen, None]
-    return l2_normalize(out)
-
-
-def smooth_lift(latents: torch.Tensor, means: torch.Tensor, neighbours: int,
-                knn: torch.Tensor | None = None) -> torch.Tensor:
-    """``lift_smoothing="blur"``: each latent (N,d) replaced by the mean over its ``neighbours`` nearest
-    Gaussians (itself included; ``knn`` (N,k) if already computed), L2-normalized."""
-    from .attention import neighbour_mean
-    if latents.shape[0] == 0:
-        return latents
-    nb = knn_indices(means, neighbours) if knn is None else knn
-    return l2_normalize(neighbour_mean(latents.float(), nb))
-
-
-def optimize_latents(ops: Sequence[ViewOperator], teachers: Sequence[torch.Tensor], neighbours: torch.Tensor | None,
-                     config: DistillConfig, seed: int, init: torch.Tensor | None = None,
-                     progress: Any = None) -> tuple[torch.Tensor, float | None]:
-    """The paper's optimization for one timestep; returns (smoothed latents (N,d), last loss)."""
-    torch.manual_seed(seed)
-    rng = np.random.default_rng(seed)
-    n, d = ops[0].num_gaussians, teachers[0].shape[1]
-    latents = torch.zeros(n, d) if init is None else init.detach().clone().float()
-    latents.requires_grad_(True)
-    groups: list[dict[str, Any]] = [{"params": [latents], "lr": config.lr_latents}]
-    attention = None
-    if config.smoothing == "attention":
-        attention = NeighbourhoodAttention(d)
-        if init is not None:
-            attention.init_zero_output()
-        groups.append({"params": list(attention.parameters()), "lr": config.lr_attention})
-    opt = torch.optim.Adam(groups, eps=1e-15)
-
-    def smooth(x: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
-        """Smoothed latents of all Gaussians (N,d), or of ``rows`` only (R,d)."""
-        if config.smoothing == "attention":
-            # refining a lift: residual attention that starts as the identity
-            mixed = attention(x, neighbours, rows)
-            return (x if rows is None else x.index_select(0, rows)) + mixed if init is not None else mixed
-        if config.smoothing == "blur":
-            return neighbour_blur(x, neighbours if rows is None else neighbours.index_select(0, rows))
-        return x if rows is None else x.index_select(0, rows)
-
-    k = min(config.views_per_iteration, len(ops))
-    loss_value = None
-    for _ in range(config.num_iterations):
-        views = rng.choice(len(ops), size=k, replace=False)
-        # a view's loss depends only on the Gaussians it sees: smooth just those (same gradient)
-        loss = sum((ops[v].render_columns(smooth(latents, ops[v].columns)) - teachers[v]).abs().mean()
-                   for v in views) / k
-        if config.smoothness > 0:
-            loss = loss + config.smoothness * smoothness_loss(latents, neighbours)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        loss_value = float(loss.detach())
-        if progress is not None:
-            progress.update(1)
-    with torch.no_grad():
-        final = smooth(latents).detach()
-    if not torch.all(torch.isfinite(final)):
-        raise FloatingPointError("distillation diverged (NaN/Inf latents); lower the learning rates")
-    return final, loss_value
-
-
 def distill_timestep(scene: Scene, t: int, encoder: FeatureEncoder, features: StepStore,
-                     config: DistillConfig, progress: Any = None) -> tuple[np.ndarray, TimestepTiming]:
+                     config: DistillOptions, progress: Any = None) -> tuple[np.ndarray, TimestepTiming]:
     """Latents (N, d) float32 of timestep t and its timing breakdown."""
     start = time.perf_counter()
     frame = scene.gaussians.at(t)
@@ -430,7 +248,7 @@ def distill_timestep(scene: Scene, t: int, encoder: FeatureEncoder, features: St
 
 
 def _lift_timestep(frame: Any, cameras: Sequence[Any], encoder: FeatureEncoder, feats: np.ndarray,
-                   layouts: Sequence[PyramidLayout], offsets: Sequence[int], config: DistillConfig, t: int,
+                   layouts: Sequence[PyramidLayout], offsets: Sequence[int], config: DistillOptions, t: int,
                    start: float) -> tuple[np.ndarray, TimestepTiming]:
     """``lift`` without materializing the blending weights: one splat pass per view (the transpose
     of rendering, :func:`~fourlegs_engine.render.splat`) accumulates Σ_p w·[teacher, 1] per Gaussian.
@@ -490,16 +308,18 @@ def _lift_timestep(frame: Any, cameras: Sequence[Any], encoder: FeatureEncoder, 
 
 
 # ------------------------------------------------------------------------------------- scene
-def distill_scene(scene: Scene, mode: str = "lift", iterations: int | None = None,
+def distill_scene(scene: Scene, mode: str | None = None, iterations: int | None = None,
                   timesteps: str | Sequence[int] | None = None, shard: str | tuple[int, int] | None = None, *,
-                  config: DistillConfig | None = None, out_dir: str | Path | None = None,
+                  config: DistillOptions | None = None, out_dir: str | Path | None = None,
                   overwrite: bool = False, merge: bool = True, progress: bool = False,
                   **options: Any) -> DistillResult:
     """Distil the language field of a bundle scene (features extracted, autoencoder trained).
 
     Args:
         scene: a bundle scene (``scene.root`` set).
-        mode, iterations: see :class:`DistillConfig` (``options`` sets its other fields).
+        mode, iterations: see :class:`DistillOptions` (default "lift"; ``options`` sets its other fields).
+        config: the settings as one :class:`DistillOptions` instead (then without ``mode``, ``iterations``
+            or ``options``: InputError when both are given).
         timesteps, shard: the timesteps this worker handles ("a:b", [..], "i/n").
         out_dir: where results go (default ``<bundle>/language``: merged latents + scene.json entry);
             another directory (benchmarks) gets ``steps/`` and, when complete, ``latents.npy``.
@@ -509,7 +329,12 @@ def distill_scene(scene: Scene, mode: str = "lift", iterations: int | None = Non
         :class:`DistillResult` with per-timestep timings.
     """
     if config is None:
-        config = DistillConfig(mode=mode, iterations=iterations, **options)
+        config = DistillOptions(mode=mode or "lift", iterations=iterations, **options)
+    elif mode is not None or iterations is not None or options:
+        given = sorted((["mode"] if mode is not None else []) + (["iterations"] if iterations is not None else [])
+                       + list(options))
+        raise InputError(f"give the settings either as config= or as keywords, not both (also given: "
+                         f"{', '.join(given)})", field="config")
     config.check()
     if scene.root is None:
         raise InputError("the scene must be a bundle on disk", field="scene")
@@ -526,20 +351,20 @@ def distill_scene(scene: Scene, mode: str = "lift", iterations: int | None = Non
     latents_path = out / "latents.npy"
     store = StepStore(out / "steps", "latents", cfg, scene.num_timesteps)
     if default_out:
-        _finish_swap(root)
-    merged_hash = _merged_hash(scene, out, default_out)
-    if merged_hash is not None and merged_hash != chash:
+        finish_swap(root)
+    existing_hash = merged_hash(scene, out, default_out)
+    if existing_hash is not None and existing_hash != chash:
         if not overwrite:
             raise ConfigMismatchError(
-                f"{latents_path}: latents of another configuration exist (hash {merged_hash}, now {chash}); "
+                f"{latents_path}: latents of another configuration exist (hash {existing_hash}, now {chash}); "
                 "pass --overwrite to replace them, or use the same settings")
         # the old field stays in place (and readable) until the new one is merged and swapped in
         if not default_out:
-            _forget_merged(out)
-        merged_hash = None
+            forget_merged(out)
+        existing_hash = None
     result = DistillResult(config.mode, cfg, chash, str(out), None)
     steps = select_timesteps(scene.num_timesteps, timesteps, shard)
-    if merged_hash == chash:
+    if existing_hash == chash:
         result.skipped = list(steps)
         result.latents = str(latents_path)
         return result
@@ -568,86 +393,6 @@ def distill_scene(scene: Scene, mode: str = "lift", iterations: int | None = Non
         merge_latents(scene, store, out, chash, config, update_bundle=default_out)
         result.latents = str(latents_path)
     return result
-
-
-def _merged_hash(scene: Scene, out: Path, default_out: bool) -> str | None:
-    if not (out / "latents.npy").is_file():
-        return None
-    if default_out:
-        lang = read_json(Path(scene.root) / "scene.json").get("language") or {}
-        return lang.get("config_hash")
-    marker = out / "latents.json"
-    return read_json(marker).get("config_hash") if marker.is_file() else None
-
-
-def _forget_merged(out: Path) -> None:
-    (out / "latents.json").unlink(missing_ok=True)
-
-
-def merge_latents(scene: Scene, store: StepStore, out: Path, chash: str, config: DistillConfig, *,
-                  update_bundle: bool) -> Path:
-    """Assemble the per-timestep files into (T,N,d) float16 ``latents.npy`` atomically; then record it
-    (scene.json ``language`` for the bundle's own field, ``latents.json`` elsewhere) and drop the parts."""
-    from ..fileio import write_json_atomic
-    first = store.load(0)
-    root = Path(scene.root)
-    T = scene.num_timesteps
-    path = out / "latents.npy"
-    info = {"encoder": _encoder_name(store, scene),
-            "encoder_config": feature_store(scene).config.get("encoder_config"), "latent_dim": int(first.shape[1]),
-            "canonical_phrases": list(CANONICAL_PHRASES), "decoder": DECODER_FILE, "latents": LATENTS_FILE,
-            "decoder_fingerprint": weights_fingerprint(load_decoder(root / DECODER_FILE)),
-            "mode": config.mode, "config_hash": chash, "config": store.config}
-    next_path = out / NEXT_LATENTS_NAME
-    with atomic_path(next_path) as tmp:
-        arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=(T,) + tuple(first.shape))
-        for t in range(T):
-            arr[t] = store.load(t)
-        arr.flush()
-        del arr
-    if update_bundle:
-        _swap_in_latents(root, next_path, path, info)
-    else:
-        next_path.replace(path)
-        write_json_atomic(out / "latents.json", {**info, "latents": str(path)})
-    shutil.rmtree(store.root, ignore_errors=True)
-    return path
-
-
-def _finish_swap(root: Path) -> None:
-    """Complete a swap that a kill interrupted after scene.json named the new field's file."""
-    lang = read_json(root / "scene.json").get("language") or {}
-    next_path = root / LANGUAGE_DIR / NEXT_LATENTS_NAME
-    if isinstance(lang, dict) and lang.get("latents") == next_path.relative_to(root).as_posix() \
-            and next_path.is_file():
-        _swap_in_latents(root, next_path, root / LATENTS_FILE, dict(lang))
-
-
-def _swap_in_latents(root: Path, next_path: Path, path: Path, info: dict[str, Any]) -> None:
-    """Make the complete ``next_path`` the bundle's field; ``scene.json`` always names a complete file
-    whose description it holds, so a reader (or a kill) at any point sees the old or the new field.
-
-    1. scene.json -> next_path (new description), 2. ``path`` replaced by a hard link to the new file,
-    3. scene.json -> ``path``, 4. ``next_path`` removed.
-    """
-    from ..scene.bundle import read_bundle_meta, update_bundle_meta
-
-    arrays = dict(read_bundle_meta(root)["arrays"])
-    arrays["latents"] = info["latents"] = next_path.relative_to(root).as_posix()
-    update_bundle_meta(root, language=dict(info), arrays=arrays)
-    with atomic_path(path) as tmp:
-        tmp.unlink()
-        try:
-            os.link(next_path, tmp)
-        except OSError:  # no hard links on this file system: a copy
-            shutil.copyfile(next_path, tmp)
-    arrays["latents"] = info["latents"] = LATENTS_FILE
-    update_bundle_meta(root, language=info, arrays=arrays)
-    next_path.unlink(missing_ok=True)
-
-
-def _encoder_name(store: StepStore, scene: Scene) -> str:
-    return str(feature_store(scene).config.get("encoder", "unknown"))
 
 
 def check_distill(scene: Scene, out_dir: str | Path | None = None) -> dict[str, Any]:

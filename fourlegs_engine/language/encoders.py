@@ -9,10 +9,10 @@ Every encoder maps 8-frame clips and texts into one joint space:
   ``"labels"`` (the simulated encoder: per-pixel label coverage in [0, 1], any h, w).
 
 Names: ``"viclip"`` (needs ``checkpoint=`` and ``vocab=``; the size is read off the checkpoint),
-``"viclip-b16"`` (the same, insisting on the B/16 size) and ``"simulated"`` (implemented in
-``language/simulated.py``, imported only when asked for) and ``"masks"`` (per-pixel annotation
-masks read from folders, not a network: ``language/annotations.py``). Heavy modules are imported lazily so
-``fourlegs --help`` stays fast.
+``"viclip-b16"`` (the same, insisting on the B/16 size) and ``"masks"`` (per-pixel annotation masks read
+from folders, not a network: ``language/annotations.py``). The demo package registers ``"simulated"``
+(:mod:`fourlegs_engine.demo`, the demo scenes' simulated encoder) when it is imported. Heavy modules are
+imported lazily so ``fourlegs --help`` stays fast.
 """
 from __future__ import annotations
 
@@ -65,12 +65,6 @@ def _viclip(size: str | None) -> Callable[..., VideoTextEncoder]:
     return factory
 
 
-def _simulated(**kwargs: Any) -> VideoTextEncoder:
-    """``language/simulated.py``'s ``create_encoder`` (labels= or scene=, see there)."""
-    from .simulated import create_encoder
-    return create_encoder(**kwargs)
-
-
 def _annotation_masks(**kwargs: Any) -> VideoTextEncoder:
     """``language/annotations.py``'s ``create_encoder`` (masks=, see there): annotation masks, no network."""
     from .annotations import create_encoder
@@ -80,7 +74,6 @@ def _annotation_masks(**kwargs: Any) -> VideoTextEncoder:
 _REGISTRY: dict[str, Callable[..., VideoTextEncoder]] = {
     "viclip": _viclip("auto"),
     "viclip-b16": _viclip("b"),
-    "simulated": _simulated,
     "masks": _annotation_masks,
 }
 

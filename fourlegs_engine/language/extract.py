@@ -41,7 +41,7 @@ COVERAGE_MEANS = "means"  # label encoders with ``encode_coverage``: exact per-f
 
 
 @dataclass
-class ExtractConfig:
+class ExtractOptions:
     """Settings that determine the extracted features (all enter the config hash).
 
     Attributes:
@@ -79,7 +79,7 @@ def scene_signature(scene: Scene) -> dict[str, Any]:
             "cameras": [[c.name, c.width, c.height] for c in cams]}
 
 
-def extract_config_dict(scene: Scene, encoder: Any, config: ExtractConfig) -> dict[str, Any]:
+def extract_config_dict(scene: Scene, encoder: Any, config: ExtractOptions) -> dict[str, Any]:
     if hasattr(encoder, "check_masks"):  # annotation masks: which files exist enters the encoder's config
         encoder.check_masks(scene.cameras.cameras(0, config.split), scene.num_timesteps)
     return {"encoder": str(encoder.name), "dim": int(encoder.dim), "input_kind": str(encoder.input_kind),
@@ -211,7 +211,7 @@ class FrameSource:
         if self.input_kind == "rgb":
             out = render_frame(frame, camera, outputs=("rgb",))["rgb"]
         else:
-            from .simulated import render_label_coverage
+            from .coverage import render_label_coverage
             return render_label_coverage(self.scene, camera, t, num_labels=self.num_labels).to(torch.float32)
         return out.detach().to(torch.float32).permute(2, 0, 1).contiguous().clamp_(0.0, 1.0)
 
@@ -232,7 +232,7 @@ class ExtractReport:
                 "crops_per_timestep": self.crops_per_timestep}
 
 
-def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = None, *,
+def extract_features(scene: Scene, encoder: Any, config: ExtractOptions | None = None, *,
                      timesteps: str | Sequence[int] | None = None, shard: str | tuple[int, int] | None = None,
                      overwrite: bool = False, progress: bool = False,
                      on_timestep: Callable[[int], None] | None = None) -> ExtractReport:
@@ -241,7 +241,7 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
     Finished timesteps are skipped (resume); a features directory made with another configuration
     raises :class:`ConfigMismatchError` unless ``overwrite``.
     """
-    config = config or ExtractConfig()
+    config = config or ExtractOptions()
     cfg = extract_config_dict(scene, encoder, config)
     if not 0 < config.frame_scale <= 1:
         raise InputError(f"must be in (0, 1], got {config.frame_scale}", field="frame_scale")

@@ -25,7 +25,6 @@ import torch.nn.functional as F
 from ..errors import InputError
 
 DEFAULT_RATIOS = (0.15, 0.6)
-ANIMAL_RATIOS = (0.4, 0.95)
 DEFAULT_STEPS = 5
 TUBE_OFFSETS = tuple(range(-4, 4))  # t-4 .. t+3: 8 frames, as ViCLIP expects
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)

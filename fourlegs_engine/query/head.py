@@ -265,7 +265,7 @@ class RelevancyHead:
     def relevancy_many(self, latents: torch.Tensor, queries: torch.Tensor, refs: torch.Tensor, *,
                        scale: float) -> torch.Tensor:
         """(M,d) latents, (Q,D) unit queries, (K,D) unit references -> (M,Q) relevancy
-        ``min_c sigmoid(scale φ·(q − c))`` (see :func:`query.relevancy.relevancy_many`)."""
+        ``min_c sigmoid(scale φ·(q − c))`` (see :func:`query.lerf.relevancy_many`)."""
         Q, K = queries.shape[0], refs.shape[0]
         diffs = (queries[:, None, :].double() - refs[None, :, :].double()).reshape(Q * K, -1)
         margin = self.margins(latents, diffs, scale).reshape(-1, Q, K).min(dim=2).values

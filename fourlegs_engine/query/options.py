@@ -10,6 +10,9 @@ DEFAULT_CODEBOOK_SIZE = 4096
 R_AVG_SAMPLES = 4096
 #: the multiplier of LERF's pairwise softmax relevancy
 RELEVANCY_SCALE = 10.0
+MAX_CODEBOOK_SIZE = 1 << 20
+MAX_RESOLUTION_SCALE = 8.0  # of the camera resolution; Camera.scaled also bounds the image size
+MAX_TIMESTEP_ARGUMENT = 1 << 20  # strides and dilation radii beyond any scene's length
 
 
 @dataclass(frozen=True)

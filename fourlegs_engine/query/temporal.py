@@ -150,119 +150,146 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
     T = int(w.sum())
     per_code = hist.sum(axis=0, dtype=np.int64)
     held = per_code > 0
-
     # 1. R_avg with a confidence interval; widened samples narrow it while a decision depends on it
     size = int(samples)
     r_avg, r_se, n_rel, sampled = _sampled_r_avg(r, per_code, held, sample, margin, size)
     if n_rel == 0:
         return np.zeros(S, dtype=np.int64), 0.0, 0, 0, sampled
     r_low, r_high = r_avg - R_AVG_Z * r_se, r_avg + R_AVG_Z * r_se
-    first_low, first_high = r_low, r_high
-
-    # 2. counts above R_avg: by code outside the band (codes within margin of the interval), bounded
-    #    inside it until re-scored; the band is fixed by the first, widest interval
-    band = held & (r > r_low - margin) & (r < r_high + margin)
-    band_codes = np.nonzero(band)[0]
-    band_hist = np.asarray(hist[:, band_codes], dtype=np.int64)  # (S,B)
-    r_band = r[band_codes]
-    # outside the band a code is on the same side of every R in the (first) interval
-    sure = (hist @ (~band & (r > r_avg)).astype(hist.dtype)).astype(np.int64)
-    unsure = band_hist.sum(axis=1)
-    # row -> [pending codes, pending handles, scores so far (exact inside the window), chunk, scored handles]
-    rows_open: dict[int, list] = {}
-    window = (first_low, first_high)  # r_low, r_avg and r_high stay inside it
-    order_rng = np.random.default_rng(0)
-    rescored = 0
-
-    def open_rows(rows: np.ndarray) -> None:
-        rows = np.array([i for i in rows if int(i) not in rows_open], dtype=np.int64)
-        if rows.size == 0:
-            return
-        at, codes_of, handles = (np.asarray(x, dtype=np.int64) for x in members(band_codes, rows))
-        for i in rows:
-            mine = np.flatnonzero(at == i)
-            mine = mine[order_rng.permutation(mine.size)]  # re-scored in random order, a chunk at a time
-            rows_open[int(i)] = [codes_of[mine], handles[mine], np.zeros(0, dtype=np.float64),
-                                 max(RESCORE_MIN_CHUNK, -(-mine.size // RESCORE_CHUNKS)), np.zeros(0, dtype=np.int64)]
-
-    def score_next(rows: np.ndarray, everything: bool = False) -> None:
-        """Exact scores for the next chunk (or all) of the pending band members of ``rows``."""
-        nonlocal rescored
-        open_rows(rows)
-        takes = []
-        for i in rows:
-            codes_i, handles_i, _, chunk, _ = rows_open[int(i)]
-            take = handles_i.size if everything else min(chunk, handles_i.size)
-            if take:
-                takes.append((int(i), take))
-        if not takes:
-            return
-        exact = np.asarray(score(np.concatenate([rows_open[i][1][:k] for i, k in takes]), window), dtype=np.float64)
-        rescored += int(exact.size)
-        start = 0
-        for i, k in takes:
-            entry = rows_open[i]
-            entry[2] = np.concatenate([entry[2], exact[start:start + k]])
-            entry[4] = np.concatenate([entry[4], entry[1][:k]])
-            entry[0], entry[1] = entry[0][k:], entry[1][k:]
-            start += k
-
-    def state(threshold: float) -> tuple[np.ndarray, np.ndarray]:
-        """(S,) band members above ``threshold`` (exact where re-scored, by code elsewhere) and (S,) still
-        pending."""
-        above = band_hist @ (r_band > threshold)
-        pending = unsure.copy()
-        for i, (codes_i, _, exact_i, _, _) in rows_open.items():
-            above[i] = int((exact_i > threshold).sum()) + int((r[codes_i] > threshold).sum())
-            pending[i] = codes_i.size
-        return above, pending
-
-    def bounds() -> tuple[np.ndarray, np.ndarray]:
-        low, high = sure.copy(), sure + unsure
-        for i, (codes_i, _, exact_i, _, _) in rows_open.items():
-            low[i] += int((exact_i > r_high).sum())
-            high[i] = sure[i] + int((exact_i > r_low).sum()) + codes_i.size
-        return low, high
-
+    first = (r_low, r_high)
+    # 2. counts above R_avg: by code outside the band, bounded inside it until re-scored
+    band = _Band(r, hist, held, r_avg, first, margin, members, score)
     while True:  # the total is the estimate's; each row's own count is decided from its bounds
-        low, high = bounds()
-        above, pending = state(r_avg)
-        total = int(w @ (sure + above))
+        low, high = band.bounds(r_low, r_high)
+        above, pending = band.above(r_avg)
+        total = int(w @ (band.sure + above))
         undecided = (low * T <= total) & (high * T > total)
         todo = undecided & (pending > 0)
         if todo.any():
-            score_next(np.nonzero(todo)[0])
+            band.score_next(np.nonzero(todo)[0])
         elif undecided.any() and size < R_AVG_MAX_SAMPLES_FACTOR * samples and r_se > 0:
             # those rows are exact: only R_avg's interval leaves them open, so estimate it again from a
             # 4x larger sample, keeping the interval inside the first one (the band was built for it)
             size *= 4
             estimate, r_se, n_rel, more = _sampled_r_avg(r, per_code, held, sample, margin, size)
             sampled += more
-            r_avg = float(np.clip(estimate, first_low, first_high))
-            r_low, r_high = max(first_low, estimate - R_AVG_Z * r_se), min(first_high, estimate + R_AVG_Z * r_se)
-            if r_low > r_high:  # the two estimates disagree beyond their intervals: take the newer one
-                r_low = r_high = r_avg
+            r_avg, r_low, r_high = _narrowed_interval(estimate, r_se, first)
         else:
             break
-
-    counts = sure + state(r_avg)[0]
+    # 3. equally long longest segments, and the degenerate case of every relevant score equal
+    counts = band.sure + band.above(r_avg)[0]
     tied = tied_rows(counts * T > int(w @ counts)) if tied_rows is not None and counts.sum() > 0 else []
-    if tied:  # equally long segments: the larger sum of s_t wins, decided from the bounds if they allow
-        low, high = bounds()
-        sums_low = np.array([low[rows].sum() for rows in tied])
-        sums_high = np.array([high[rows].sum() for rows in tied])
-        best = int(np.argmax(sums_low))
-        if np.any(np.delete(sums_high, best) >= sums_low[best]):
-            rows = np.unique(np.concatenate(tied))
-            score_next(rows[unsure[rows] > 0], everything=True)
-            counts = sure + state(r_avg)[0]
+    if tied and _ties_need_exact_counts(band, tied, r_low, r_high):
+        rows = np.unique(np.concatenate(tied))
+        band.score_next(rows[band.unsure[rows] > 0], everything=True)
+        counts = band.sure + band.above(r_avg)[0]
     if counts.sum() == 0:  # every relevant score equal (see counts_from_relevancy): count the relevant
-        for entry in rows_open.values():  # 0.5 may lie outside the window: exact scores for the scored
+        band.rescore_without_window()
+        counts = (hist @ (band.outside & (r > RELEVANT)).astype(hist.dtype)).astype(np.int64) + band.above(RELEVANT)[0]
+    return counts, r_avg, n_rel, band.rescored, sampled
+
+
+def _narrowed_interval(estimate: float, r_se: float, first: tuple[float, float]) -> tuple[float, float, float]:
+    """R_avg and its interval from a new estimate, kept inside the first interval (the band was built for
+    it); where the two disagree beyond their intervals, the newer estimate alone."""
+    first_low, first_high = first
+    r_avg = float(np.clip(estimate, first_low, first_high))
+    r_low, r_high = max(first_low, estimate - R_AVG_Z * r_se), min(first_high, estimate + R_AVG_Z * r_se)
+    if r_low > r_high:
+        r_low = r_high = r_avg
+    return r_avg, r_low, r_high
+
+
+def _ties_need_exact_counts(band: "_Band", tied: list[np.ndarray], r_low: float, r_high: float) -> bool:
+    """Whether the bounds leave open which of the tied segments has the larger sum of s_t."""
+    low, high = band.bounds(r_low, r_high)
+    sums_low = np.array([low[rows].sum() for rows in tied])
+    sums_high = np.array([high[rows].sum() for rows in tied])
+    best = int(np.argmax(sums_low))
+    return bool(np.any(np.delete(sums_high, best) >= sums_low[best]))
+
+
+class _Band:
+    """The codes within ``margin`` of R_avg's first interval and the exact re-scoring of their members,
+    per scored timestep (row), a random chunk at a time (see :func:`counts_from_codes_refined`)."""
+
+    def __init__(self, r: np.ndarray, hist: np.ndarray, held: np.ndarray, r_avg: float,
+                 window: tuple[float, float], margin: float, members: Callable, score: Callable):
+        r_low, r_high = window
+        inside = held & (r > r_low - margin) & (r < r_high + margin)
+        self.r = r
+        self.codes = np.nonzero(inside)[0]
+        self.hist = np.asarray(hist[:, self.codes], dtype=np.int64)  # (S,B)
+        self.r_band = r[self.codes]
+        self.outside = ~inside
+        # outside the band a code is on the same side of every R in the (first) interval
+        self.sure = (hist @ (self.outside & (r > r_avg)).astype(hist.dtype)).astype(np.int64)
+        self.unsure = self.hist.sum(axis=1)
+        self.window = window  # r_low, r_avg and r_high stay inside it
+        self.members, self.score = members, score
+        # row -> [pending codes, pending handles, scores so far (exact inside the window), chunk, scored handles]
+        self.rows_open: dict[int, list] = {}
+        self.order_rng = np.random.default_rng(0)
+        self.rescored = 0
+
+    def open_rows(self, rows: np.ndarray) -> None:
+        rows = np.array([i for i in rows if int(i) not in self.rows_open], dtype=np.int64)
+        if rows.size == 0:
+            return
+        at, codes_of, handles = (np.asarray(x, dtype=np.int64) for x in self.members(self.codes, rows))
+        for i in rows:
+            mine = np.flatnonzero(at == i)
+            mine = mine[self.order_rng.permutation(mine.size)]  # re-scored in random order, a chunk at a time
+            self.rows_open[int(i)] = [codes_of[mine], handles[mine], np.zeros(0, dtype=np.float64),
+                                      max(RESCORE_MIN_CHUNK, -(-mine.size // RESCORE_CHUNKS)),
+                                      np.zeros(0, dtype=np.int64)]
+
+    def score_next(self, rows: np.ndarray, everything: bool = False) -> None:
+        """Exact scores for the next chunk (or all) of the pending band members of ``rows``."""
+        self.open_rows(rows)
+        takes = []
+        for i in rows:
+            codes_i, handles_i, _, chunk, _ = self.rows_open[int(i)]
+            take = handles_i.size if everything else min(chunk, handles_i.size)
+            if take:
+                takes.append((int(i), take))
+        if not takes:
+            return
+        exact = np.asarray(self.score(np.concatenate([self.rows_open[i][1][:k] for i, k in takes]), self.window),
+                           dtype=np.float64)
+        self.rescored += int(exact.size)
+        start = 0
+        for i, k in takes:
+            entry = self.rows_open[i]
+            entry[2] = np.concatenate([entry[2], exact[start:start + k]])
+            entry[4] = np.concatenate([entry[4], entry[1][:k]])
+            entry[0], entry[1] = entry[0][k:], entry[1][k:]
+            start += k
+
+    def above(self, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+        """(S,) band members above ``threshold`` (exact where re-scored, by code elsewhere) and (S,) still
+        pending."""
+        above = self.hist @ (self.r_band > threshold)
+        pending = self.unsure.copy()
+        for i, (codes_i, _, exact_i, _, _) in self.rows_open.items():
+            above[i] = int((exact_i > threshold).sum()) + int((self.r[codes_i] > threshold).sum())
+            pending[i] = codes_i.size
+        return above, pending
+
+    def bounds(self, r_low: float, r_high: float) -> tuple[np.ndarray, np.ndarray]:
+        """(S,) lowest and highest count above any R in [r_low, r_high] the pending members allow."""
+        low, high = self.sure.copy(), self.sure + self.unsure
+        for i, (codes_i, _, exact_i, _, _) in self.rows_open.items():
+            low[i] += int((exact_i > r_high).sum())
+            high[i] = self.sure[i] + int((exact_i > r_low).sum()) + codes_i.size
+        return low, high
+
+    def rescore_without_window(self) -> None:
+        """Exact scores, without a window, of every member scored so far (0.5 may lie outside the window)."""
+        for entry in self.rows_open.values():
             if entry[4].size:
-                entry[2] = np.asarray(score(entry[4], None), dtype=np.float64)
-                rescored += int(entry[4].size)
-        counts = (hist @ (~band & (r > RELEVANT)).astype(hist.dtype)).astype(np.int64) + state(RELEVANT)[0]
-    return counts, r_avg, n_rel, rescored, sampled
+                entry[2] = np.asarray(self.score(entry[4], None), dtype=np.float64)
+                self.rescored += int(entry[4].size)
 
 
 def _sampled_r_avg(r: np.ndarray, per_code: np.ndarray, held: np.ndarray, sample: Callable, margin: float,

@@ -10,8 +10,9 @@ Public API::
 See :func:`rasterize` for shapes. ``reference`` holds the straightforward dense implementation used as
 the speed/accuracy baseline.
 """
-from . import cpu_kernels
-from .api import rasterize, render_frame, splat
-from .options import OUTPUT_NAMES, BlendWeights, RasterOptions
+from ..lazy import lazy_exports
 
-__all__ = ["rasterize", "render_frame", "splat", "RasterOptions", "BlendWeights", "OUTPUT_NAMES", "cpu_kernels"]
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "rasterize": "api", "render_frame": "api", "splat": "api", "RasterOptions": "options", "BlendWeights": "options",
+    "OUTPUT_NAMES": "options", "cpu_kernels": None
+})

@@ -22,8 +22,6 @@ from .binning import bin_gaussians
 from .options import RasterOptions
 from .projection import project_gaussians
 
-REFERENCE_OUTPUTS = ("rgb", "features", "depth", "alpha")
-
 
 def blend_dense(px: torch.Tensor, py: torch.Tensor, geom: torch.Tensor, values: torch.Tensor,
                 opts: RasterOptions) -> tuple[torch.Tensor, torch.Tensor]:

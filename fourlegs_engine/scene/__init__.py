@@ -1,9 +1,9 @@
 """Scene data model, loaders, the native bundle format and validation."""
-from .camera import Camera, CameraRig, look_rotation
-from .gaussians import GaussianFrame, GaussianSequence, normalize_quaternions, quaternion_to_matrix
-from .scene import Scene
-from .bundle import is_bundle, load_bundle, write_bundle
-from .loaders import load_scene
+from ..lazy import lazy_exports
 
-__all__ = ["Camera", "CameraRig", "GaussianFrame", "GaussianSequence", "Scene", "is_bundle", "load_bundle", "load_scene",
-           "look_rotation", "normalize_quaternions", "quaternion_to_matrix", "write_bundle"]
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "Camera": "camera", "CameraRig": "camera", "look_rotation": "camera", "GaussianFrame": "gaussians",
+    "GaussianSequence": "gaussians", "normalize_quaternions": "gaussians", "quaternion_to_matrix": "gaussians",
+    "Scene": "scene", "is_bundle": "bundle", "load_bundle": "bundle", "write_bundle": "bundle",
+    "load_scene": "loaders"
+})

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import struct
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
@@ -179,14 +180,71 @@ def read_params(path: str | Path) -> dict[str, Any]:
         arrays.close()
 
 
+@dataclass
+class CameraMeta:
+    """One ``*_meta.json`` file: cameras ``[t][c]``, their image files ``fn[t][c]`` (relative to ``ims/``;
+    None when the file lists none), their names ``[t][c]`` and the image size shared by every camera."""
+
+    cameras: list[list[Camera]]
+    files: Optional[list[list[str]]]
+    names: list[list[str]]
+    width: int
+    height: int
+
+
 def read_meta(path: Path, T: int) -> list[list[Camera]]:
-    """Cameras ``[t][c]`` from a ``*_meta.json`` file, validated against the scene's T."""
-    meta = read_json(path)
+    """Cameras ``[t][c]`` of a scene's ``*_meta.json`` file, validated against the scene's T."""
+    return read_camera_meta(path, num_timesteps=(T, "params.npz")).cameras
+
+
+def read_camera_meta(path: Path, *, num_timesteps: Optional[tuple[int, str]] = None, require_files: bool = False,
+                     static_rig: bool = False, near: float = 0.01, far: float = 100.0) -> CameraMeta:
+    """Read and check a ``*_meta.json`` file (the module docstring has the layout); every problem is one
+    InputError naming the file and the field.
+
+    ``num_timesteps``: (T, where T comes from) every per-timestep list must match (default: ``k``'s length).
+    ``require_files``: ``fn`` must be present (a capture's images). ``static_rig``: the same cameras at every
+    timestep. Camera names are ``cam_id``, else the folder of ``fn``, else the camera's index.
+    """
+    meta: Any = read_json(path)
     if not isinstance(meta, dict):
         raise InputError("top level must be a JSON object", file=path)
-    for key in ("w", "h", "k", "w2c"):
+    for key in ("w", "h", "k", "w2c") + (("fn",) if require_files else ()):
         if key not in meta:
             raise InputError("missing key", file=path, field=key)
+    width, height = _image_size(meta, path)
+    ks, w2cs, fns, ids = meta["k"], meta["w2c"], meta.get("fn"), meta.get("cam_id")
+    T, source = num_timesteps if num_timesteps is not None else (len(ks) if isinstance(ks, list) else -1, "")
+    for key, value in (("k", ks), ("w2c", w2cs), ("fn", fns), ("cam_id", ids)):
+        if value is None:
+            continue
+        if not isinstance(value, list) or (not value and num_timesteps is None):
+            raise InputError("must be a non-empty list over timesteps", file=path, field=key)
+        if len(value) != T:
+            raise InputError(f"has {len(value)} timesteps but {source} has T={T}" if source else
+                             f"has {len(value)} timesteps, k has {T}", file=path, field=key)
+    cameras, names = [], []
+    for t in range(T):
+        if not isinstance(ks[t], list):
+            raise InputError("must be a list of 3x3 matrices, one per camera", file=path, field=f"k[{t}]")
+        n = len(ks[t])
+        for key, lists in (("w2c", w2cs), ("fn", fns), ("cam_id", ids)):
+            if lists is not None and (not isinstance(lists[t], list) or len(lists[t]) != n):
+                raise InputError(f"must list one entry per camera ({n})", file=path, field=f"{key}[{t}]")
+        row = [_meta_camera(meta, t, c, path, width, height, near, far) for c in range(n)]
+        if len({cam.name for cam in row}) != len(row):
+            raise InputError("camera ids repeat", file=path, field=f"cam_id[{t}]")
+        if static_rig and t and [cam.name for cam in row] != names[0]:
+            raise InputError(f"cameras differ from timestep 0 ({[cam.name for cam in row]} vs {names[0]})",
+                             file=path, field=f"cam_id[{t}]")
+        cameras.append(row)
+        names.append([cam.name for cam in row])
+    files = [[str(f) for f in fns[t]] for t in range(T)] if fns is not None else None
+    return CameraMeta(cameras, files, names, width, height)
+
+
+def _image_size(meta: dict[str, Any], path: Path) -> tuple[int, int]:
+    """``w``, ``h``: positive integers within the image size any camera may have."""
     try:
         width, height = int(meta["w"]), int(meta["h"])
     except (TypeError, ValueError, OverflowError):
@@ -197,37 +255,29 @@ def read_meta(path: Path, T: int) -> list[list[Camera]]:
     if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE:
         raise InputError(f"image size must be at most {MAX_IMAGE_SIDE} pixels a side, got w={meta['w']!r} "
                          f"h={meta['h']!r}", file=path, field="w/h")
-    ks, w2cs = meta["k"], meta["w2c"]
-    cam_ids = meta.get("cam_id")
-    for key, value in (("k", ks), ("w2c", w2cs)) + ((("cam_id", cam_ids),) if cam_ids is not None else ()):
-        if not isinstance(value, list):
-            raise InputError("must be a list over timesteps", file=path, field=key)
-        if len(value) != T:
-            raise InputError(f"has {len(value)} timesteps but params.npz has T={T}", file=path, field=key)
-    rig: list[list[Camera]] = []
-    for t in range(T):
-        if not isinstance(ks[t], list) or not isinstance(w2cs[t], list) or len(ks[t]) != len(w2cs[t]):
-            raise InputError(f"k[{t}] and w2c[{t}] must be lists of equal length", file=path, field=f"k[{t}]")
-        if cam_ids is not None and (not isinstance(cam_ids[t], list) or len(cam_ids[t]) != len(ks[t])):
-            raise InputError(f"cam_id[{t}] must list one id per camera ({len(ks[t])})", file=path,
-                             field=f"cam_id[{t}]")
-        cams = []
-        for c in range(len(ks[t])):
-            K = meta_matrix(ks[t][c], (3, 3), path, f"k[{t}][{c}]")
-            w2c = meta_matrix(w2cs[t][c], (4, 4), path, f"w2c[{t}][{c}]")
-            if not (K[0, 0] > 0 and K[1, 1] > 0):
-                raise InputError(f"focal length must be positive (fx={K[0, 0]}, fy={K[1, 1]})", file=path,
-                                 field=f"k[{t}][{c}]")
-            name = str(cam_ids[t][c]) if cam_ids is not None else str(c)
-            cam = Camera(K=K, w2c=w2c, width=width, height=height, name=name)
-            try:
-                cam.validate()
-            except InputError as exc:
-                where = f"w2c[{t}][{c}]" if "w2c" in (exc.field or "") else f"k[{t}][{c}]"
-                raise InputError(f"{exc.problem} (camera {name})", file=path, field=where) from None
-            cams.append(cam)
-        rig.append(cams)
-    return rig
+    return width, height
+
+
+def _meta_camera(meta: dict[str, Any], t: int, c: int, path: Path, width: int, height: int, near: float,
+                 far: float) -> Camera:
+    """Camera ``c`` of timestep ``t``: finite matrices, positive focal lengths, a valid pose."""
+    K = meta_matrix(meta["k"][t][c], (3, 3), path, f"k[{t}][{c}]")
+    w2c = meta_matrix(meta["w2c"][t][c], (4, 4), path, f"w2c[{t}][{c}]")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise InputError(f"focal length must be positive (fx={K[0, 0]}, fy={K[1, 1]})", file=path,
+                         field=f"k[{t}][{c}]")
+    fn = meta["fn"][t][c] if meta.get("fn") is not None else None
+    if fn is not None and (not isinstance(fn, str) or not fn or ".." in Path(fn).parts):
+        raise InputError(f"must be a relative file name, got {fn!r}", file=path, field=f"fn[{t}][{c}]")
+    ids = meta.get("cam_id")
+    name = str(ids[t][c]) if ids is not None else fn.split("/")[0] if fn is not None else str(c)
+    cam = Camera(K=K, w2c=w2c, width=width, height=height, near=near, far=far, name=name)
+    try:
+        cam.validate()
+    except InputError as exc:
+        where = f"w2c[{t}][{c}]" if "w2c" in (exc.field or "") else f"k[{t}][{c}]"
+        raise InputError(f"{exc.problem} (camera {name})", file=path, field=where) from None
+    return cam
 
 
 def meta_matrix(value: Any, shape: tuple[int, int], file: Path, field: str) -> np.ndarray:

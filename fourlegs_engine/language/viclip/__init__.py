@@ -6,10 +6,11 @@
 - :mod:`.encoder`: ``ViCLIPEncoder``, the ``VideoTextEncoder`` the rest of the engine uses.
 ``fourlegs viclip-info`` lives in :mod:`fourlegs_engine.commands.viclip`, ``fourlegs bench viclip`` in ``fourlegs_bench.viclip``.
 """
-from .checkpoint import check_state_dict, load_viclip, read_state_dict, save_viclip
-from .encoder import ViCLIPEncoder
-from .model import CLIP_MEAN, CLIP_STD, IMAGENET_MEAN, IMAGENET_STD, ViCLIPConfig, ViCLIPModel, infer_config
-from .tokenizer import BPETokenizer
+from ...lazy import lazy_exports
 
-__all__ = ["BPETokenizer", "CLIP_MEAN", "CLIP_STD", "IMAGENET_MEAN", "IMAGENET_STD", "ViCLIPConfig", "ViCLIPEncoder",
-           "ViCLIPModel", "check_state_dict", "infer_config", "load_viclip", "read_state_dict", "save_viclip"]
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "check_state_dict": "checkpoint", "load_viclip": "checkpoint", "read_state_dict": "checkpoint",
+    "save_viclip": "checkpoint", "ViCLIPEncoder": "encoder", "CLIP_MEAN": "model", "CLIP_STD": "model",
+    "IMAGENET_MEAN": "model", "IMAGENET_STD": "model", "ViCLIPConfig": "model", "ViCLIPModel": "model",
+    "infer_config": "model", "BPETokenizer": "tokenizer"
+})

@@ -1,23 +1,10 @@
 """Simulated video-text encoders for synthetic scenes with ground-truth labels.
 
 These stand in for ViCLIP where weights are unavailable: they are *simulations*, built from the
-ground-truth labels of :mod:`fourlegs_engine.scene.synthetic` scenes, and named as such.
+ground-truth labels of :mod:`fourlegs_engine.demo.synthetic` scenes, and named as such.
 
 Text (:class:`SimulatedTextEncoder`)
-    A phrase is reduced to lemmas (lower case, stop words dropped, synonyms and inflections mapped to
-    one lemma: "jumps", "leaping" -> "jump"; "man", "player" -> "person"). Every known lemma owns one
-    axis of a fixed orthonormal basis of R^768 (built once from a fixed seed); an unknown word gets a
-    deterministic pseudo-random unit vector from a hash of the word (nearly orthogonal to everything).
-    The phrase embedding is ``sqrt(g) * generic + sqrt(1-g) * normalize(sum_k w_k * v_k)`` with the
-    shared ``generic`` axis (share ``g = GENERIC_SHARE`` = 0.3) and per-lemma weights ``w_k`` (the
-    subject "person" weighs 0.35, objects of an action 0.5, the rest 1). Hence:
-
-    * a query is closest to the label that uses its words (cosine 1 for the same lemmas),
-    * labels sharing only the subject ("person jumping" vs "person waving") stay below the canonical
-      phrases' similarity, so the LERF relevancy of one against the other is < 0.5,
-    * the canonical phrases ("object", "things", "stuff", "texture") are mostly the generic axis
-      (share ``CANONICAL_GENERIC_SHARE`` = 0.92): cosine ~ sqrt(0.3 * 0.92) = 0.525 to *every* phrase,
-    * unrelated queries have cosine ~0.3 (the generic share) to every label: relevancy ~0.1.
+    Lemma embeddings of the deterministic phrase space (:mod:`fourlegs_engine.language.phrase_space`).
 
 Video (:class:`SimulatedVideoEncoder`)
     Input: clips (B, 8, C, h, w) of per-pixel label coverage in [0, 1] (channel c = the share of the
@@ -45,144 +32,27 @@ from __future__ import annotations
 
 import hashlib
 import math
-import re
 from functools import lru_cache
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import torch
 
 from ..errors import InputError
+from ..language.phrase_space import BACKGROUND_PHRASE, EMBED_DIM, PhraseEncoder, lemma_embedding
 from . import simulated_kernels
-from .phrases import CANONICAL_PHRASES
-
-EMBED_DIM = 768
-GENERIC_SHARE = 0.3
-CANONICAL_GENERIC_SHARE = 0.92
-BASIS_SEED = 20250401
-BACKGROUND_PHRASE = "background"
 
 DEFAULT_NOISE_COSINE = 0.8
 DEFAULT_CAMERA_BIAS = 0.25
 DEFAULT_WRONG_LABEL_FRACTION = 0.1
 DEFAULT_FOREGROUND_SALIENCE = 6.0
 
-STOP_WORDS = frozenset("""a an the in on of at to into onto with by from for and or is are was were be being
-his her their its this that these those some while up down it one who which as""".split())
 
-# Inflections and synonyms -> lemma. Words of the synthetic label vocabulary, their common variants,
-# and a few neighbours a user is likely to type.
-LEMMAS: dict[str, str] = {}
-_GROUPS = {
-    "person": "person people persons man men woman women player players guy girl boy human someone somebody "
-              "kid child athlete",
-    "jump": "jump jumps jumping jumped leap leaps leaping hop hops hopping",
-    "wave": "wave waves waving waved",
-    "throw": "throw throws throwing threw thrown toss tosses tossing tossed pass passes passing",
-    "catch": "catch catches catching caught",
-    "walk": "walk walks walking walked stroll strolling",
-    "hold": "hold holds holding held carry carries carrying grab grabbing",
-    "stand": "stand stands standing stood idle",
-    "ball": "ball balls basketball football",
-    "fly": "fly flies flying flew airborne",
-    "air": "air sky",
-    "hand": "hand hands arm arms",
-    "floor": "floor ground court",
-    "wall": "wall walls dome",
-    "box": "box boxes crate",
-    "wood": "wooden wood",
-    "bench": "bench benches seat",
-    "background": "background",
-}
-for _lemma, _words in _GROUPS.items():
-    for _w in _words.split():
-        LEMMAS[_w] = _lemma
-KNOWN_LEMMAS: tuple[str, ...] = tuple(_GROUPS)
-LEMMA_WEIGHTS = {"person": 0.35, "ball": 0.5, "air": 0.5, "wood": 0.5}
-_GENERIC_AXIS = "<generic>"
-
-
-def lemmatize(text: str) -> list[str]:
-    """Lemmas of ``text`` in order (stop words dropped; unknown words kept, lightly stemmed)."""
-    if not isinstance(text, str):
-        raise InputError(f"text must be a string, got {type(text).__name__}", field="text")
-    out = []
-    for word in re.findall(r"[a-z0-9']+", text.lower()):
-        word = word.strip("'")
-        if not word or word in STOP_WORDS:
-            continue
-        if word in LEMMAS:
-            out.append(LEMMAS[word])
-            continue
-        out.append(_stem(word))
-    return out
-
-
-def _stem(word: str) -> str:
-    for suffix in ("ing", "ed", "es", "s"):
-        if word.endswith(suffix) and len(word) - len(suffix) >= 3:
-            stem = word[: -len(suffix)]
-            return LEMMAS.get(stem, stem)
-    return word
-
-
-@lru_cache(maxsize=1)
-def _basis() -> dict[str, np.ndarray]:
-    """Orthonormal axes (float64) for the generic direction, every known lemma and the canonical phrases."""
-    names = (_GENERIC_AXIS,) + KNOWN_LEMMAS + tuple(CANONICAL_PHRASES)
-    rng = np.random.default_rng(BASIS_SEED)
-    q, r = np.linalg.qr(rng.normal(size=(EMBED_DIM, len(names))))
-    q = q * np.sign(np.diag(r))[None, :]  # make the factorization unique
-    return {name: q[:, i].copy() for i, name in enumerate(names)}
-
-
-@lru_cache(maxsize=4096)
-def _word_vector(lemma: str) -> np.ndarray:
-    """(D,) float64 unit vector of a lemma: a basis axis when known, else a hash-seeded random direction."""
-    basis = _basis()
-    if lemma in basis:
-        return basis[lemma]
-    digest = hashlib.sha256(("fourlegs-simulated:" + lemma).encode()).digest()
-    v = np.random.default_rng(int.from_bytes(digest[:8], "little")).normal(size=EMBED_DIM)
-    return v / np.linalg.norm(v)
-
-
-def phrase_embedding(text: str) -> np.ndarray:
-    """(D,) float64 unit embedding of one phrase (see the module docstring)."""
-    basis = _basis()
-    stripped = text.strip().lower() if isinstance(text, str) else text
-    if stripped in CANONICAL_PHRASES:
-        e = math.sqrt(CANONICAL_GENERIC_SHARE) * basis[_GENERIC_AXIS] + \
-            math.sqrt(1 - CANONICAL_GENERIC_SHARE) * basis[stripped]
-        return e / np.linalg.norm(e)
-    content = np.zeros(EMBED_DIM)
-    for lemma in dict.fromkeys(lemmatize(text)):  # each lemma once, in order
-        content += LEMMA_WEIGHTS.get(lemma, 1.0) * _word_vector(lemma)
-    norm = np.linalg.norm(content)
-    if norm < 1e-12:  # empty or stop words only: purely generic
-        return basis[_GENERIC_AXIS].copy()
-    e = math.sqrt(GENERIC_SHARE) * basis[_GENERIC_AXIS] + math.sqrt(1 - GENERIC_SHARE) * content / norm
-    return e / np.linalg.norm(e)
-
-
-class SimulatedTextEncoder:
-    """Deterministic 768-d L2-normalized phrase embeddings (see the module docstring)."""
+class SimulatedTextEncoder(PhraseEncoder):
+    """Deterministic 768-d L2-normalized phrase embeddings from lemmas (see the module docstring)."""
 
     name = "simulated"
-    dim = EMBED_DIM
-
-    def encode_text(self, texts: Sequence[str] | str) -> torch.Tensor:
-        """n strings -> (n, 768) float32, L2-normalized."""
-        if isinstance(texts, str):
-            texts = [texts]
-        texts = list(texts)
-        if not texts:
-            return torch.zeros(0, EMBED_DIM)
-        return torch.from_numpy(np.stack([phrase_embedding(t) for t in texts])).float()
-
-    def encode_text64(self, texts: Sequence[str]) -> np.ndarray:
-        """Float64 version for references: (n, 768)."""
-        return np.stack([phrase_embedding(t) for t in texts]) if texts else np.zeros((0, EMBED_DIM))
+    phrase_embedding = staticmethod(lemma_embedding)
 
 
 class SimulatedVideoEncoder:
@@ -239,7 +109,7 @@ class SimulatedVideoEncoder:
         self.camera = camera
         self.text = SimulatedTextEncoder()
         self._label_emb = torch.from_numpy(self.text.encode_text64(labels))              # (L, D) float64
-        self._background = torch.from_numpy(phrase_embedding(BACKGROUND_PHRASE))       # (D,)
+        self._background = torch.from_numpy(lemma_embedding(BACKGROUND_PHRASE))       # (D,)
 
     @property
     def num_labels(self) -> int:
@@ -394,57 +264,3 @@ def create_encoder(*, labels: Sequence[str] | None = None, scene: Any = None, se
         raise InputError(f"unknown option(s) for the simulated encoder: {', '.join(sorted(unknown))}",
                          field="encoder")
     return SimulatedVideoEncoder(labels, seed=seed, **{k: v for k, v in options.items() if k in allowed})
-
-
-# --------------------------------------------------------------------------- label coverage frames
-
-
-def label_one_hot(labels: np.ndarray | torch.Tensor, num_labels: int, dtype: torch.dtype = torch.float32
-                  ) -> torch.Tensor:
-    """(N,) int labels -> (N, num_labels) one-hot features (label -1 or out of range -> all zero)."""
-    lab = torch.from_numpy(np.array(labels, dtype=np.int64).reshape(-1))
-    valid = (lab >= 0) & (lab < num_labels)
-    out = torch.zeros(lab.shape[0], num_labels, dtype=dtype)
-    idx = torch.nonzero(valid, as_tuple=True)[0]
-    out[idx, lab[idx]] = 1.0
-    return out
-
-
-def render_label_coverage(scene: Any, camera: Any, t: int, *, num_labels: int | None = None,
-                          options: Any = None, backend: str = "auto") -> torch.Tensor:
-    """Per-pixel label coverage of ``scene`` at timestep ``t`` seen by ``camera``.
-
-    Renders one-hot label features with the rasterizer: channel c at a pixel is sum over Gaussians of
-    label c of alpha_i * T_i, the share of the pixel's colour those Gaussians contribute, with
-    occlusion by every other Gaussian of the scene accounted for.
-
-    Returns:
-        (C, H, W) float32 in [0, 1] with C = ``num_labels`` (default: the scene's vocabulary size).
-    """
-    from ..render import render_frame
-
-    g = scene.gaussians
-    if g.labels is None:
-        raise InputError("the scene has no ground-truth labels (not a synthetic scene)", field="labels")
-    if num_labels is None:
-        num_labels = len((scene.metadata or {}).get("labels") or []) or int(np.max(g.labels)) + 1
-    t = g.check_timestep(t)
-    frame = g.at(t)
-    features = label_one_hot(np.asarray(g.labels[t]), num_labels)
-    kwargs: dict[str, Any] = {"outputs": ("features",), "features": features, "backend": backend}
-    if options is not None:
-        kwargs["options"] = options
-    out = render_frame(frame, camera, **kwargs)
-    cov = torch.nan_to_num(out["features"].float(), nan=0.0).clamp_(0.0, 1.0)  # (H, W, C)
-    return cov.permute(2, 0, 1).contiguous()
-
-
-def label_coverage_tube(frames: Sequence[torch.Tensor] | torch.Tensor, t: int,
-                        offsets: Iterable[int] = tuple(range(-4, 4))) -> torch.Tensor:
-    """Stack coverage frames (T of (C,H,W)) into the 8-frame tube around ``t``: (8, C, H, W).
-
-    Edge tubes repeat the first/last frame, as the ViCLIP pipeline does.
-    """
-    T = len(frames)
-    idx = [min(max(t + o, 0), T - 1) for o in offsets]
-    return torch.stack([frames[i] for i in idx])

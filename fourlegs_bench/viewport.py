@@ -1,6 +1,6 @@
 """Milliseconds per viewport frame of the 4-LEGS Splats engine's view_draw image (CPU rasterizer).
 
-    python scripts/bench_viewport.py [--size demo] [--region 1920x1080] [--repeats 5]
+    python -m fourlegs_bench.viewport [--size demo] [--region 1920x1080] [--repeats 5]
 
 Generates the synthetic scene of ``--size`` in memory, imports it with the add-on (bpy module), and times
 ``render_engine.viewport_image`` (what view_draw rasterizes before uploading it as a texture) from the
@@ -23,7 +23,7 @@ def main() -> None:
     import bpy
 
     from fourlegs_addon import importer, registration, render_engine
-    from fourlegs_engine.scene.synthetic import generate_scene
+    from fourlegs_engine.demo.synthetic import generate_scene
 
     registration.register()
     scene = generate_scene(args.size)

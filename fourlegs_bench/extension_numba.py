@@ -1,6 +1,6 @@
 """CPU seconds of one splat render inside Blender with the extension's bundled numba, and without it.
 
-    python scripts/bench_extension_numba.py [--scene DIR] [--resolution 1280x720] [--repeats 3] [-o DIR]
+    python -m fourlegs_bench.extension_numba [--scene DIR] [--resolution 1280x720] [--repeats 3] [-o DIR]
 
 Builds the linux-x64 extension zip from the cached wheels (``fourlegs build-extension --fetch-wheels
 --platform linux-x64`` downloads them), and for each variant installs it into a fresh Blender user folder
@@ -57,7 +57,7 @@ CHILD = textwrap.dedent("""
     from fourlegs_engine import api
     from fourlegs_engine.render import cpu_kernels
     if scene_arg.startswith("synthetic:"):
-        from fourlegs_engine.scene.synthetic import generate_scene
+        from fourlegs_engine.demo.synthetic import generate_scene
         scene = generate_scene(scene_arg.split(":", 1)[1])
         pkg.importer.import_scene(bpy.context.scene, scene)
     else:

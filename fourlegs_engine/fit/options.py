@@ -1,0 +1,121 @@
+"""The options of a fit (:class:`FitOptions`) and what its progress callback receives (:class:`FitEvent`)."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import torch
+
+from ..errors import InputError
+from .init import INIT_METHODS
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Knobs of :func:`fit_capture` (defaults: 2 CPU cores at 320×180).
+
+    Attributes:
+        resolution_scale: images and intrinsics are scaled by this (0.5: 640×360 → 320×180).
+        timesteps: (a, b) half-open range of timesteps to fit (None: all).
+        cameras: training camera ids to use (None: every training camera).
+        first_iterations: optimization steps of the first (static) timestep (the paper's code: 10,000).
+        iterations: steps of every later timestep (the paper's code: 2,000).
+        max_gaussians: densification never grows the model past this.
+        init: how the initial Gaussians are made: "hull" (visual hull + background proxy), "features"
+            (triangulated feature matches, needs OpenCV) or "hull+features" (:mod:`.init`).
+        init_foreground, init_background: caps on the initial foreground / background points.
+        voxel: visual-hull voxel side (m). background_stride: pixel stride of the background proxy samples.
+        densify: clone/split/prune during the first timestep.
+        clean_plate_samples: timesteps (spread over the fitted range) whose background pixels make each
+            training camera's clean plate, the target of the background-only render at the first
+            timestep and the source of background points hidden by the people there (0: neither; off by
+            default: no gain measured on the Panoptic capture, docs/benchmarks_fit.md).
+        grad_threshold: densify Gaussians whose mean screen-space gradient (NDC units, as in 3DGS)
+            exceeds this.
+        knn: neighbours per foreground Gaussian for the priors.
+        knn_lambda: neighbour weight exp(−λ d²) (d in metres).
+        weights: loss weights (im, seg, rigid, rot, iso, floor, plate).
+        lr_means: centre learning rate as a fraction of the scene radius (first timestep).
+        lr_means_later: the same for later timesteps (fewer steps than the paper, so larger).
+        lr_colors, lr_rotations, lr_opacities, lr_scales, lr_camera: Adam learning rates.
+        seed: every random choice derives from it.
+        device: "auto" (CUDA when available), "cpu" or "cuda".
+    """
+
+    resolution_scale: float = 0.5
+    timesteps: tuple[int, int] | None = None
+    cameras: tuple[str, ...] | None = None
+    first_iterations: int = 150
+    iterations: int = 30
+    max_gaussians: int = 60_000
+    init: str = "hull"
+    init_foreground: int = 30_000
+    init_background: int = 30_000
+    voxel: float = 0.02
+    background_stride: int = 6
+    densify: bool = True
+    clean_plate_samples: int = 0
+    grad_threshold: float = 0.0002
+    knn: int = 20
+    knn_lambda: float = 2000.0
+    weights: dict[str, float] = field(default_factory=lambda: {
+        "im": 1.0, "seg": 3.0, "rigid": 4.0, "rot": 4.0, "iso": 2.0, "floor": 2.0, "plate": 1.0})
+    lr_means: float = 0.00016
+    lr_means_later: float = 0.0016
+    lr_colors: float = 0.01
+    lr_rotations: float = 0.001
+    lr_rotations_later: float = 0.004
+    lr_opacities: float = 0.05
+    lr_scales: float = 0.005
+    lr_camera: float = 0.001
+    seed: int = 0
+    device: str = "auto"
+
+    def check(self) -> "FitOptions":
+        if not 0 < self.resolution_scale <= 4:
+            raise InputError(f"must be in (0, 4], got {self.resolution_scale}", field="resolution_scale")
+        if int(self.clean_plate_samples) < 0:
+            raise InputError(f"must be 0 or more, got {self.clean_plate_samples}", field="clean_plate_samples")
+        for name in ("first_iterations", "iterations", "max_gaussians", "init_foreground", "init_background",
+                     "knn", "background_stride"):
+            if int(getattr(self, name)) < (0 if name.endswith("iterations") else 1):
+                raise InputError(f"must be a positive integer, got {getattr(self, name)}", field=name)
+        if self.init not in INIT_METHODS:
+            raise InputError(f"must be one of {', '.join(INIT_METHODS)}, got {self.init!r}", field="init")
+        if self.init != "hull":
+            from .features import require_cv2
+
+            require_cv2()
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise InputError(f"must be auto, cpu or cuda, got {self.device!r}", field="device")
+        if self.device == "cuda" and not torch.cuda.is_available():
+            raise InputError("CUDA was requested but no CUDA device is available", field="device")
+        return self
+
+    def fingerprint(self) -> dict[str, Any]:
+        """Everything that changes the result (the device is left out: CPU and CUDA differ anyway)."""
+        d = asdict(self)
+        d.pop("device")
+        # knobs at their "off" value are left out, so fits started before these knobs existed still resume
+        if d["init"] == "hull":
+            d.pop("init")
+        if d["clean_plate_samples"] == 0:
+            d.pop("clean_plate_samples")
+            d["weights"] = {k: v for k, v in d["weights"].items() if k != "plate"}
+        d["timesteps"] = list(d["timesteps"]) if d["timesteps"] is not None else None
+        d["cameras"] = list(d["cameras"]) if d["cameras"] is not None else None
+        return d
+
+
+@dataclass
+class FitEvent:
+    """What a progress callback receives: ``kind`` is "iteration" (one optimization step) or "timestep"
+    (a timestep finished, or ``resumed`` from the work directory)."""
+
+    kind: str
+    timestep: int
+    index: int = 0
+    total: int = 0
+    loss: float = float("nan")
+    train_psnr: float = float("nan")
+    resumed: bool = False

@@ -14,7 +14,7 @@ def step_viclip(ctx: StepContext) -> None:
     decoding and crop pre-processing plus clips x seconds per clip) and the whole-scene hours."""
     import torch
 
-    from fourlegs_engine.language.extract import ExtractConfig
+    from fourlegs_engine.language.extract import ExtractOptions
     from fourlegs_engine.language.pyramid import crop_layout, pyramid_ratios
     from fourlegs_engine.language.viclip.model import ViCLIPConfig, ViCLIPModel, l2_normalize, video_clip_flops
 
@@ -23,7 +23,7 @@ def step_viclip(ctx: StepContext) -> None:
 
     plan, device = ctx.plan, ctx.device
     config = ViCLIPConfig.preset(plan["size"]) if isinstance(plan["size"], str) else ViCLIPConfig(**plan["size"])
-    crop = int(ExtractConfig(crop_size=None).resolved_crop_size("rgb", config))
+    crop = int(ExtractOptions(crop_size=None).resolved_crop_size("rgb", config))
     reference_clips = int(plan["reference_clips"])
     ctx.record(model=config.size_name, device=str(device), flops_per_clip=video_clip_flops(config)["total"],
                weights="random (seeded): seconds depend only on shapes")

@@ -212,8 +212,9 @@ def test_the_gsplat_build_without_a_carried_wheel_is_skipped_with_its_reason(tmp
     assert json.loads((tmp_path / "status.json").read_text()) == status
 
 
-def test_a_gsplat_build_over_its_cap_is_killed_and_reported(tmp_path):
+def test_a_gsplat_build_over_its_cap_is_killed_and_reported(tmp_path, monkeypatch):
     """A compiler that never finishes (a stand-in module first on the build's path) is stopped at the cap."""
+    monkeypatch.chdir(tmp_path)  # `python -m` puts the working directory first: not the repository's package
     site = tmp_path / "site"
     (site / "gsplat").mkdir(parents=True)
     (site / "gsplat" / "__init__.py").write_text("")

@@ -29,7 +29,7 @@ _LAZY = {
     "EncoderConfig": "pipeline", "FieldStep": "pipeline", "QueryOptions": "pipeline",
     "language_field_steps": "pipeline", "ensure_language_field": "pipeline",
     "has_language_field": "pipeline", "open_query_engine": "pipeline", "open_scene": "pipeline",
-    "text_encoder": "pipeline",
+    "plan_language_field": "pipeline", "text_encoder": "pipeline",
     "rasterize": "render",
     "rank_scenes_opening": "query.multiscene",
     "Camera": "scene", "Scene": "scene", "load_scene": "scene",
@@ -46,7 +46,8 @@ if TYPE_CHECKING:
                                 prepare_highlight_job)
     from .highlights import available_presets, load_preset, plan_highlight, plan_needs
     from .pipeline import (EncoderConfig, FieldStep, QueryOptions, ensure_language_field, has_language_field,
-                           language_field_steps, open_query_engine, open_scene, text_encoder)
+                           language_field_steps, open_query_engine, open_scene, plan_language_field,
+                           text_encoder)
     from .query.multiscene import rank_scenes_opening
     from .render import rasterize
     from .scene import Camera, Scene, load_scene
@@ -73,6 +74,6 @@ __all__ = ["Cancelled", "Camera", "EncoderConfig", "FieldStep", "FourlegsError",
            "available_presets", "check_text", "claim_outputs", "describe_environment_error",
            "ensure_language_field", "finish_highlight_job", "has_language_field", "image_file_problem",
            "incomplete_write_error", "kernel_threads", "language_field_steps", "load_preset", "load_scene",
-           "open_query_engine", "open_scene", "plan_digest", "plan_highlight", "plan_needs",
+           "open_query_engine", "open_scene", "plan_digest", "plan_language_field", "plan_highlight", "plan_needs",
            "prepare_highlight_job", "print_error", "rank_scenes_opening", "rasterize", "release_mapped_pages", "text_encoder",
            "torch_threads", "usable_cpu_count", "write_json_atomic"]

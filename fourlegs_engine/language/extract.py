@@ -12,6 +12,10 @@ Frames: ``input_kind == "rgb"`` encoders (ViCLIP) see the scene rendered in RGB 
 cameras (black background), crops resized to 224 and CLIP-normalized. ``input_kind == "labels"``
 encoders (the simulated encoder) see per-pixel label coverage: the scene's one-hot ground-truth
 labels rendered as feature channels, i.e. channel l of pixel p = Σ_i α_i T_i [label_i = l].
+
+Cost knobs (:mod:`.skipping`; :mod:`.budget` prices them): a camera subset, a timestep stride whose
+in-between timesteps are filled from their encoded neighbours, the crop stride and pyramid levels, and
+early exits that copy the features of crops that see an unchanged clip.
 """
 from __future__ import annotations
 
@@ -31,9 +35,12 @@ import torch.nn.functional as F
 from ..errors import InputError
 from ..scene.scene import Scene
 from ..threads import torch_threads
-from .pyramid import (TUBE_OFFSETS, PyramidLayout, crop_layout, pyramid_ratios, resize_crops, scale_crops,
-                      tube_indices)
-from .store import StepStore, format_ranges, select_timesteps
+from .pyramid import (DEFAULT_STRIDE_FRACTION, TUBE_OFFSETS, PyramidLayout, crop_layout, pyramid_ratios,
+                      resize_crops, scale_crops, tube_indices)
+from .skipping import (DEFAULT_UNCHANGED_BELOW, EARLY_EXITS, FILL_MODES, comparison_frames, encoded_timesteps,
+                       fill_features, fill_sources, foreground_values, render_foreground, timestep_work,
+                       unchanged_crops)
+from .store import StepStore, format_ranges, parse_shard, select_timesteps
 
 FEATURES_DIR = "features"
 RGB_CROP_SIZE = 224
@@ -56,6 +63,13 @@ class ExtractConfig:
         split: camera split the features are extracted for.
         frame_scale: render the frames at this fraction of the camera resolution and upsample them
             bilinearly to full size before cutting crops (a speed knob; 1 = full resolution).
+        cameras: indices of the split's cameras that are encoded (None: all); the others keep zero
+            rows (no evidence).
+        crop_stride: distance between neighbouring crops as a fraction of the crop side (0.5: paper).
+        timestep_stride: encode every n-th timestep (and the last); the others are filled (``fill``:
+            "interpolate" between the two encoded neighbours or "reuse" the nearer one).
+        early_exit: "none" | "foreground" | "difference": copy the previous encoded timestep's feature
+            of crops whose pixels stay unchanged (:func:`.skipping.unchanged_crops`, ``unchanged_below``).
     """
 
     ratios: tuple[float, ...] = field(default_factory=pyramid_ratios)
@@ -63,6 +77,51 @@ class ExtractConfig:
     batch_size: int | None = None
     split: str = "train"
     frame_scale: float = 1.0
+    cameras: tuple[int, ...] | None = None
+    crop_stride: float = DEFAULT_STRIDE_FRACTION
+    timestep_stride: int = 1
+    fill: str = "interpolate"
+    early_exit: str = "none"
+    unchanged_below: float = DEFAULT_UNCHANGED_BELOW
+
+    def check(self, num_cameras: int | None = None) -> "ExtractConfig":
+        if not 0 < self.frame_scale <= 1:
+            raise InputError(f"must be in (0, 1], got {self.frame_scale}", field="frame_scale")
+        if not 0 < self.crop_stride <= 1:
+            raise InputError(f"must be in (0, 1], got {self.crop_stride}", field="--crop-stride")
+        if int(self.timestep_stride) < 1:
+            raise InputError(f"must be >= 1, got {self.timestep_stride}", field="--timestep-stride")
+        if self.fill not in FILL_MODES:
+            raise InputError(f"unknown fill {self.fill!r} (choose from {', '.join(FILL_MODES)})", field="--fill")
+        if self.early_exit not in EARLY_EXITS:
+            raise InputError(f"unknown early exit {self.early_exit!r} (choose from {', '.join(EARLY_EXITS)})",
+                             field="--early-exit")
+        if not self.unchanged_below >= 0:
+            raise InputError(f"must be >= 0, got {self.unchanged_below}", field="unchanged_below")
+        if self.cameras is not None:
+            if not self.cameras:
+                raise InputError("names no camera", field="--cameras")
+            bad = [c for c in self.cameras if c < 0 or (num_cameras is not None and c >= num_cameras)]
+            if bad:
+                raise InputError(f"camera index {bad[0]} is out of range 0..{(num_cameras or 1) - 1}",
+                                 field="--cameras")
+        return self
+
+    def knobs_dict(self) -> dict[str, Any]:
+        """The cost knobs that differ from the paper's extraction (absent at their default, so the hashes of
+        features extracted before the knobs existed stay valid)."""
+        out: dict[str, Any] = {}
+        if self.cameras is not None:
+            out["cameras"] = sorted(int(c) for c in self.cameras)
+        if self.crop_stride != DEFAULT_STRIDE_FRACTION:
+            out["crop_stride"] = float(self.crop_stride)
+        if int(self.timestep_stride) != 1:
+            out["timestep_stride"] = int(self.timestep_stride)
+            out["fill"] = self.fill
+        if self.early_exit != "none":
+            out["early_exit"] = self.early_exit
+            out["unchanged_below"] = float(self.unchanged_below)
+        return out
 
     def resolved_crop_size(self, input_kind: str, encoder: Any = None) -> int | str:
         if self.crop_size is not None:
@@ -89,13 +148,13 @@ def extract_config_dict(scene: Scene, encoder: Any, config: ExtractConfig) -> di
             "encoder_config": encoder.config() if hasattr(encoder, "config") else None, "split": config.split,
             "frames": ("rendered-rgb" if encoder.input_kind == "rgb" else "annotation-masks"
                        if hasattr(encoder, "coverage_frame") else "rendered-label-coverage"),
-            "scene": scene_signature(scene)}
+            "scene": scene_signature(scene), **config.knobs_dict()}
 
 
-def camera_layouts(scene: Scene, t: int, ratios: Sequence[float], split: str = "train"
-                   ) -> tuple[list[PyramidLayout], list[int]]:
+def camera_layouts(scene: Scene, t: int, ratios: Sequence[float], split: str = "train",
+                   crop_stride: float = DEFAULT_STRIDE_FRACTION) -> tuple[list[PyramidLayout], list[int]]:
     """Crop pyramids of the cameras at timestep t and each camera's first row in the feature array."""
-    layouts = [crop_layout(c.width, c.height, ratios) for c in scene.cameras.cameras(t, split)]
+    layouts = [crop_layout(c.width, c.height, ratios, crop_stride) for c in scene.cameras.cameras(t, split)]
     offsets = list(np.cumsum([0] + [l.num_crops for l in layouts[:-1]]).astype(int)) if layouts else []
     return layouts, [int(o) for o in offsets]
 
@@ -225,11 +284,19 @@ class ExtractReport:
     render_seconds: float
     encode_seconds: float
     crops_per_timestep: int
+    #: clips the encoder saw, clips copied by early exits, timesteps filled from their neighbours,
+    #: CPU seconds of the whole call (all threads)
+    clips_encoded: int = 0
+    clips_copied: int = 0
+    timesteps_filled: list[int] = field(default_factory=list)
+    cpu_seconds: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return {"done": self.timesteps_done, "skipped": self.timesteps_skipped, "seconds": self.seconds,
                 "render_seconds": self.render_seconds, "encode_seconds": self.encode_seconds,
-                "crops_per_timestep": self.crops_per_timestep}
+                "crops_per_timestep": self.crops_per_timestep, "clips_encoded": self.clips_encoded,
+                "clips_copied": self.clips_copied, "filled": self.timesteps_filled,
+                "cpu_seconds": self.cpu_seconds}
 
 
 def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = None, *,
@@ -239,45 +306,74 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
     """Encode the crop pyramid of every selected timestep into ``features/`` of the bundle.
 
     Finished timesteps are skipped (resume); a features directory made with another configuration
-    raises :class:`ConfigMismatchError` unless ``overwrite``.
+    raises :class:`ConfigMismatchError` unless ``overwrite``. With a timestep stride the selected
+    timesteps off the stride's grid are filled from their encoded neighbours, which are encoded too
+    (:func:`.skipping.timestep_work`); a shard fills only those whose neighbours are finished (the
+    rest: a later run without ``--shard``).
     """
     config = config or ExtractConfig()
+    config.check(scene.cameras.num_cameras(config.split))
     cfg = extract_config_dict(scene, encoder, config)
-    if not 0 < config.frame_scale <= 1:
-        raise InputError(f"must be in (0, 1], got {config.frame_scale}", field="frame_scale")
     # built before the store is opened: its input checks (annotation masks) leave nothing behind
     source = FrameSource(scene, encoder.input_kind, config.split,
                          cache_frames=max(64, 9 * scene.cameras.num_cameras(config.split)),
                          frame_scale=config.frame_scale, encoder=encoder)
     store = feature_store(scene, cfg).open(overwrite=overwrite)
-    steps = select_timesteps(scene.num_timesteps, timesteps, shard)
-    todo = [t for t in steps if not store.is_done(t)]
-    skipped = [t for t in steps if t not in set(todo)]
+    grid = encoded_timesteps(scene.num_timesteps, config.timestep_stride)
+    encode_steps, fill_steps = timestep_work(scene.num_timesteps, select_timesteps(scene.num_timesteps, timesteps),
+                                             config.timestep_stride, config.fill, parse_shard(shard) if
+                                             shard is None or isinstance(shard, str) else tuple(shard))
+    todo = [t for t in encode_steps if not store.is_done(t)]
+    to_fill = [t for t in fill_steps if not store.is_done(t)]
+    skipped = [t for t in sorted(encode_steps + fill_steps) if store.is_done(t)]
     crop_size = cfg["crop_size"]
     clip_norm = encoder.input_kind == "rgb"
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
     encode_seconds = 0.0
     crops_per_t = 0
     coverage = crop_size == COVERAGE_MEANS
+    selected = set(range(scene.cameras.num_cameras(config.split)) if config.cameras is None else config.cameras)
+    signals = (ChangeSignals(scene, source, config.early_exit, config.split)
+               if config.early_exit != "none" else None)
+    counts = {"encoded": 0, "copied": 0}
+    previous: tuple[int, np.ndarray] | None = None
     # label-coverage cameras are independent small jobs (a rasterization, crop means, a few encoder
     # calls): they run on parallel streams with one torch thread each, which keeps every core busy
     # where intra-op threads would mostly wait on each other; each camera's rows are its own, so the
     # features do not depend on the number of streams
     streams = extract_streams() if coverage else 1
     pool = ThreadPoolExecutor(streams) if streams > 1 else None
+    lock = threading.Lock()
     bar = _progress(todo, progress, "extract")
     try:
         with torch_threads(1) if pool is not None else nullcontext():
             for t in bar:
-                layouts, offsets = camera_layouts(scene, t, config.ratios, config.split)
+                layouts, offsets = camera_layouts(scene, t, config.ratios, config.split, config.crop_stride)
                 crops_per_t = sum(l.num_crops for l in layouts)
                 # rows of a camera without any annotated frame in its tube stay zero: no evidence
                 out = np.zeros((crops_per_t, int(encoder.dim)), dtype=np.float16)
                 cameras = scene.cameras.cameras(t, config.split)
+                before = grid[grid.index(t) - 1] if grid.index(t) > 0 else None
+                prior = None
+                if signals is not None and before is not None:
+                    prior = (previous[1] if previous is not None and previous[0] == before
+                             else store.load(before) if store.is_done(before) else None)
 
                 def encode_camera(c: int) -> float:
                     """Encode camera c's crops of timestep t into its rows of ``out``; returns encoder seconds."""
+                    if c not in selected:
+                        return 0.0
                     layout = layouts[c]
+                    keep = None  # (num_crops,) bool: crops to encode; the others copy the previous timestep's
+                    if prior is not None:
+                        same = signals.unchanged(c, layout, comparison_frames(t, before, scene.num_timesteps),
+                                                 config.unchanged_below)
+                        if same is not None:
+                            rows = offsets[c] + np.flatnonzero(same.numpy())
+                            out[rows] = prior[rows]
+                            keep = ~same
+                            with lock:
+                                counts["copied"] += int(same.sum())
                     # one camera per batch: encoders may depend on the camera (the simulated one's bias)
                     cam_encoder = (encoder.bind_camera(cameras[c].name) if hasattr(encoder, "bind_camera")
                                    else encoder)
@@ -289,17 +385,24 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
                         frames = [m for m in frames if m is not None]
                         if not frames:
                             return 0.0
-                        batcher.add(torch.stack(frames, 1), offsets[c] + np.arange(layout.num_crops))  # (n, L, C)
+                        idx = np.arange(layout.num_crops) if keep is None else np.flatnonzero(keep.numpy())
+                        batcher.add(torch.stack(frames, 1)[idx], offsets[c] + idx)  # (n, L, C)
                     else:
                         tube = source.tube(t, c)
                         if tube is None:
                             return 0.0
-                        for grid in layout.scales:
-                            rows = offsets[c] + grid.offset + np.arange(grid.num_crops)
+                        for grid_s in layout.scales:
+                            idx = np.arange(grid_s.num_crops)
+                            crops = scale_crops(tube, grid_s)
+                            if keep is not None:
+                                idx = np.flatnonzero(keep[grid_s.offset:grid_s.offset + grid_s.num_crops].numpy())
+                                crops = crops[idx]
                             # raw crops are small; resizing to 224 happens per batch (a 224 px tube is 4.8 MB)
-                            batcher.add(scale_crops(tube, grid), rows,
+                            batcher.add(crops, offsets[c] + grid_s.offset + idx,
                                         transform=lambda x: resize_crops(x, crop_size, clip_normalize=clip_norm))
                     batcher.flush()
+                    with lock:
+                        counts["encoded"] += batcher.encoded
                     return batcher.seconds
 
                 cams = range(len(layouts))
@@ -308,13 +411,58 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractConfig | None = 
                 if not np.all(np.isfinite(out)):
                     raise InputError(f"the encoder produced NaN/Inf features at timestep {t}", field="encoder")
                 store.save(t, out)
+                previous = (t, out)
                 if on_timestep is not None:
                     on_timestep(t)
     finally:
         if pool is not None:
             pool.shutdown()
+    filled = []
+    for t in to_fill:
+        sources = fill_sources(t, grid, config.fill)
+        if all(store.is_done(k) for k, _ in sources):
+            store.save(t, fill_features([(store.load(k), w) for k, w in sources]))
+            filled.append(t)
+            if on_timestep is not None:
+                on_timestep(t)
     return ExtractReport(todo, skipped, time.perf_counter() - start, source.render_seconds, encode_seconds,
-                         crops_per_t)
+                         crops_per_t, counts["encoded"], counts["copied"], filled, time.process_time() - cpu_start)
+
+
+class ChangeSignals:
+    """Per-frame, per-crop signals of one camera that say whether a crop's clip changed (early exits),
+    cached per (frame, camera): mean foreground coverage, or mean absolute change from the frame before."""
+
+    def __init__(self, scene: Scene, source: "FrameSource", mode: str, split: str = "train"):
+        self.scene, self.source, self.mode, self.split = scene, source, mode, split
+        self.foreground = foreground_values(scene) if mode == "foreground" else None
+        if mode == "foreground" and self.foreground is None:
+            raise InputError("early exit 'foreground' needs the scene's foreground flags (fitted and synthetic "
+                             "scenes have them); use --early-exit difference", file=scene.root, field="foreground")
+        self.cache: OrderedDict[tuple, torch.Tensor | None] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def unchanged(self, c: int, layout: PyramidLayout, frames: Sequence[int], threshold: float) -> torch.Tensor | None:
+        """(num_crops,) bool of camera ``c``: unchanged over ``frames``; None when a frame is unavailable."""
+        return unchanged_crops(lambda k: self.signal(k, c, layout), frames, self.mode, threshold)
+
+    def signal(self, k: int, c: int, layout: PyramidLayout) -> torch.Tensor | None:
+        key = (k, c)
+        with self._lock:
+            if key in self.cache:
+                return self.cache[key]
+        if self.mode == "foreground":
+            camera = self.scene.cameras.cameras(k, self.split)[c]
+            value = frame_crop_means(render_foreground(self.scene, camera, k, self.foreground), layout)[:, 0]
+        else:
+            now, before = self.source.frame(k, c), self.source.frame(max(k - 1, 0), c)
+            value = (None if now is None or before is None
+                     else frame_crop_means((now - before).abs().sum(0, keepdim=True), layout)[:, 0])
+        with self._lock:
+            self.cache[key] = value
+            while len(self.cache) > 64 * max(1, self.scene.cameras.num_cameras(self.split)):
+                self.cache.popitem(last=False)
+        return value
 
 
 def extract_streams() -> int:
@@ -373,6 +521,7 @@ class _Batcher:
         self.pending: list[tuple[torch.Tensor, np.ndarray]] = []
         self.count = 0
         self.seconds = 0.0
+        self.encoded = 0
 
     def add(self, crops: torch.Tensor, rows: np.ndarray, transform: Any = None) -> None:
         """Queue crops (n, ...) for output ``rows``; ``transform`` (resize, normalize) runs per batch."""
@@ -395,6 +544,7 @@ class _Batcher:
             feats = (self.encoder.encode_coverage(clips) if self.coverage
                      else self.encoder.encode_video(clips))
         self.seconds += time.perf_counter() - start
+        self.encoded += int(clips.shape[0])
         if tuple(feats.shape) != (clips.shape[0], self.out.shape[1]):
             raise InputError(f"encoder returned shape {tuple(feats.shape)} for {clips.shape[0]} clips, "
                              f"expected ({clips.shape[0]}, {self.out.shape[1]})", field="encoder")
@@ -406,7 +556,8 @@ class _Batcher:
 def check_features(scene: Scene) -> dict[str, Any]:
     """Merge/check step: which timesteps are finished, missing or unreadable."""
     store = feature_store(scene)
-    layouts, _ = camera_layouts(scene, 0, store.config["ratios"], store.config.get("split", "train"))
+    layouts, _ = camera_layouts(scene, 0, store.config["ratios"], store.config.get("split", "train"),
+                                store.config.get("crop_stride", DEFAULT_STRIDE_FRACTION))
     report = store.check((sum(l.num_crops for l in layouts), int(store.config["dim"])))
     report["missing_ranges"] = format_ranges(report["missing"])
     return report
@@ -425,7 +576,8 @@ def load_step_features(scene: Scene, store: StepStore, t: int) -> tuple[np.ndarr
         raise InputError(f"features of timestep {t} are missing; run `fourlegs extract` (or check with "
                          "`fourlegs extract --check`)", file=store.root, field="features")
     feats = store.load(t)
-    layouts, offsets = camera_layouts(scene, t, store.config["ratios"], store.config.get("split", "train"))
+    layouts, offsets = camera_layouts(scene, t, store.config["ratios"], store.config.get("split", "train"),
+                                      store.config.get("crop_stride", DEFAULT_STRIDE_FRACTION))
     expected = sum(l.num_crops for l in layouts)
     if feats.shape[0] != expected:
         raise InputError(f"has {feats.shape[0]} crops, the cameras need {expected}", file=store.step_path(t),

@@ -140,19 +140,17 @@ def has_language_field(scene: "Scene") -> bool:
 
 
 def plan_language_field(scene: "Scene", encoder: Any = None, *, encoder_config: EncoderConfig = EncoderConfig(),
-                        plan: Any = "auto", budget_s: Optional[float] = None) -> Any:
+                        plan: Any = "auto") -> Any:
     """What building ``scene``'s language field will cost, before the work (a few seconds of calibration).
 
     Returns a :class:`~fourlegs_engine.language.budget.PlanEstimate`: ``.lines()`` (the plan, clips, TFLOP,
-    the estimated time on the encoder's device), ``.seconds``, ``.within(budget_s)``, ``.to_dict()``.
-    ``plan``: "auto", "default", "full" or an ``ExtractPlan``. With ``budget_s`` the estimate is checked
-    and :class:`~fourlegs_engine.language.budget.BudgetExceeded` (an InputError) raised above it."""
-    from .language.budget import check_budget, estimate_plan
+    the estimated time on the encoder's device), ``.seconds``, ``.within(budget_s)``, ``.plan`` (pass it on
+    to :func:`language_field_steps` / :func:`ensure_language_field`), ``.to_dict()``. ``plan``: "auto",
+    "default", "full" or an ``ExtractPlan``. The field itself is not touched."""
+    from .language.budget import estimate_plan
 
     encoder = encoder if encoder is not None else text_encoder(scene, encoder_config)
-    estimate = estimate_plan(scene, encoder, plan)
-    check_budget(estimate, budget_s)
-    return estimate
+    return estimate_plan(scene, encoder, plan)
 
 
 def _plan_config(scene: "Scene", encoder: Any, plan: Any) -> Any:

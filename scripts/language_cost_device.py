@@ -63,7 +63,8 @@ def main() -> int:
         for batch in (int(b) for b in args.batches.split(",")):
             enc.batch_size = batch
             cal = calibrate(scene, enc, ExtractConfig(batch_size=batch).check(), seconds=args.seconds)
-            row = {"dtype": dtype, "batch": batch, **cal.to_dict()}
+            # ``batch`` asked for; the calibration's ``clips_per_call`` may be smaller (what fits its seconds)
+            row = {**cal.to_dict(), "dtype": dtype, "batch": batch, "clips_per_call": cal.batch}
             info["rows"].append(row)
             print(f"{dtype:9s} batch {batch:3d}: {cal.clip_s * 1000:8.2f} ms/clip (network {cal.network_s * 1000:8.2f}),"
                   f" {cal.frame_s:.3f} s/frame, {cal.clips_timed} clips", flush=True)

@@ -314,3 +314,17 @@ def test_dry_run_estimate_is_within_20_percent_of_a_measured_run(micro, small_vi
         misses.append(ratio)
     else:
         pytest.fail(f"estimate / measured CPU seconds: {misses}")
+
+
+def test_the_panel_prices_the_field_through_the_api_before_building_it(micro, tmp_path):
+    from fourlegs_engine import api
+
+    scene = load_bundle(write_bundle(load_bundle(micro), tmp_path / "panel"))
+    estimate = api.plan_language_field(scene)
+    assert estimate.plan == PLANS["full"]                      # simulated encoder: the auto plan is the full one
+    assert estimate.lines()[0].startswith("plan full") and estimate.seconds > 0
+    assert estimate.within(estimate.seconds * 1.01) and not estimate.within(estimate.seconds * 0.5)
+    assert not (scene.root / "features").exists()
+    steps = list(api.language_field_steps(scene, plan=PLANS["full"].with_(timestep_stride=5)))
+    assert steps[-1].stage.startswith("distil") and steps[-1].done == steps[-1].total == 10
+    assert feature_store(load_bundle(scene.root)).config["timestep_stride"] == 5

@@ -289,7 +289,7 @@ def test_viclip_dry_run_prints_clips_tflop_and_time(micro, small_viclip, tmp_pat
     assert main(["extract", str(root), "--encoder", "viclip", "--checkpoint", str(checkpoint), "--vocab", str(vocab),
                  "--device", "cpu", "--ratios", "0.4:0.6", "--steps", "2", "--dry-run"]) == 0
     out = capsys.readouterr().out
-    assert "plan default" in out and "timestep stride 8" in out and "early exit foreground" in out
+    assert "plan default" in out and "timestep stride 6" in out and "early exit foreground" in out
     tflop = video_clip_flops(small_viclip.model_config)["total"] / 1e12
     assert f"{tflop:.3g} TFLOP per clip" in out and "estimate on cpu (viclip" in out
     assert not (root / "features").exists()

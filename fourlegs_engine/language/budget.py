@@ -101,8 +101,9 @@ class ExtractPlan:
 
 PLANS: dict[str, ExtractPlan] = {
     "full": ExtractPlan("full"),
-    # tubes of every 8th timestep tile the frames; crops 3/4 of their side apart; unchanged crops copied
-    "default": ExtractPlan("default", timestep_stride=8, fill="interpolate", crop_stride=0.75,
+    # every 6th timestep's tube (they overlap by 2 of 8 frames), crops 3/4 of their side apart, unchanged
+    # crops copied: docs/benchmarks_language_cost.md
+    "default": ExtractPlan("default", timestep_stride=6, fill="interpolate", crop_stride=0.75,
                            early_exit="foreground"),
 }
 PLAN_NAMES = ("auto", *PLANS)

@@ -100,11 +100,11 @@ class ExtractConfig:
             raise InputError(f"must be >= 0, got {self.unchanged_below}", field="unchanged_below")
         if self.cameras is not None:
             if not self.cameras:
-                raise InputError("names no camera", field="--cameras")
+                raise InputError("names no camera", field="cameras")
             bad = [c for c in self.cameras if c < 0 or (num_cameras is not None and c >= num_cameras)]
             if bad:
                 raise InputError(f"camera index {bad[0]} is out of range 0..{(num_cameras or 1) - 1}",
-                                 field="--cameras")
+                                 field="cameras")
         return self
 
     def knobs_dict(self) -> dict[str, Any]:

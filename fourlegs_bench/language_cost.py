@@ -402,7 +402,7 @@ def markdown(report: dict[str, Any]) -> str:
                      f"{p['reduction']:.1f}" if p else "", _fmt(p.get("hours"), 1),
                      _fmt(p.get("gpu_hours_derived"), 1)]
             cells += [f"{100 * r['metrics'][m]['mean']:.1f}" for m in metrics]
-            cells += [f"{-r['loss_points'][m]:+.1f}" if "loss_points" in r else "" for m in metrics]
+            cells += [f"{0.0 - r['loss_points'][m]:+.1f}" if "loss_points" in r else "" for m in metrics]
             lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

@@ -328,3 +328,18 @@ def test_the_panel_prices_the_field_through_the_api_before_building_it(micro, tm
     steps = list(api.language_field_steps(scene, plan=PLANS["full"].with_(timestep_stride=5)))
     assert steps[-1].stage.startswith("distil") and steps[-1].done == steps[-1].total == 10
     assert feature_store(load_bundle(scene.root)).config["timestep_stride"] == 5
+
+
+def test_bench_prices_rows_from_their_counted_clips():
+    """The bench's cost columns: the early exit's share over the timesteps that could copy, and a row's plan
+    on the 27-camera, 150-timestep rig scaled from its proxy's camera count."""
+    from fourlegs_bench.language_cost import exit_share_of, knob_rows, panoptic_hours
+
+    row = {"clips_copied": 300, "clips_encoded": 700, "timesteps_encoded": 5}   # 200 crops per timestep
+    assert exit_share_of(row) == pytest.approx(300 / (200 * 4))
+    assert exit_share_of({"clips_copied": 0, "clips_encoded": 10, "timesteps_encoded": 1}) == 0.0
+    names = [name for _, name, _ in knob_rows(12)]
+    assert names[0] == "full (paper)" and names[-1] == "default plan" and len(set(names)) == len(names)
+    plan = dataclasses.asdict(PLANS["full"].with_(cameras=6))
+    priced = panoptic_hours({"plan": plan, "scene": {"cameras": 12}}, clip_s=2.0, exit_share=0.0)
+    assert priced["expected"] == 572 * 14 * 150 and priced["hours"] == pytest.approx(572 * 14 * 150 * 2.0 / 3600)

@@ -156,7 +156,7 @@ class Features2D:
         with torch.no_grad():
             for grid in layout.scales:
                 if use_means:
-                    from fourlegs_engine.language.extract import crop_means
+                    from fourlegs_engine.language.frames import crop_means
                     means = crop_means(tube, grid)                               # (n, 8, C)
                     for s in range(0, means.shape[0], self.batch_size):
                         feats.append(enc.encode_coverage(means[s:s + self.batch_size]).float())

@@ -31,7 +31,7 @@ _LAZY = {
     "EncoderOptions": "pipeline", "FieldStep": "pipeline", "QueryOptions": "pipeline",
     "language_field_steps": "pipeline", "ensure_language_field": "pipeline",
     "has_language_field": "pipeline", "open_query_engine": "pipeline", "open_scene": "pipeline",
-    "text_encoder": "pipeline",
+    "plan_language_field": "pipeline", "text_encoder": "pipeline",
     "rasterize": "render",
     "rank_scenes_opening": "query.multiscene",
     "Camera": "scene", "Scene": "scene", "load_scene": "scene",
@@ -48,7 +48,8 @@ if TYPE_CHECKING:
                                 prepare_highlight_job)
     from .highlights import available_presets, load_preset, plan_highlight, plan_needs
     from .pipeline import (EncoderOptions, FieldStep, QueryOptions, ensure_language_field, has_language_field,
-                           language_field_steps, open_query_engine, open_scene, text_encoder)
+                           language_field_steps, open_query_engine, open_scene, plan_language_field,
+                           text_encoder)
     from .query.multiscene import rank_scenes_opening
     from .render import rasterize
     from .scene import Camera, Scene, load_scene
@@ -58,7 +59,7 @@ if TYPE_CHECKING:
 
 _lazy_attribute, __dir__, __all__ = lazy_exports(__name__, _LAZY, base=__package__)
 #: earlier names still used by add-on code being rewritten beside this change (addon/prepare.py)
-_RENAMED = {"EncoderConfig": "EncoderOptions"}
+_RENAMED = {"EncoderOptions": "EncoderOptions"}
 
 
 def __getattr__(name: str) -> Any:

@@ -27,13 +27,14 @@ from .errors import InputError
 from .query.options import QueryOptions
 
 if TYPE_CHECKING:
+    from .language.budget import PlanEstimate
     from .language.encoders import VideoTextEncoder
     from .query.engine import QueryEngine
     from .scene.scene import Scene
 
 __all__ = ["EncoderOptions", "FieldStep", "QueryOptions", "ensure_language_field", "has_language_field",
            "language_field_steps", "open_query_engine",
-           "open_scene", "text_encoder"]
+           "open_scene", "plan_language_field", "text_encoder"]
 
 #: a stage reporter: ``stage("extract features")`` returns a context manager around that stage
 StageReporter = Callable[[str], ContextManager[Any]]
@@ -140,14 +141,36 @@ def has_language_field(scene: "Scene") -> bool:
                 and (Path(scene.root) / str(scene.language.get("latents", ""))).is_file())
 
 
+def plan_language_field(scene: "Scene", encoder: Any = None, *, encoder_config: EncoderOptions = EncoderOptions(),
+                        plan: Any = "auto") -> "PlanEstimate":
+    """What building ``scene``'s language field will cost, before the work (a few seconds of calibration).
+
+    Returns a :class:`~fourlegs_engine.language.budget.PlanEstimate`: ``.lines()`` (the plan, clips, TFLOP,
+    the estimated time on the encoder's device), ``.seconds``, ``.within(budget_s)``, ``.plan`` (pass it on
+    to :func:`language_field_steps` / :func:`ensure_language_field`), ``.to_dict()``. ``plan``: "auto",
+    "default", "full" or an ``ExtractPlan``. The field itself is not touched."""
+    from .language.budget import estimate_plan
+
+    encoder = encoder if encoder is not None else text_encoder(scene, encoder_config)
+    return estimate_plan(scene, encoder, plan)
+
+
+def _plan_config(scene: "Scene", encoder: Any, plan: Any) -> Any:
+    """The extraction configuration of ``plan`` on ``scene`` (no calibration)."""
+    from .language.plans import resolve_plan
+    return resolve_plan(plan, encoder).extract_config(scene)
+
+
 def ensure_language_field(scene: "Scene", encoder: Any = None, *, encoder_config: EncoderOptions = EncoderOptions(),
                           mode: str = "lift", progress: bool = False,
-                          stage: Optional[StageReporter] = None) -> "Scene":
+                          stage: Optional[StageReporter] = None, plan: Any = "auto") -> "Scene":
     """Return ``scene`` with a distilled language field, building it first if the bundle has none.
 
     Building runs extract features -> train the autoencoder -> distil (``mode``, by default the
     learning-free lift); every stage resumes where it stopped. ``encoder`` (default: built from
     ``encoder_config``) is the video-text teacher. ``stage`` reports each stage (e.g. a timer).
+    ``plan`` is the extraction plan (:func:`plan_language_field` prices it; "auto": the cheap default plan
+    for ViCLIP, the full extraction for the simulated and annotation-mask encoders).
     """
     if scene.root is None:
         raise InputError("the scene must be a bundle on disk to hold its language field", field="scene")
@@ -164,7 +187,7 @@ def ensure_language_field(scene: "Scene", encoder: Any = None, *, encoder_config
         print(f"{scene.name}: no language field yet; extracting features, training the autoencoder and "
               f"distilling ({mode}) — once per scene", file=sys.stderr)
     with report("extract features"):
-        extract_features(scene, encoder, progress=progress)
+        extract_features(scene, encoder, _plan_config(scene, encoder, plan), progress=progress)
     if progress and hasattr(encoder, "evidence_line"):  # annotation masks: which views vote
         print(encoder.evidence_line(), file=sys.stderr)
     with report("train autoencoder"):
@@ -228,7 +251,7 @@ class FieldStep:
 
 
 def language_field_steps(scene: "Scene", encoder: Any = None, *, encoder_config: EncoderOptions = EncoderOptions(),
-                         mode: str = "lift") -> Iterator[FieldStep]:
+                         mode: str = "lift", plan: Any = "auto") -> Iterator[FieldStep]:
     """Build ``scene``'s language field one unit at a time, yielding a :class:`FieldStep` after each.
 
     The same stages as :func:`ensure_language_field`, each unit persisted before it is reported, so a
@@ -245,9 +268,10 @@ def language_field_steps(scene: "Scene", encoder: Any = None, *, encoder_config:
     if has_language_field(scene):
         return
     encoder = encoder if encoder is not None else text_encoder(scene, encoder_config)
+    config = _plan_config(scene, encoder, plan)
     T = scene.num_timesteps
     for t in range(T):
-        report = extract_features(scene, encoder, timesteps=[t])
+        report = extract_features(scene, encoder, config, timesteps=[t])
         yield FieldStep("extract features", t + 1, T)
     epochs = AETrainOptions().epochs
     for epoch in range(epochs):

@@ -294,7 +294,8 @@ def test_teacher_latents_at_reduced_resolution_and_strides(prepared):
 def test_rgb_encoder_path_with_a_tiny_viclip(tmp_path):
     """RGB frames -> 8-frame crop tubes -> resized, CLIP-normalized -> ViCLIP; then train-ae and lift."""
     from _viclip_helpers import randomize_, tiny_config, write_tiny_vocab
-    from fourlegs_engine.language.extract import FrameSource, feature_store
+    from fourlegs_engine.language.extract import feature_store
+    from fourlegs_engine.language.frames import FrameSource
     from fourlegs_engine.language.pyramid import crop_layout, resize_crops, scale_crops
     from fourlegs_engine.language.viclip import BPETokenizer, ViCLIPEncoder, ViCLIPModel
     torch.manual_seed(0)

@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from fourlegs_engine.errors import InputError
-from fourlegs_engine.language.extract import crop_means
+from fourlegs_engine.language.frames import crop_means
 from fourlegs_engine.language.pyramid import (CLIP_MEAN, crop_layout, interpolate_points,
                                               pixel_features, pyramid_ratios, resize_crops, scale_crops,
                                               tube_indices, upsample_to_pixels)

@@ -55,7 +55,9 @@ def test_language_field_stages_run_once_in_order_with_the_chosen_encoder(tmp_pat
     with pytest.raises(InputError, match="no distilled language field"):
         pipeline.open_query_engine(scene)
     calls: list[tuple] = []
-    monkeypatch.setattr(extract, "extract_features", lambda sc, enc, progress=False: calls.append(("extract", enc.name)))
+    # the simulated encoder's features cost next to nothing: the "auto" plan is the paper's full extraction
+    monkeypatch.setattr(extract, "extract_features", lambda sc, enc, config, progress=False: calls.append(
+        ("extract", enc.name, config.knobs_dict())))
     monkeypatch.setattr(autoencoder, "train_autoencoder", lambda sc, progress=False: calls.append(("train",)))
 
     def fake_distill(sc, mode="lift", progress=False, view_scale=1.0):
@@ -72,7 +74,7 @@ def test_language_field_stages_run_once_in_order_with_the_chosen_encoder(tmp_pat
         return nullcontext()
 
     built = pipeline.ensure_language_field(scene, stage=stage)
-    assert calls == [("extract", "simulated"), ("train",), ("distill", "lift", pipeline.FIELD_VIEW_SCALE)]
+    assert calls == [("extract", "simulated", {}), ("train",), ("distill", "lift", pipeline.FIELD_VIEW_SCALE)]
     assert stages == ["extract features", "train autoencoder", "distil (lift)"]
     assert built is not scene and pipeline.has_language_field(built)  # the bundle re-read with its field
     assert pipeline.ensure_language_field(built, stage=stage) is built and len(calls) == 3  # nothing rerun
@@ -88,7 +90,7 @@ def test_language_field_steps_report_each_unit_and_resume_after_a_stop(tmp_path,
     done = {"extract": set(), "epochs": 0, "distill": set()}
     calls: list[tuple] = []
 
-    def fake_extract(sc, enc, timesteps=None):
+    def fake_extract(sc, enc, config, timesteps=None):
         calls.append(("extract", tuple(timesteps)))
         done["extract"].update(timesteps)
 

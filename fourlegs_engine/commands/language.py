@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 from ..errors import InputError
 from .options import add_demo_argument, add_ray_arguments, ray_options_from_args
+from .plan_options import plan_and_check
 
 if TYPE_CHECKING:
     from ..language.distill import DistillOptions, DistillResult
@@ -25,6 +26,7 @@ if TYPE_CHECKING:
 # ------------------------------------------------------------------------------------ parsers
 def register(subparsers: Any) -> None:
     from .options import add_encoder_arguments
+    from .plan_options import add_plan_arguments
 
     p = subparsers.add_parser(
         "extract", help="teacher features: crop-pyramid video-text encodings per timestep",
@@ -44,6 +46,7 @@ def register(subparsers: Any) -> None:
                    help="render frames at this fraction of the resolution, upsampled before cropping "
                         "(speed knob; default 1)")
     _split_arguments(p)
+    add_plan_arguments(p)
     p.add_argument("--check", action="store_true", help="only report finished, missing and unreadable timesteps")
     add_ray_arguments(p)
     p.set_defaults(func=run_extract)
@@ -83,6 +86,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--frame-scale", type=float, default=1.0,
                    help="extract: render frames at this fraction of the resolution (default 1)")
+    add_plan_arguments(p)
     add_ray_arguments(p)
     p.set_defaults(func=run_language)
 
@@ -213,17 +217,23 @@ def run_extract(args: argparse.Namespace) -> int:
         raise InputError(f"must be >= 1, got {args.batch_size}", field="--batch-size")
     config = ExtractOptions(ratios=_ratios(args.ratios, args.steps), crop_size=_crop_size(args.crop_size),
                            batch_size=args.batch_size, frame_scale=args.frame_scale)
+    encoder = _encoder(args, scene)
+    config, go = plan_and_check(args, scene, encoder, config, timesteps=args.timesteps, shard=args.shard)
+    if not go:
+        return 0
     if args.ray is not None:
         report = extract_with_ray(args, scene, functools.partial(_encoder, args), config, timesteps=args.timesteps,
                              shard=args.shard)
     else:
-        encoder = _encoder(args, scene)
         report = extract_features(scene, encoder, config, timesteps=args.timesteps, shard=args.shard,
                                   overwrite=args.overwrite, progress=not args.no_progress)
         _print_evidence(encoder, scene, config.split)
-    print(f"extract: {len(report.timesteps_done)} timestep(s) encoded, {len(report.timesteps_skipped)} already "
-          f"done, {report.seconds:.1f} s (render {report.render_seconds:.1f} s, encoder "
-          f"{report.encode_seconds:.1f} s), {report.crops_per_timestep} crops per timestep")
+    filled = f", {len(report.timesteps_filled)} filled" if report.timesteps_filled else ""
+    copied = f", {report.clips_copied} copied by the early exit" if report.clips_copied else ""
+    print(f"extract: {len(report.timesteps_done)} timestep(s) encoded{filled}, {len(report.timesteps_skipped)} "
+          f"already done, {report.seconds:.1f} s (render {report.render_seconds:.1f} s, encoder "
+          f"{report.encode_seconds:.1f} s), {report.clips_encoded} clips encoded{copied}, "
+          f"{report.crops_per_timestep} crops per timestep")
     return 0
 
 
@@ -277,11 +287,13 @@ def run_language(args: argparse.Namespace) -> int:
     progress = not args.no_progress
     t0 = time.perf_counter()
     encoder = _encoder(args, scene)
+    config, go = plan_and_check(args, scene, encoder, ExtractOptions(frame_scale=args.frame_scale))
+    if not go:
+        return 0
     if args.ray is not None:
-        rep = extract_with_ray(args, scene, functools.partial(_encoder, args), ExtractOptions(frame_scale=args.frame_scale))
+        rep = extract_with_ray(args, scene, functools.partial(_encoder, args), config)
     else:
-        rep = extract_features(scene, encoder, ExtractOptions(frame_scale=args.frame_scale),
-                               overwrite=args.overwrite, progress=progress)
+        rep = extract_features(scene, encoder, config, overwrite=args.overwrite, progress=progress)
     _print_evidence(encoder, scene)
     t1 = time.perf_counter()
     ae = train_autoencoder(scene, _ae_options(args), overwrite=args.overwrite, progress=progress)

@@ -1,7 +1,8 @@
 """Crop pyramid geometry and the per-pixel interpolation of crop features (paper §3.1, eq. 1-2).
 
 For each scale ``r`` the crop side is ``k = floor(r * H)`` pixels, crops are laid on a sliding window
-with stride ``s = floor(k / 2)`` over the image zero-padded by ``p = k // 2`` on every side. Crop
+with stride ``s = floor(k / 2)`` (the paper's; ``stride_fraction`` f gives ``s = floor(f * k)``) over the
+image zero-padded by ``p = k // 2`` on every side. Crop
 ``(iy, ix)`` covers pixel rows ``iy*s - p .. iy*s - p + k - 1`` (columns likewise), so its centre sits
 at pixel-index coordinate ``c0 + s*i`` with ``c0 = (k - 1)/2 - p``. At 640x360 with ratios
 0.15..0.6 in 5 steps this gives 336 + 112 + 60 + 40 + 24 = 572 crops per camera.
@@ -23,6 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import InputError
+from .plans import PAPER_CROP_STRIDE as DEFAULT_STRIDE_FRACTION
 
 DEFAULT_RATIOS = (0.15, 0.6)
 DEFAULT_STEPS = 5
@@ -96,10 +98,14 @@ class PyramidLayout:
                             "nx": s.nx, "ny": s.ny} for s in self.scales]}
 
 
-def crop_layout(width: int, height: int, ratios: Sequence[float]) -> PyramidLayout:
-    """The crop pyramid of a ``width`` x ``height`` image for the given ratios."""
+def crop_layout(width: int, height: int, ratios: Sequence[float],
+                stride_fraction: float = DEFAULT_STRIDE_FRACTION) -> PyramidLayout:
+    """The crop pyramid of a ``width`` x ``height`` image for the given ratios; neighbouring crops of a
+    scale are ``floor(stride_fraction * k)`` pixels apart (0.5: the paper's half-crop overlap)."""
     if width < 1 or height < 1:
         raise InputError(f"image size must be positive, got {width}x{height}", field="image size")
+    if not 0 < stride_fraction <= 1:
+        raise InputError(f"must be in (0, 1], got {stride_fraction}", field="crop stride")
     scales = []
     offset = 0
     for r in ratios:
@@ -107,7 +113,7 @@ def crop_layout(width: int, height: int, ratios: Sequence[float]) -> PyramidLayo
         if kernel < 2:
             raise InputError(f"crop ratio {r} gives a crop of {kernel} px on a {height} px high image",
                              field="ratios")
-        stride = max(1, kernel // 2)
+        stride = max(1, int(math.floor(stride_fraction * kernel + 1e-9)))
         padding = kernel // 2
         nx = (width + 2 * padding - kernel) // stride + 1
         ny = (height + 2 * padding - kernel) // stride + 1

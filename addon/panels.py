@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import importer, operators, plots, preferences, prepare, render_engine
+from . import importer, plots, preferences, prepare, query_ops, render_engine
 
 
 class FOURLEGS_PT_main(bpy.types.Panel):
@@ -68,7 +68,7 @@ class FOURLEGS_PT_query(_SidebarSubPanel, bpy.types.Panel):
             row.operator("fourlegs.cancel_query", text="", icon="CANCEL")
         else:
             layout.operator("fourlegs.run_query", icon="VIEWZOOM")
-            if len(operators.imported_splat_objects()) > 1:
+            if len(query_ops.imported_splat_objects()) > 1:
                 layout.operator("fourlegs.find_best_scene", icon="SORTSIZE")
             if props.status:
                 layout.label(text=props.status)

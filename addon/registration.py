@@ -3,13 +3,12 @@ from __future__ import annotations
 
 import bpy
 
-from . import importer, operators, panels, preferences, prepare, properties, render_engine
+from . import importer, jobs, operators, panels, preferences, properties, render_engine
 
 classes = (
     *preferences.classes,
     *properties.classes,
     *operators.classes,
-    *prepare.classes,
     *panels.ui_lists,
     *panels.classes,
     *render_engine.classes,
@@ -26,8 +25,7 @@ def register() -> None:
 
 
 def unregister() -> None:
-    operators.cancel_all()
-    prepare.cancel_all()
+    jobs.cancel_all()
     preferences.unregister()
     importer.unregister()
     render_engine.unregister()

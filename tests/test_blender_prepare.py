@@ -11,7 +11,7 @@ pytestmark = pytest.mark.blender
 def test_prepare_field_reports_stages_cancels_between_steps_and_resumes(bl, tmp_path, monkeypatch):
     from fourlegs_engine import api
     from fourlegs_engine.scene import write_bundle
-    from fourlegs_addon import importer, prepare
+    from fourlegs_addon import importer, jobs, prepare
 
     bundle = tmp_path / "bundle"
     write_bundle(tiny_scene(T=3, N=64), bundle)
@@ -29,9 +29,9 @@ def test_prepare_field_reports_stages_cancels_between_steps_and_resumes(bl, tmp_
                     continue
                 finished.append((stage, done))
                 yield api.FieldStep(stage, done, total)
-                seen_progress.append(prepare._JOBS[0].progress)
+                seen_progress.append(jobs.active()[0].progress)
                 if len(finished) == 4:
-                    prepare.cancel_all()  # Esc / the Cancel button while the 5th unit runs: it ends, then stop
+                    jobs.cancel_all()  # Esc / the Cancel button while the 5th unit runs: it ends, then stop
 
     monkeypatch.setattr(api, "language_field_steps", fake_steps, raising=False)
     assert bl.ops.fourlegs.prepare_field() == {"CANCELLED"}

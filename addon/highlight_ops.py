@@ -10,7 +10,8 @@ import bpy
 import numpy as np
 from bpy.props import StringProperty
 
-from . import compositor, importer, jobs, keyframes, planning, plots, querying, render_engine, video
+from . import (compositor, importer, jobs, keyframes, native_render, native_splats, planning, plots, querying,
+               relevancy_store, render_engine, video)
 from .messages import error_line
 from .query_ops import fill_segments, localizer_for, splat_object
 
@@ -27,20 +28,68 @@ def disabled_effects(props) -> list[str]:
 
 
 def generate_highlight(bl_scene, plan: dict[str, Any]) -> bpy.types.Object:
-    """Turn a plan dict into Blender data (camera keys, scene-time keys, timeline, passes, compositor)."""
+    """Turn a plan dict into Blender data (camera keys, scene-time keys, timeline, passes, compositor).
+
+    The renderer is the panel's choice (``scene.fourlegs.renderer``): EEVEE or Cycles with their own
+    relevancy mask on Blender 5.3+ (:mod:`.native_render`), else the 4-LEGS Splats engine.
+    """
     cam = keyframes.apply_plan(bl_scene, plan)
     text = bpy.data.texts.get(render_engine.PLAN_TEXT_NAME) or bpy.data.texts.new(render_engine.PLAN_TEXT_NAME)
     text.clear()
     text.write(json.dumps(plan, indent=1))
     text[keyframes.GENERATED_KEY] = True
-    bl_scene.render.engine = render_engine.ENGINE_ID
     importer.use_standard_view(bl_scene)
-    rel = bool((plan.get("passes") or {}).get("relevancy"))
+    passes = plan.get("passes") or {}
+    rel, depth = bool(passes.get("relevancy")), bool(passes.get("depth"))
+    store_relevancy(bl_scene, plan)
+    if native_renderer(bl_scene):
+        if bl_scene.render.engine not in native_render.NATIVE_ENGINES:
+            bl_scene.render.engine = "BLENDER_EEVEE"
+        layer = native_render.setup(bl_scene, rel and bool(plan.get("desaturate")))
+        for view_layer in bl_scene.view_layers:
+            view_layer.use_pass_z = depth and view_layer != layer
+        compositor.build_compositor(bl_scene, plan, mask_layer=layer.name if layer is not None else None)
+        return cam
+    bl_scene.render.engine = render_engine.ENGINE_ID
+    native_render.setup(bl_scene, False)
     for view_layer in bl_scene.view_layers:
-        view_layer.use_pass_z = bool((plan.get("passes") or {}).get("depth"))
+        view_layer.use_pass_z = depth
         view_layer.fourlegs_relevancy = rel
     compositor.build_compositor(bl_scene, plan)
     return cam
+
+
+def native_renderer(bl_scene) -> bool:
+    """Whether the highlight renders with EEVEE/Cycles (Blender 5.3+ and the panel's choice)."""
+    return native_splats.available() and bl_scene.fourlegs.renderer == "NATIVE"
+
+
+def desaturated_timesteps(bl_scene, plan: dict[str, Any]) -> list[int]:
+    """The scene timesteps (rounded) shown on frames whose relevancy the highlight uses."""
+    frames = {f for f, w in compositor.frame_weights(plan).items() if w > 0.0}
+    for a, b in (plan.get("passes") or {}).get("relevancy") or []:
+        frames.update(range(int(a), int(b) + 1))
+    curve = keyframes.find_fcurve(bl_scene, keyframes.TIMESTEP_PATH)
+    if curve is None:
+        return sorted({int(round(float(bl_scene.fourlegs.timestep)))} if frames else set())
+    return sorted({int(round(curve.evaluate(f))) for f in frames})
+
+
+def store_relevancy(bl_scene, plan: dict[str, Any]) -> int:
+    """Store the relevancy of the desaturated timesteps beside the scene's field (:mod:`.relevancy_store`)
+    when this Blender can evaluate it (a query engine is the splat object's provider), so EEVEE and
+    Cycles render the mask later without PyTorch. Returns how many timesteps were written."""
+    obj = bl_scene.fourlegs.splat_object
+    query = plan.get("query")
+    if obj is None or not query or importer.relevancy_provider(obj) is None:
+        return 0
+    scene = importer.engine_scene_for(obj)
+    if relevancy_store.store_dir(scene, query) is None:
+        return 0
+    last = scene.num_timesteps - 1
+    steps = [min(max(t, 0), last) for t in desaturated_timesteps(bl_scene, plan)]
+    # through the object's cache: the 4-LEGS render of these timesteps reuses what is computed here
+    return relevancy_store.store_timesteps(scene, query, lambda t: importer.gaussian_relevancy(obj, t), steps)
 
 
 def fill_from_plan(bl_scene, plan: dict[str, Any], output: Optional[str] = None, fmt: Optional[str] = None) -> None:

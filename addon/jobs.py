@@ -115,6 +115,12 @@ class JobOperator:
             threading.Event().wait(0.05)
         return self._job_ended(context)
 
+    def refuse(self, context, problem: str) -> set[str]:
+        """Do not start: ``problem`` (one line) in the panel's status and the operator's report."""
+        context.scene.fourlegs.status = f"error: {problem}"
+        self.report({"ERROR"}, f"4-LEGS {self.job_label}: {problem}")
+        return {"CANCELLED"}
+
     def modal(self, context, event):
         job = self._job
         if event.type == "ESC":

@@ -13,6 +13,7 @@ from typing import Any
 import bpy
 
 from . import importer, jobs, querying
+from .messages import missing_for
 
 #: stage name prefix -> index, for one progress bar over the three stages
 STAGES = ("extract features", "train autoencoder", "distil")
@@ -49,9 +50,9 @@ def has_field(obj) -> bool:
 
     try:
         scene = importer.engine_scene_for(obj)
-    except Exception:
+        return scene is not None and api.has_language_field(scene)
+    except Exception:  # cannot be opened, or PyTorch is missing (the panel says so on its own line)
         return False
-    return scene is not None and api.has_language_field(scene)
 
 
 class FOURLEGS_OT_prepare_field(jobs.JobOperator, bpy.types.Operator):
@@ -75,8 +76,10 @@ class FOURLEGS_OT_prepare_field(jobs.JobOperator, bpy.types.Operator):
         props = context.scene.fourlegs
         key = importer.source_key(props.splat_object)
         if key.startswith("memory:"):
-            self.report({"ERROR"}, "4-LEGS: the scene was not imported from a file; it cannot hold a language field")
-            return {"CANCELLED"}
+            return self.refuse(context, "the scene was not imported from a file; it cannot hold a language field")
+        problem = missing_for(("torch",))
+        if problem is not None:
+            return self.refuse(context, problem)
         return self.start_job(context, PrepareJob(key, querying.encoder_config(props)), "fourlegs-prepare",
                               "preparing the language field")
 

@@ -12,7 +12,7 @@ import numpy as np
 from bpy.props import BoolProperty
 
 from . import importer, jobs, planning, plots, querying
-from .messages import error_line
+from .messages import error_line, missing_for
 
 ALL_NEEDS = {"temporal", "best_view", "action_centre"}
 RELEVANCE_KEY = "fourlegs_scene_relevance"
@@ -64,8 +64,16 @@ class QueryJob(jobs.Job):
         self.stage = f"opening the query engine: {stage}"
 
     def work(self) -> None:
+        from fourlegs_engine import api
+
         self.stage, self.progress = "opening the query engine", 0.0
-        self.engine = querying.open_query_engine(self.scene, encoder=self.encoder, progress=self.on_open_progress)
+        try:
+            self.engine = querying.open_query_engine(self.scene, encoder=self.encoder, progress=self.on_open_progress)
+        except api.InputError:
+            problem = field_problem(self.scene)
+            if problem is None:
+                raise
+            raise RuntimeError(problem) from None
         if self.cancelled:
             return
         self.stage, self.progress = "localizing in time and space", 0.2
@@ -96,10 +104,13 @@ class FOURLEGS_OT_run_query(jobs.JobOperator, bpy.types.Operator):
     def invoke(self, context, event):
         props = context.scene.fourlegs
         try:
-            scene = importer.engine_scene_for(splat_object(context))
+            problem = missing_for(("torch",))
+            if problem is None:
+                scene = importer.engine_scene_for(splat_object(context))
         except Exception as exc:
-            self.report({"ERROR"}, f"4-LEGS query: {error_line(exc)}")
-            return {"CANCELLED"}
+            problem = error_line(exc)
+        if problem is not None:
+            return self.refuse(context, problem)
         return self.start_job(context, QueryJob(scene, props.query.strip(), querying.encoder_config(props)),
                               "fourlegs-query", "starting")
 
@@ -113,6 +124,16 @@ class FOURLEGS_OT_run_query(jobs.JobOperator, bpy.types.Operator):
                     f"4-LEGS: {job.query!r} " + (f"found at timesteps {props.segment_start}-{props.segment_end}"
                                                  if props.found else "was not found"))
         return {"FINISHED"}
+
+
+def field_problem(scene: Any) -> Optional[str]:
+    """Why ``scene`` cannot be queried yet (no language field: press Prepare), or None."""
+    from fourlegs_engine import api
+
+    if scene is not None and not api.has_language_field(scene):
+        return ("the scene has no distilled language field yet: press Prepare Language Field (4-LEGS panel, "
+                "Query) first; it runs in the background and resumes where it stopped")
+    return None
 
 
 def fill_segments(props, segments, scores, chosen) -> None:
@@ -209,11 +230,13 @@ class FOURLEGS_OT_find_best_scene(jobs.JobOperator, bpy.types.Operator):
 
     def invoke(self, context, event):
         props = context.scene.fourlegs
+        problem = missing_for(("torch",))
+        if problem is not None:
+            return self.refuse(context, problem)
         try:
             scenes = {obj.name: importer.engine_scene_for(obj) for obj in imported_splat_objects()}
         except Exception as exc:
-            self.report({"ERROR"}, f"4-LEGS Find Best Scene: {error_line(exc)}")
-            return {"CANCELLED"}
+            return self.refuse(context, error_line(exc))
         return self.start_job(context, RankJob(scenes, props.query.strip(), querying.encoder_config(props)),
                               "fourlegs-rank", "ranking scenes")
 

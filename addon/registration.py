@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import importer, jobs, operators, panels, preferences, properties, render_engine
+from . import importer, jobs, native_render, operators, panels, preferences, properties, render_engine
 
 classes = (
     *preferences.classes,
@@ -22,11 +22,13 @@ def register() -> None:
     properties.register()
     render_engine.register()
     importer.register()
+    native_render.register()
 
 
 def unregister() -> None:
     jobs.cancel_all()
     preferences.unregister()
+    native_render.unregister()
     importer.unregister()
     render_engine.unregister()
     properties.unregister()

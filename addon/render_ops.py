@@ -7,7 +7,17 @@ from typing import Optional
 import bpy
 
 from . import jobs, render_engine, video
-from .messages import error_line
+from .messages import error_line, missing_for
+
+
+def output_path(scene) -> str:
+    """The panel's output as an absolute path: ``//`` is the .blend's folder; an unsaved file has none,
+    so a relative output is refused rather than written into whatever the working directory is."""
+    path = scene.fourlegs.output_path
+    if path.startswith("//") and not bpy.data.filepath:
+        raise ValueError(f"the output {path} is relative to the .blend, which is not saved yet: save the file "
+                         "or choose an absolute output path")
+    return bpy.path.abspath(path)
 
 
 class FOURLEGS_OT_render_video(bpy.types.Operator):
@@ -37,11 +47,18 @@ class FOURLEGS_OT_render_video(bpy.types.Operator):
         if render_engine.plan_of(context.scene) is None:
             self.report({"ERROR"}, "4-LEGS Render Video: no highlight in this scene; run Generate Highlight first")
             return {"CANCELLED"}
+        problem = missing_for(("torch",)) if context.scene.render.engine == render_engine.ENGINE_ID else None
         try:
-            self._job = video.RenderJob(context.scene, props.output_path, fmt=props.output_format,
-                                        overwrite=props.overwrite)
+            if problem is None:
+                self._job = video.RenderJob(context.scene, output_path(context.scene), fmt=props.output_format,
+                                            overwrite=props.overwrite)
+        except video.OutputExists as exc:
+            problem = f"{exc.path} already exists; tick Overwrite (4-LEGS panel, Render) to replace it"
         except Exception as exc:
-            self.report({"ERROR"}, f"4-LEGS Render Video: {error_line(exc)}")
+            problem = error_line(exc)
+        if problem is not None:
+            props.status = f"error: {problem}"
+            self.report({"ERROR"}, f"4-LEGS Render Video: {problem}")
             return {"CANCELLED"}
         self._ticket = jobs.track(jobs.Cancellable())
         props.running, props.progress, props.status = True, 0.0, f"rendering frame 1/{self._job.total}"

@@ -30,7 +30,7 @@ _LAZY = {
     "language_field_steps": "pipeline", "ensure_language_field": "pipeline",
     "has_language_field": "pipeline", "open_query_engine": "pipeline", "open_scene": "pipeline",
     "text_encoder": "pipeline",
-    "rasterize": "render",
+    "rasterize": "render", "eval_sh": "render.sh",
     "rank_scenes_opening": "query.multiscene",
     "Camera": "scene", "Scene": "scene", "load_scene": "scene",
     "release_mapped_pages": "scene.gaussians",
@@ -49,6 +49,7 @@ if TYPE_CHECKING:
                            language_field_steps, open_query_engine, open_scene, text_encoder)
     from .query.multiscene import rank_scenes_opening
     from .render import rasterize
+    from .render.sh import eval_sh
     from .scene import Camera, Scene, load_scene
     from .scene.gaussians import release_mapped_pages
     from .threads import kernel_threads, torch_threads, usable_cpu_count
@@ -71,7 +72,7 @@ def __dir__() -> list[str]:
 __all__ = ["Cancelled", "Camera", "EncoderConfig", "FieldStep", "FourlegsError", "HighlightJobOptions", "InputError",
            "OUTPUTS_MARKER", "OutputExistsError", "QueryOptions", "Scene", "StageTimer", "atomic_path",
            "available_presets", "check_text", "claim_outputs", "describe_environment_error",
-           "ensure_language_field", "finish_highlight_job", "has_language_field", "image_file_problem",
+           "ensure_language_field", "eval_sh", "finish_highlight_job", "has_language_field", "image_file_problem",
            "incomplete_write_error", "kernel_threads", "language_field_steps", "load_preset", "load_scene",
            "open_query_engine", "open_scene", "plan_digest", "plan_highlight", "plan_needs",
            "prepare_highlight_job", "print_error", "rank_scenes_opening", "rasterize", "release_mapped_pages", "text_encoder",

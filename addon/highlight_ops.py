@@ -118,6 +118,14 @@ def fill_from_plan(bl_scene, plan: dict[str, Any], output: Optional[str] = None,
         video.configure_output(bl_scene, fmt)
 
 
+def picked_segment(props) -> Optional[tuple[int, int]]:
+    """The segment picked in the panel's list (None when none is picked)."""
+    if 0 <= props.segment_index < len(props.segments):
+        item = props.segments[props.segment_index]
+        return int(item.start), int(item.end)
+    return None
+
+
 class FOURLEGS_OT_generate_highlight(bpy.types.Operator):
     """Plan the highlight shots for the query and create the camera animation, scene-time keys and compositor setup"""
 
@@ -161,7 +169,7 @@ class FOURLEGS_OT_generate_highlight(bpy.types.Operator):
             return json.loads(Path(bpy.path.abspath(self.plan_file)).read_text(encoding="utf-8"))
         obj = splat_object(context)
         scene = importer.engine_scene_for(obj)
-        localizer = localizer_for(obj)
+        localizer = localizer_for(obj, props)
         query = props.query.strip()
         if (localizer is None or localizer.query != query) and jobs.interactive():
             # localizing takes tens of seconds: run it in the background instead of freezing the UI
@@ -175,6 +183,9 @@ class FOURLEGS_OT_generate_highlight(bpy.types.Operator):
         if localizer is None or localizer.query != query:
             localizer = planning.CachedLocalizer(
                 querying.open_query_engine(scene, encoder=querying.encoder_config(props)), query)
+        picked = picked_segment(props)
+        if picked is not None:
+            localizer = planning.PickedSegmentLocalizer(localizer, picked)
         return planning.make_plan(scene, localizer, query, props.preset, disabled_effects=disabled_effects(props))
 
 

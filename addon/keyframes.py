@@ -365,12 +365,15 @@ def _rig_orbits(scene: bpy.types.Scene, plan: dict[str, Any], cam: bpy.types.Obj
     from . import rig
 
     centre = (plan.get("localization") or {}).get("action_centre")
+    up = (plan.get("localization") or {}).get("up")
     shots = sorted(plan["shots"], key=lambda s: int(s["frame_start"]))
     cameras = []
     for shot in shots:
+        first = min(shot["camera_keys"], key=lambda k: int(k["frame"])) if shot["camera_keys"] else None
         if rig.can_rig(shot, centre):
-            first = min(shot["camera_keys"], key=lambda k: int(k["frame"]))
             cameras.append(rig.build_orbit_rig(scene, shot, centre, key_lens_mm(first, width), sensor, GENERATED_KEY))
+        elif rig.can_rig_framed(shot, up):
+            cameras.append(rig.build_framed_orbit_rig(scene, shot, key_lens_mm(first, width), sensor, GENERATED_KEY))
         else:
             cameras.append(cam)
     if any(c is not cam for c in cameras):

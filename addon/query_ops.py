@@ -5,6 +5,7 @@ per imported scene (:func:`localizer_for`) so Generate Highlight plans without l
 """
 from __future__ import annotations
 
+import json
 from typing import Any, Optional
 
 import bpy
@@ -27,8 +28,30 @@ def splat_object(context) -> Optional[bpy.types.Object]:
     return obj if obj is not None and importer.source_key(obj) else None
 
 
-def localizer_for(obj: bpy.types.Object) -> Optional[planning.CachedLocalizer]:
-    return _LOCALIZERS.get(importer.source_key(obj) or "")
+LOCALIZATION_KEY = "fourlegs_localization"  # object property: Run Query's localization (JSON), kept in the .blend
+
+
+def localizer_for(obj: bpy.types.Object, props: Any = None) -> Optional[planning.CachedLocalizer]:
+    """The localization Run Query made for ``obj``: this session's, else the one saved in the .blend (its
+    query engine opened only if the planner needs more than it holds)."""
+    key = importer.source_key(obj) or ""
+    if key in _LOCALIZERS:
+        return _LOCALIZERS[key]
+    stored = obj.get(LOCALIZATION_KEY) if obj is not None else None
+    if not stored:
+        return None
+    try:
+        data = json.loads(stored)
+        localization = planning.localization_from_dict(data["localization"])
+    except (ValueError, KeyError, TypeError):
+        return None
+    encoder = querying.encoder_config(props) if props is not None else None
+
+    def open_engine():
+        return querying.open_query_engine(importer.engine_scene_for(obj), encoder=encoder)
+
+    _LOCALIZERS[key] = planning.CachedLocalizer(open_engine, data["query"], localization, data.get("need", ALL_NEEDS))
+    return _LOCALIZERS[key]
 
 
 def _cancelled_error():
@@ -166,6 +189,8 @@ def store_results(bl_scene, obj, engine: Any, query: str, localization: Any,
         plots.scores_image(np.asarray(temporal.scores, np.float64), np.asarray(temporal.positive, bool),
                            seg, props.peak if props.found else None)
     _LOCALIZERS[importer.source_key(obj)] = planning.CachedLocalizer(engine, query, localization, ALL_NEEDS)
+    obj[LOCALIZATION_KEY] = json.dumps({"query": query, "need": sorted(ALL_NEEDS),
+                                        "localization": localization.to_dict()})
     importer.set_relevancy_provider(obj, lambda t, e=engine, q=query: e.gaussian_relevancy(q, t).numpy())
     if peak_relevancy is not None:
         importer.set_relevancy(obj, peak_relevancy, show=True)

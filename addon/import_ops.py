@@ -60,4 +60,34 @@ class FOURLEGS_OT_import_scene(bpy.types.Operator, ImportHelper):
         return sorted(extra)
 
 
-classes = (FOURLEGS_OT_import_scene,)
+class FOURLEGS_OT_relink_scene(bpy.types.Operator, ImportHelper):
+    """Point the panel's splat object at its scene's new place (a moved or copied project)"""
+
+    bl_idname = "fourlegs.relink_scene"
+    bl_label = "Relink Scene"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filter_glob: StringProperty(default="*.json;*.npz;*.ply", options={"HIDDEN"})
+
+    @classmethod
+    def poll(cls, context):
+        obj = context.scene.fourlegs.splat_object
+        return obj is not None and bool(importer.source_key(obj))
+
+    def execute(self, context):
+        path = Path(bpy.path.abspath(self.filepath))
+        if path.is_file() and path.name in ("scene.json", "params.npz"):
+            path = path.parent
+        obj = context.scene.fourlegs.splat_object
+        try:
+            importer.relink(obj, path)
+        except Exception as exc:
+            self.report({"ERROR"}, f"4-LEGS Relink Scene: {error_line(exc)}")
+            return {"CANCELLED"}
+        context.scene.fourlegs.source_path = importer.source_key(obj)
+        importer.update_scene_objects(context.scene)
+        self.report({"INFO"}, f"4-LEGS: {obj.name} now shows {importer.source_key(obj)}")
+        return {"FINISHED"}
+
+
+classes = (FOURLEGS_OT_import_scene, FOURLEGS_OT_relink_scene)

@@ -64,19 +64,47 @@ def stored_path(path: str | Path) -> str:
 
 
 def relative_sources(blend_dir: str | Path) -> None:
-    """Store every splat object's scene path relative to ``blend_dir`` (``//...``), for a .blend about to
-    be saved there (a file that is not saved yet has no ``//``)."""
+    """Store every path the file holds relative to ``blend_dir`` (``//...``), for a .blend about to be saved
+    there: the splat objects' scenes and each scene's video output, so the project folder can move (a
+    file that is not saved yet has no ``//``)."""
     for obj in bpy.data.objects:
         key = source_key(obj)
         if not key or key.startswith(("memory:", "//")):
             continue
-        try:
-            rel = bpy.path.relpath(key, start=str(blend_dir))
-        except ValueError:  # another drive (Windows)
-            continue
-        if key in _SCENES:
+        rel = _relative(key, blend_dir)
+        if rel != key and key in _SCENES:
             _SCENES[rel] = _SCENES[key]
         obj[SOURCE_KEY] = rel
+    for bl_scene in bpy.data.scenes:
+        props = getattr(bl_scene, "fourlegs", None)
+        if props is not None and props.output_path:
+            props.output_path = _relative(props.output_path, blend_dir)
+        if bl_scene.render.filepath:
+            bl_scene.render.filepath = _relative(bl_scene.render.filepath, blend_dir)
+
+
+def _relative(path: str, blend_dir: str | Path) -> str:
+    """``path`` as ``//...`` relative to ``blend_dir`` (already relative or on another drive: unchanged)."""
+    if path.startswith("//"):
+        return path
+    try:
+        return bpy.path.relpath(str(Path(path).resolve()), start=str(blend_dir))
+    except ValueError:  # another drive (Windows)
+        return path
+
+
+def relink(obj: bpy.types.Object, path: str | Path) -> Any:
+    """Point ``obj`` at the scene at ``path`` (a moved bundle or PLY), checking it holds as many Gaussians
+    as the object was made from; returns the engine scene."""
+    scene = load_engine_scene(path)
+    expected = int(obj.get("fourlegs_num_gaussians", scene.num_gaussians))
+    if scene.num_gaussians != expected:
+        raise ValueError(f"{path}: holds {scene.num_gaussians} Gaussians, the object was made from {expected}")
+    old = source_key(obj)
+    adopt_scene(obj, scene, str(Path(bpy.path.abspath(str(path))).resolve()))
+    _MISSING.pop(old or "", None)
+    obj["fourlegs_shown_timestep"] = -1.0  # show the scene time again from the relinked scene
+    return scene
 
 
 def missing_message(obj: bpy.types.Object) -> str:
@@ -148,6 +176,7 @@ def import_scene(context_scene: bpy.types.Scene, scene: Any, *, source: str | No
         mesh_splats.finish_object(obj, name)
     obj[SOURCE_KEY] = key
     obj["fourlegs_num_timesteps"] = g.num_timesteps
+    obj["fourlegs_num_gaussians"] = g.num_gaussians
     obj["fourlegs_shown_timestep"] = 0.0
     collection.objects.link(obj)
 

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import bpy
 
-from . import importer, jobs, native_render, operators, panels, preferences, properties, render_engine
+from . import (importer, jobs, native_render, operators, panels, preferences, properties, render_engine,
+               retime)
 
 classes = (
     *preferences.classes,
@@ -23,12 +24,14 @@ def register() -> None:
     render_engine.register()
     importer.register()
     native_render.register()
+    retime.register()
 
 
 def unregister() -> None:
     jobs.cancel_all()
     preferences.unregister()
     native_render.unregister()
+    retime.unregister()
     importer.unregister()
     render_engine.unregister()
     properties.unregister()

@@ -85,14 +85,18 @@ def stored_provider(scene: Any, query: str) -> Optional[Callable[[int], np.ndarr
 
 def relevancy_for(bl_scene: Any, obj: Any, scene: Any, t: int, query: Optional[str]) -> Optional[np.ndarray]:
     """(N,) relevancy of timestep ``t`` for the splat object ``obj`` showing ``scene``: its provider, else the
-    stored files of ``query``, else a query engine opened now (needs PyTorch); None without a query."""
+    stored files of ``query``, else a query engine opened now; None without a query, or with nothing
+    stored and no PyTorch."""
     from . import importer, querying
+    from .messages import missing_for
 
     rel = importer.gaussian_relevancy(obj, t)
     if rel is not None or not query:
         return rel
     provider = stored_provider(scene, query)
     if provider is None:
+        if missing_for(("torch",)) is not None:
+            return None  # nothing stored and no PyTorch to evaluate the field: no relevancy here
         engine = querying.open_query_engine(scene, encoder=querying.encoder_config(bl_scene.fourlegs))
         provider = lambda t, e=engine, q=query: e.gaussian_relevancy(q, t).numpy()  # noqa: E731
     importer.set_relevancy_provider(obj, provider)

@@ -171,6 +171,25 @@ def _sh_colours(sh: np.ndarray, means: np.ndarray, camera: Any) -> np.ndarray:
     return rgb.clamp(0.0, 1.0).numpy().astype(np.float32)
 
 
+GEOMETRY_TYPES = ("MESH", "CURVE", "CURVES", "SURFACE", "META", "FONT", "VOLUME", "GREASEPENCIL")
+
+
+def undrawn_objects(scene: bpy.types.Scene) -> list[str]:
+    """Visible objects this engine does not draw (everything but the splats: meshes, text, curves, ...)."""
+    splats = set(importer.splat_objects(scene))
+    return sorted(o.name for o in scene.objects if o.type in GEOMETRY_TYPES and o not in splats and not o.hide_render)
+
+
+def undrawn_line(scene: bpy.types.Scene) -> str:
+    """The panel's one line when the scene holds objects this engine leaves out (empty when none)."""
+    names = undrawn_objects(scene)
+    if not names:
+        return ""
+    where = "EEVEE or Cycles" if bpy.app.version >= (5, 3, 0) else "EEVEE or Cycles on Blender 5.3+"
+    return (f"the 4-LEGS Splats engine draws only the splats; {len(names)} object(s) ({', '.join(names[:3])}) "
+            f"need {where}")
+
+
 def srgb_to_linear_torch(c, out=None):
     """Torch twin of ``convert.srgb_to_linear`` for the rasterized image (one pass fewer copies).
 
@@ -386,6 +405,9 @@ class FourlegsRenderEngine(bpy.types.RenderEngine):
             return
         layer = result.layers[0]
         write_pass(layer.passes["Combined"], arrays["rgba"])
+        undrawn = undrawn_line(scene)
+        if undrawn:
+            self.report({"WARNING"}, undrawn)
         depth_pass = layer.passes.get("Depth")
         if depth_pass is not None:
             write_pass(depth_pass, arrays["depth"])

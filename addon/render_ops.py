@@ -6,7 +6,7 @@ from typing import Optional
 
 import bpy
 
-from . import jobs, render_engine, video
+from . import jobs, render_engine, retime, video
 from .messages import error_line, missing_for
 
 
@@ -44,6 +44,7 @@ class FOURLEGS_OT_render_video(bpy.types.Operator):
 
     def invoke(self, context, event):
         props = context.scene.fourlegs
+        retime.sync(context.scene)  # a shot marker moved since the last frame change
         if render_engine.plan_of(context.scene) is None:
             self.report({"ERROR"}, "4-LEGS Render Video: no highlight in this scene; run Generate Highlight first")
             return {"CANCELLED"}

@@ -16,6 +16,7 @@ pytestmark = pytest.mark.blender
 def _setup(bl, plan):
     from fourlegs_addon import importer, operators
 
+    bl.context.scene.fourlegs.renderer = "FOURLEGS"  # the 4-LEGS Splats engine's compositor (EEVEE/Cycles: test_blender_native_splats)
     importer.import_scene(bl.context.scene, tiny_scene())
     cam = operators.generate_highlight(bl.context.scene, plan)
     return cam

@@ -26,7 +26,7 @@ print("python", sys.version.split()[0])
 PY
 "$VENV/bin/python" -m pytest -q -p no:cacheprovider --timeout=600 \
   tests/test_blender_no_torch.py tests/test_blender_highlight.py tests/test_blender_editing.py \
-  tests/test_blender_native_splats.py \
+  tests/test_blender_native_splats.py tests/test_blender_messages.py tests/test_blender_retime_and_projects.py \
   -k "not relevancy_follows and not undo_after" "$@"
 rc=$?
 set -e

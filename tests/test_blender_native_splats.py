@@ -119,6 +119,26 @@ def test_a_bundle_imports_as_gaussian_splats_that_follow_the_timeline_and_keep_d
     np.testing.assert_array_equal(importer.kept_indices(obj, 64), np.arange(0, 64, 2))
 
 
+def test_the_demo_scene_imports_as_gaussian_splats_that_move_with_the_timeline(bl):
+    """The --demo scene (30k Gaussians, 48 timesteps) through Import 4D Scene: one GAUSSIAN_SPLAT point
+    cloud whose positions are those of the timestep each frame shows."""
+    from fourlegs_addon import importer, native_splats
+    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+
+    path = ensure_demo_bundle("demo")
+    assert bl.ops.fourlegs.import_scene(filepath=str(path / "scene.json")) == {"FINISHED"}
+    obj = bl.context.scene.fourlegs.splat_object
+    assert obj.type == "POINTCLOUD" and obj.data.type == "GAUSSIAN_SPLAT" and len(obj.data.points) == 30_000
+    g = importer.engine_scene_for(obj).gaussians
+    moved = []
+    for frame in (1, 34, 48):
+        bl.context.scene.frame_set(frame)
+        pos = native_splats.read_attribute(obj.data, "position")
+        np.testing.assert_array_equal(pos, np.asarray(g.means[frame - 1], np.float32))
+        moved.append(pos)
+    assert np.abs(moved[1] - moved[0]).max() > 0.1  # the people and the ball move
+
+
 # ----------------------------------------------------------------------------- highlight by EEVEE / Cycles
 def desaturate_plan(camera, t: int, width: int, height: int, centre) -> dict:
     """Two frames at timestep ``t`` from ``camera``: frame 1 desaturated (weight 1), frame 2 not."""

@@ -45,6 +45,8 @@ def generate_highlight(bl_scene, plan: dict[str, Any]) -> bpy.types.Object:
     if native_renderer(bl_scene):
         if bl_scene.render.engine not in native_render.NATIVE_ENGINES:
             bl_scene.render.engine = "BLENDER_EEVEE"
+        for obj in importer.splat_objects(bl_scene):  # the splats' own radiance, not the heat map
+            importer.show_relevancy(obj, False)
         layer = native_render.setup(bl_scene, rel and bool(plan.get("desaturate")))
         for view_layer in bl_scene.view_layers:
             view_layer.use_pass_z = depth and view_layer != layer

@@ -197,7 +197,10 @@ def test_a_highlight_frame_rendered_by_blender_keeps_the_ball_in_colour(bl, ball
     camera = src.cameras.find("cam01", 8)
     centre = np.asarray(src.gaussians.means[8])[ball].mean(axis=0)
     assert scene.fourlegs.renderer == "NATIVE"
+    importer.show_relevancy(obj, True)  # Run Query showed the heat map: Generate goes back to the radiance
+    assert len(obj.data.materials) == 1
     highlight_ops.generate_highlight(scene, desaturate_plan(camera, 8, width, height, centre))
+    assert len(obj.data.materials) == 0
     assert native_render.LAYER_NAME in scene.view_layers and scene.render.engine == "BLENDER_EEVEE"
     scene.render.engine = engine
     scene.cycles.samples, scene.eevee.taa_render_samples = 8, 1

@@ -8,6 +8,7 @@ scene's bundle, so running the operator again resumes. A scene that is not a bun
 """
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 import bpy
@@ -17,6 +18,10 @@ from .messages import missing_for
 
 #: stage name prefix -> index, for one progress bar over the three stages
 STAGES = ("extract features", "train autoencoder", "distil")
+
+
+class _ExtractionDone(Exception):
+    """Raised by the stage reporter when the main job's chain reaches the autoencoder."""
 
 
 class PrepareJob(jobs.Job):
@@ -33,7 +38,12 @@ class PrepareJob(jobs.Job):
         from fourlegs_engine import api
 
         scene = api.open_scene(self.source)
-        for step in api.language_field_steps(scene, encoder_config=self.encoder or api.EncoderConfig()):
+        encoder_config = self.encoder or api.EncoderConfig()
+        if not api.has_language_field(scene):
+            self.extract_as_the_main_job(scene, encoder_config)
+        if self.cancelled:
+            return
+        for step in api.language_field_steps(scene, encoder_config=encoder_config):
             index = next(i for i, name in enumerate(STAGES) if step.stage.startswith(name))
             self.steps.append((step.stage, step.done, step.total))
             self.stage = f"{step.stage} {step.done}/{step.total}"
@@ -42,6 +52,24 @@ class PrepareJob(jobs.Job):
                 return
         self.scene = api.open_scene(self.source)
         self.progress, self.stage = 1.0, "done"
+
+    def extract_as_the_main_job(self, scene: Any, encoder_config: Any) -> None:
+        """Extract the features of every timestep as the main job's chain does (``ensure_language_field``:
+        one call, so neighbouring timesteps share their rendered frames and the encoder's warm-up), stopping
+        the chain when it reaches the autoencoder; the per-unit steps (cancellable, resumable) do the rest."""
+        from fourlegs_engine import api
+
+        @contextlib.contextmanager
+        def stage(name: str):
+            if not name.startswith(STAGES[0]):
+                raise _ExtractionDone
+            self.stage = name
+            yield
+
+        try:
+            api.ensure_language_field(scene, encoder_config=encoder_config, stage=stage)
+        except _ExtractionDone:
+            pass
 
 
 def has_field(obj) -> bool:

@@ -118,13 +118,12 @@ def gather_gaussians(scene: bpy.types.Scene, t: float, with_relevancy: bool, pla
         if src is None:
             continue
         part = _object_gaussians(obj, src.gaussians, t, camera)
+        timestep, index = part.pop("timestep"), part.pop("index")
         if with_relevancy:
             query = ((plan_of(scene) if plan is ... else plan) or {}).get("query")
-            rel = relevancy_store.relevancy_for(scene, obj, src, part.pop("timestep"), query)
+            rel = relevancy_store.relevancy_for(scene, obj, src, timestep, query)
             rel = np.zeros(src.num_gaussians, np.float32) if rel is None else np.asarray(rel, np.float32)
-            part["relevancy"] = rel if part["index"] is None else rel[part["index"]]
-        part.pop("timestep", None)
-        part.pop("index")
+            part["relevancy"] = rel if index is None else rel[index]
         parts.append(part)
     if not parts:
         return None

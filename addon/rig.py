@@ -57,26 +57,35 @@ def can_rig_framed(shot: dict[str, Any], up: Optional[Any] = None) -> bool:
 
 
 def _driver(target: bpy.types.ID, data_path: str, index: int, expression: str, pivot: bpy.types.Object,
-            props: tuple[str, ...]) -> None:
+            props: dict[str, str]) -> None:
+    """A scripted driver on ``target`` reading the pivot's custom properties ``props`` (variable -> property);
+    Blender keeps 256 characters of an expression, hence the terse ones.
+
+    Every driver computes the shot's progress itself (no driver reads another driver's result, whose
+    evaluation order Blender does not promise); ``clamp`` and ``smoothstep`` keep it a simple expression,
+    evaluated without Python (files opened with scripts disabled still move)."""
+    if len(expression) > 255:
+        raise ValueError(f"driver expression of {len(expression)} characters (Blender keeps 255): {expression}")
     fc = target.driver_add(data_path, index) if index >= 0 else target.driver_add(data_path)
     drv = fc.driver
     drv.type = "SCRIPTED"
-    for name in props:
+    for var_name, prop in props.items():
         var = drv.variables.new()
-        var.name, var.type = name, "SINGLE_PROP"
+        var.name, var.type = var_name, "SINGLE_PROP"
         var.targets[0].id = pivot
-        var.targets[0].data_path = f'["{name}"]'
+        var.targets[0].data_path = f'["{prop}"]'
     drv.expression = expression
 
 
-EASED = "0.5 - 0.5 * cos(pi * min(max(speed * (frame - start_frame) / max(end_frame - start_frame, 1.0), 0.0), 1.0))"
-RAMP = "min(max(6.0 * eased, 0.0), 1.0) ** 2 * (3.0 - 2.0 * min(max(6.0 * eased, 0.0), 1.0))"
-TIMING = ("speed", "start_frame", "end_frame")
+#: eased progress through the shot (the planner's ease_in_out_sine at speed 1) and the framed orbit's ramp
+EASED = "(.5-.5*cos(pi*clamp(s*(frame-a)/max(b-a,1),0,1)))"
+RAMP = f"smoothstep(0,1,6*{EASED})"
+TIMING = {"s": "speed", "a": "start_frame", "b": "end_frame"}
 
 
 def _g(value: float) -> str:
     """A float for a driver expression (Blender keeps 256 characters of one)."""
-    return f"{float(value):.9g}"
+    return f"{float(value):.7g}"
 
 
 def _pivot(scene: bpy.types.Scene, centre: np.ndarray, shot: dict[str, Any], arc_deg: float, size: float,
@@ -100,10 +109,8 @@ def _pivot(scene: bpy.types.Scene, centre: np.ndarray, shot: dict[str, Any], arc
 
 
 def _turn(pivot: bpy.types.Object) -> None:
-    """The pivot's eased progress through the shot (its ``eased`` property) and its turn."""
-    pivot["eased"] = 0.0
-    _driver(pivot, '["eased"]', -1, EASED, pivot, TIMING)
-    _driver(pivot, "rotation_euler", 2, "arc_deg * pi / 180.0 * eased", pivot, ("arc_deg", "eased"))
+    """The pivot turns ``arc_deg`` over the shot, eased."""
+    _driver(pivot, "rotation_euler", 2, f"t * pi / 180.0 * {EASED}", pivot, {"t": "arc_deg", **TIMING})
 
 
 def build_orbit_rig(scene: bpy.types.Scene, shot: dict[str, Any], centre, lens_mm: float, sensor_width_mm: float,
@@ -138,7 +145,7 @@ def build_orbit_rig(scene: bpy.types.Scene, shot: dict[str, Any], centre, lens_m
     _turn(pivot)
     if radius > 1e-9:
         for axis in (0, 1):
-            _driver(cam, "location", axis, f"radius * {float(offset[axis] / radius)!r}", pivot, ("radius",))
+            _driver(cam, "location", axis, f"radius * {float(offset[axis] / radius)!r}", pivot, {"radius": "radius"})
     return cam
 
 
@@ -171,15 +178,13 @@ def build_framed_orbit_rig(scene: bpy.types.Scene, shot: dict[str, Any], lens_mm
     cam[tag] = True
     cam.parent = pivot
     scene.collection.objects.link(cam)
-    pivot["ramp"] = 0.0
-    _driver(pivot, '["ramp"]', -1, RAMP, pivot, ("eased",))
-    dist = f"({_g(d0)} + (distance - {_g(d0)}) * ramp)"
-    elevation = f"({_g(el0)} + (elevation_deg * pi / 180.0 - {_g(el0)}) * ramp)"
-    props = ("distance", "elevation_deg", "ramp")
+    dist = f"({_g(d0)}+(D-{_g(d0)})*{RAMP})"
+    elevation = f"({_g(el0)}+(L*pi/180-{_g(el0)})*{RAMP})"
+    props = {"D": "distance", "L": "elevation_deg", **TIMING}
     for axis, factor in ((0, ux), (1, uy)):
-        _driver(cam, "location", axis, f"{dist} * cos({elevation}) * {_g(factor)}", pivot, props)
-    _driver(cam, "location", 2, f"{dist} * sin({elevation})", pivot, props)
-    _driver(data, "lens", -1, f"{_g(lens_mm)} * lens_scale ** ramp", pivot, ("lens_scale", "ramp"))
+        _driver(cam, "location", axis, f"{dist}*cos({elevation})*{_g(factor)}", pivot, props)
+    _driver(cam, "location", 2, f"{dist}*sin({elevation})", pivot, props)
+    _driver(data, "lens", -1, f"{_g(lens_mm)}*k**{RAMP}", pivot, {"k": "lens_scale", **TIMING})
     aim = cam.constraints.new("TRACK_TO")
     aim.target, aim.track_axis, aim.up_axis = pivot, "TRACK_NEGATIVE_Z", "UP_Y"
     return cam

@@ -12,7 +12,7 @@ times ``strength``); outside the desaturation ranges it is 0, so the frame passe
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Optional
 
 import bpy
 
@@ -103,11 +103,12 @@ def compositor_tree(scene: bpy.types.Scene):
     return scene.compositing_node_group if IS_50 else (scene.node_tree if scene.use_nodes else None)
 
 
-def build_compositor(scene: bpy.types.Scene, plan: dict[str, Any]):
+def build_compositor(scene: bpy.types.Scene, plan: dict[str, Any], mask_layer: Optional[str] = None):
     """Create the desaturation graph if ``plan`` has desaturation; otherwise remove ours. Returns the tree or None.
 
-    The scene's render engine must already declare the Relevancy pass (the 4-LEGS Splats engine does
-    when ``view_layer["fourlegs_relevancy"]`` is set, see ``render_engine``).
+    The Relevancy pass comes from the picture's own view layer (the 4-LEGS Splats engine declares it
+    when ``view_layer.fourlegs_relevancy`` is set, see ``render_engine``) or, with ``mask_layer``, from
+    that view layer's AOV (EEVEE and Cycles, see ``native_render``).
     """
     remove_compositor(scene)
     if not plan.get("desaturate"):
@@ -128,7 +129,13 @@ def build_compositor(scene: bpy.types.Scene, plan: dict[str, Any]):
     nodes, links = tree.nodes, tree.links
     layers = nodes.new("CompositorNodeRLayers")
     layers.scene = scene
-    if RELEVANCY_PASS not in layers.outputs:
+    mask_layers = layers
+    if mask_layer is not None:
+        layers.layer = next(v.name for v in scene.view_layers if v.name != mask_layer)
+        mask_layers = nodes.new("CompositorNodeRLayers")
+        mask_layers.scene, mask_layers.layer = scene, mask_layer
+        mask_layers.location = (-600, -300)
+    if RELEVANCY_PASS not in mask_layers.outputs:
         raise RuntimeError("the render engine does not provide a Relevancy pass: set the scene's render "
                            "engine to '4-LEGS Splats' before building the compositor")
     gray = nodes.new("CompositorNodeHueSat")
@@ -159,7 +166,7 @@ def build_compositor(scene: bpy.types.Scene, plan: dict[str, Any]):
     links.new(layers.outputs["Image"], gray.inputs["Image"])
     links.new(layers.outputs["Image"], mix_a)
     links.new(gray.outputs["Image"], mix_b)
-    links.new(layers.outputs[RELEVANCY_PASS], mask.inputs[0])
+    links.new(mask_layers.outputs[RELEVANCY_PASS], mask.inputs[0])
     links.new(mask.outputs[0], invert.inputs[1])
     links.new(invert.outputs[0], scale.inputs[0])
     links.new(weight.outputs[0], scale.inputs[1])

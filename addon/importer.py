@@ -1,13 +1,11 @@
-"""4D Gaussian scene -> one Blender point-cloud object (+ the scene's cameras).
+"""4D Gaussian scene -> one Blender splat object (+ the scene's cameras), shown at the scene time.
 
-The object is a vertex-only mesh filled with ``foreach_set`` (hundreds of thousands of points in well
-under a second) whose geometry-nodes modifier turns vertices into point instances (Mesh to Points,
-radius from the ``splat_radius`` attribute, Set Material). The material colours points from the
-``splat_rgb`` attribute, or from ``splat_relevancy_rgb`` once a query has run. The attribute is not
-named ``color``: Cycles renders an attribute of that name black. A scene that marks its foreground (a
-fitted capture) also gets the boolean ``splat_foreground`` attribute (e.g. a geometry-nodes selection).
+Blender 5.3+ renders Gaussian splats itself: the object is a ``GAUSSIAN_SPLAT`` point cloud with Blender's
+own attributes (:mod:`.native_splats`). Older Blender gets a vertex-only mesh drawn as points
+(:mod:`.mesh_splats`), which the 4-LEGS Splats render engine rasterizes. Every point carries
+``fourlegs_index``, the Gaussian it shows, so points an editor deletes stay deleted on every frame.
 
-Time: the mesh shows the scene timestep ``scene.fourlegs.timestep`` (fractional values interpolate
+Time: the object shows the scene timestep ``scene.fourlegs.timestep`` (fractional values interpolate
 linearly between neighbouring timesteps); a persistent frame-change handler updates positions and
 colours with ``foreach_set`` whenever the timeline moves. The Gaussians themselves stay on disk
 (memory-mapped) in a per-file cache, re-opened lazily from the object's ``fourlegs_source`` path after
@@ -16,7 +14,6 @@ scene does not keep it all resident.
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any, Optional
 
@@ -24,22 +21,14 @@ import bpy
 import numpy as np
 from bpy.app.handlers import persistent
 
-from . import convert
+from . import mesh_splats, native_splats
+from .mesh_splats import (FOREGROUND_ATTR, MODIFIER_NAME, OPACITY_ATTR, RADIUS_ATTR, RELEVANCY_ATTR,  # noqa: F401
+                          RELEVANCY_RGB_ATTR, RGB_ATTR, heat_rgb, heat_rgba)
+from .scene_cameras import add_view_camera, apply_camera, import_cameras  # noqa: F401
+from .splat_attributes import blend_timestep
 
 SOURCE_KEY = "fourlegs_source"
-RGB_ATTR = "splat_rgb"
-RELEVANCY_ATTR = "splat_relevancy"
-RELEVANCY_RGB_ATTR = "splat_relevancy_rgb"
-RADIUS_ATTR = "splat_radius"
-OPACITY_ATTR = "splat_opacity"
-FOREGROUND_ATTR = "splat_foreground"  # boolean, only when the scene marks its foreground (e.g. a fitted capture)
-NODE_GROUP_NAME = "4-LEGS Splats"
-MODIFIER_NAME = "4-LEGS Splats"
-CAMERA_COLLECTION_SUFFIX = " Cameras"
-RADIUS_SIGMAS = 1.5  # instance radius = 1.5 x the geometric-mean standard deviation of the Gaussian
-# Calibrated cameras have fx and fy a fraction of a percent apart; Blender cannot write a multilayer EXR with
-# non-square pixels, so such cameras get square pixels and the geometric-mean focal length.
-SQUARE_PIXEL_TOLERANCE = 0.01
+INDEX_ATTR = native_splats.INDEX_ATTR
 RELEASE_EVERY_BYTES = 1 << 25  # the frame-change handler unmaps the timesteps it read every 32 MB
 
 # source key -> Scene (engine object, arrays memory-mapped); relevancy per source: (N,) or (T,N)
@@ -75,19 +64,47 @@ def stored_path(path: str | Path) -> str:
 
 
 def relative_sources(blend_dir: str | Path) -> None:
-    """Store every splat object's scene path relative to ``blend_dir`` (``//...``), for a .blend about to
-    be saved there (a file that is not saved yet has no ``//``)."""
+    """Store every path the file holds relative to ``blend_dir`` (``//...``), for a .blend about to be saved
+    there: the splat objects' scenes and each scene's video output, so the project folder can move (a
+    file that is not saved yet has no ``//``)."""
     for obj in bpy.data.objects:
         key = source_key(obj)
         if not key or key.startswith(("memory:", "//")):
             continue
-        try:
-            rel = bpy.path.relpath(key, start=str(blend_dir))
-        except ValueError:  # another drive (Windows)
-            continue
-        if key in _SCENES:
+        rel = _relative(key, blend_dir)
+        if rel != key and key in _SCENES:
             _SCENES[rel] = _SCENES[key]
         obj[SOURCE_KEY] = rel
+    for bl_scene in bpy.data.scenes:
+        props = getattr(bl_scene, "fourlegs", None)
+        if props is not None and props.output_path:
+            props.output_path = _relative(props.output_path, blend_dir)
+        if bl_scene.render.filepath:
+            bl_scene.render.filepath = _relative(bl_scene.render.filepath, blend_dir)
+
+
+def _relative(path: str, blend_dir: str | Path) -> str:
+    """``path`` as ``//...`` relative to ``blend_dir`` (already relative or on another drive: unchanged)."""
+    if path.startswith("//"):
+        return path
+    try:
+        return bpy.path.relpath(str(Path(path).resolve()), start=str(blend_dir))
+    except ValueError:  # another drive (Windows)
+        return path
+
+
+def relink(obj: bpy.types.Object, path: str | Path) -> Any:
+    """Point ``obj`` at the scene at ``path`` (a moved bundle or PLY), checking it holds as many Gaussians
+    as the object was made from; returns the engine scene."""
+    scene = load_engine_scene(path)
+    expected = int(obj.get("fourlegs_num_gaussians", scene.num_gaussians))
+    if scene.num_gaussians != expected:
+        raise ValueError(f"{path}: holds {scene.num_gaussians} Gaussians, the object was made from {expected}")
+    old = source_key(obj)
+    adopt_scene(obj, scene, str(Path(bpy.path.abspath(str(path))).resolve()))
+    _MISSING.pop(old or "", None)
+    obj["fourlegs_shown_timestep"] = -1.0  # show the scene time again from the relinked scene
+    return scene
 
 
 def missing_message(obj: bpy.types.Object) -> str:
@@ -121,13 +138,15 @@ def adopt_scene(obj: bpy.types.Object, scene: Any, source: str) -> None:
 
 
 def splat_objects(scene: bpy.types.Scene) -> list[bpy.types.Object]:
-    return [o for o in scene.objects if o.type == "MESH" and source_key(o)]
+    """The scene's imported splat objects (meshes before Blender 5.3, Gaussian-splat point clouds after)."""
+    return [o for o in scene.objects if o.type in ("MESH", "POINTCLOUD") and source_key(o)]
 
 
 # ----------------------------------------------------------------------------- import
 def import_scene(context_scene: bpy.types.Scene, scene: Any, *, source: str | None = None,
-                 name: str | None = None, with_cameras: bool = True) -> bpy.types.Object:
-    """Create the point-cloud object (and cameras) of an engine ``Scene`` in ``context_scene``.
+                 name: str | None = None, with_cameras: bool = True,
+                 ply_file: Optional[Path] = None) -> bpy.types.Object:
+    """Create the splat object (and cameras) of an engine ``Scene`` in ``context_scene``.
 
     Args:
         context_scene: the Blender scene to link into.
@@ -135,8 +154,11 @@ def import_scene(context_scene: bpy.types.Scene, scene: Any, *, source: str | No
         source: the path it was loaded from (stored on the object so a saved .blend re-opens it);
             None for an in-memory scene (kept in this session's cache only).
         name: object name (default: the scene name).
+        ply_file: the one static PLY file the scene was read from: on Blender 5.3+ Blender's own PLY
+            importer reads it.
     Returns:
-        The new mesh object; it is also ``context_scene.fourlegs.splat_object``.
+        The new object; it is also ``context_scene.fourlegs.splat_object``. A scene without cameras
+        gets a view camera.
     """
     g = scene.gaussians
     name = name or scene.name or "4-LEGS scene"
@@ -145,41 +167,27 @@ def import_scene(context_scene: bpy.types.Scene, scene: Any, *, source: str | No
 
     collection = bpy.data.collections.new(f"4-LEGS {name}")
     context_scene.collection.children.link(collection)
-    mesh = bpy.data.meshes.new(name)
-    n = g.num_gaussians
-    mesh.vertices.add(n)
-    mesh.vertices.foreach_set("co", np.ascontiguousarray(g.means[0], dtype=np.float32).ravel())
-    log_scales = np.asarray(g.log_scales if g.log_scales.ndim == 2 else g.log_scales[0], dtype=np.float64)
-    radius = RADIUS_SIGMAS * np.exp(np.clip(log_scales.mean(axis=1), -30.0, 10.0))
-    _set_attr(mesh, RADIUS_ATTR, "FLOAT", "value", radius.astype(np.float32))
-    opacity = 1.0 / (1.0 + np.exp(-np.clip(np.asarray(g.opacity_logits, dtype=np.float64), -60, 60)))
-    _set_attr(mesh, OPACITY_ATTR, "FLOAT", "value", opacity.astype(np.float32))
-    if g.foreground is not None:
-        mesh.attributes.new(FOREGROUND_ATTR, "BOOLEAN", "POINT").data.foreach_set(
-            "value", np.asarray(g.foreground, dtype=bool))
-    _set_attr(mesh, RGB_ATTR, "FLOAT_COLOR", "color", _rgba(g.rgb(0)))
-    _set_attr(mesh, RELEVANCY_ATTR, "FLOAT", "value", np.zeros(n, np.float32))
-    _set_attr(mesh, RELEVANCY_RGB_ATTR, "FLOAT_COLOR", "color", _rgba(np.zeros((n, 3), np.float32)))
-    mesh.color_attributes.active_color = mesh.color_attributes[RGB_ATTR]
-    mesh.update()
-
-    obj = bpy.data.objects.new(name, mesh)
+    if native_splats.available():
+        obj = (native_splats.import_ply_file(ply_file, name) if ply_file is not None
+               else native_splats.create_object(name, g))
+    else:
+        obj = bpy.data.objects.new(name, mesh_splats.create_mesh(name, g, g.rgb(0)))
+        native_splats.write_attribute(obj.data, INDEX_ATTR, "INT", np.arange(g.num_gaussians, dtype=np.int32))
+        mesh_splats.finish_object(obj, name)
     obj[SOURCE_KEY] = key
     obj["fourlegs_num_timesteps"] = g.num_timesteps
+    obj["fourlegs_num_gaussians"] = g.num_gaussians
     obj["fourlegs_shown_timestep"] = 0.0
     collection.objects.link(obj)
-    material = _splat_material(name)
-    mesh.materials.append(material)
-    modifier = obj.modifiers.new(MODIFIER_NAME, "NODES")
-    modifier.node_group = _splat_node_group(material)
 
     props = context_scene.fourlegs
     props.splat_object = obj
     props.num_timesteps = g.num_timesteps
     if source:
-        props.source_path = str(source)
-    if with_cameras:
-        import_cameras(context_scene, scene, collection)
+        props.source_path = stored_path(source)
+    cameras = import_cameras(context_scene, scene, collection) if with_cameras else []
+    if not cameras and context_scene.camera is None:
+        add_view_camera(context_scene, g.means[0], collection)
     context_scene.frame_start = 1
     context_scene.frame_end = max(1, g.num_timesteps)
     context_scene.render.fps = max(1, int(round(scene.fps)))
@@ -201,56 +209,6 @@ def _key_capture_playback(context_scene: bpy.types.Scene, num_timesteps: int) ->
                            [0.0, num_timesteps - 1.0], ["LINEAR"] * 2)
 
 
-def _rgba(rgb: np.ndarray) -> np.ndarray:
-    """(N,3) display (sRGB) colours -> (N,4) scene-linear RGBA for Blender colour attributes."""
-    rgb = convert.srgb_to_linear(rgb)
-    return np.concatenate([rgb, np.ones((rgb.shape[0], 1), np.float32)], axis=1)
-
-
-def _set_attr(mesh: bpy.types.Mesh, name: str, kind: str, field: str, values: np.ndarray) -> None:
-    attr = mesh.attributes.get(name) or mesh.attributes.new(name, kind, "POINT")
-    attr.data.foreach_set(field, np.ascontiguousarray(values, dtype=np.float32).ravel())
-
-
-def _splat_material(name: str) -> bpy.types.Material:
-    mat = bpy.data.materials.new(f"{name} Splats")
-    if mat.node_tree is None:  # Blender < 5.0: node materials are opt-in
-        mat.use_nodes = True
-    nodes, links = mat.node_tree.nodes, mat.node_tree.links
-    nodes.clear()
-    attr = nodes.new("ShaderNodeAttribute")
-    attr.name = "Splat Colour"
-    attr.attribute_type = "GEOMETRY"
-    attr.attribute_name = RGB_ATTR
-    emit = nodes.new("ShaderNodeEmission")
-    out = nodes.new("ShaderNodeOutputMaterial")
-    links.new(attr.outputs["Color"], emit.inputs["Color"])
-    links.new(emit.outputs["Emission"], out.inputs["Surface"])
-    attr.location, emit.location, out.location = (-400, 0), (-150, 0), (100, 0)
-    return mat
-
-
-def _splat_node_group(material: bpy.types.Material) -> bpy.types.NodeTree:
-    group = bpy.data.node_groups.new(NODE_GROUP_NAME, "GeometryNodeTree")
-    group.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
-    group.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
-    nodes, links = group.nodes, group.links
-    gin, gout = nodes.new("NodeGroupInput"), nodes.new("NodeGroupOutput")
-    radius = nodes.new("GeometryNodeInputNamedAttribute")
-    radius.data_type = "FLOAT"
-    radius.inputs["Name"].default_value = RADIUS_ATTR
-    to_points = nodes.new("GeometryNodeMeshToPoints")
-    set_mat = nodes.new("GeometryNodeSetMaterial")
-    set_mat.inputs["Material"].default_value = material
-    links.new(gin.outputs[0], to_points.inputs["Mesh"])
-    links.new(radius.outputs["Attribute"], to_points.inputs["Radius"])
-    links.new(to_points.outputs["Points"], set_mat.inputs["Geometry"])
-    links.new(set_mat.outputs["Geometry"], gout.inputs[0])
-    for i, node in enumerate((gin, radius, to_points, set_mat, gout)):
-        node.location = (i * 200 - 400, 0)
-    return group
-
-
 def use_standard_view(bl_scene: bpy.types.Scene) -> None:
     """Standard view transform, no look: output pixels reproduce the Gaussians' colours (no AgX tone map)."""
     bl_scene.view_settings.view_transform = "Standard"
@@ -259,73 +217,33 @@ def use_standard_view(bl_scene: bpy.types.Scene) -> None:
     bl_scene.view_settings.gamma = 1.0
 
 
-# ----------------------------------------------------------------------------- cameras
-def apply_camera(cam_obj: bpy.types.Object, c2w_opencv: np.ndarray, K: np.ndarray, width: int,
-                 height: int, near: float = 0.01, far: float = 100.0) -> None:
-    """Place a Blender camera object to match an OpenCV camera."""
-    from mathutils import Matrix
-
-    cam_obj.matrix_world = Matrix(convert.opencv_to_blender_c2w(c2w_opencv).tolist())
-    lens = convert.intrinsics_to_blender(K, width, height)
-    data = cam_obj.data
-    data.sensor_fit = "HORIZONTAL"
-    data.sensor_width = lens.sensor_width_mm
-    data.lens = lens.lens_mm
-    data.shift_x, data.shift_y = lens.shift_x, lens.shift_y
-    data.clip_start, data.clip_end = near, far
-
-
-def near_square_pixels(K: np.ndarray, tolerance: float = SQUARE_PIXEL_TOLERANCE) -> np.ndarray:
-    """(3,3) ``K`` with fx = fy = sqrt(fx*fy) when they differ by at most ``tolerance`` (relative), else ``K``."""
-    K = np.asarray(K, dtype=np.float64)
-    fx, fy = K[0, 0], K[1, 1]
-    if fx <= 0 or fy <= 0 or abs(fx / fy - 1.0) > tolerance:
-        return K
-    out = K.copy()
-    out[0, 0] = out[1, 1] = math.sqrt(fx * fy)
-    return out
-
-
-def import_cameras(context_scene: bpy.types.Scene, scene: Any, collection: bpy.types.Collection) -> list:
-    """The scene's cameras at timestep 0 (train, then test) as Blender cameras in a child collection.
-
-    The render's pixel aspect is the first camera's (one value per Blender scene); nearly square pixels
-    become square (:func:`near_square_pixels`)."""
-    cams = scene.cameras.cameras(0, "all") if scene.cameras.num_timesteps else []
-    if not cams:
-        return []
-    sub = bpy.data.collections.new(collection.name + CAMERA_COLLECTION_SUFFIX)
-    collection.children.link(sub)
-    out = []
-    for i, cam in enumerate(cams):
-        data = bpy.data.cameras.new(cam.name or f"cam{i:02d}")
-        obj = bpy.data.objects.new(cam.name or f"cam{i:02d}", data)
-        obj["fourlegs_camera"] = cam.name or f"cam{i:02d}"
-        sub.objects.link(obj)
-        apply_camera(obj, cam.c2w, near_square_pixels(cam.K), cam.width, cam.height, cam.near, min(cam.far, 1000.0))
-        out.append(obj)
-    render = context_scene.render
-    render.resolution_x, render.resolution_y = cams[0].width, cams[0].height
-    render.resolution_percentage = 100
-    lens = convert.intrinsics_to_blender(near_square_pixels(cams[0].K), cams[0].width, cams[0].height)
-    render.pixel_aspect_x, render.pixel_aspect_y = lens.pixel_aspect_x, lens.pixel_aspect_y
-    if context_scene.camera is None:
-        context_scene.camera = out[0]
-    return out
-
-
 # ----------------------------------------------------------------------------- time + relevancy
-def blend_timestep(arr: Any, t: float) -> np.ndarray:
-    """Row ``t`` of a (T,N,C) array, linearly interpolated for fractional ``t`` (clamped to the range)."""
-    T = arr.shape[0]
-    t = min(max(float(t), 0.0), float(T - 1))
-    lo = int(math.floor(t))
-    hi = min(lo + 1, T - 1)
-    w = t - lo
-    a = np.asarray(arr[lo], dtype=np.float32)
-    if w < 1e-6 or hi == lo:
-        return a
-    return (1.0 - w) * a + w * np.asarray(arr[hi], dtype=np.float32)
+def kept_indices(obj: bpy.types.Object, num_gaussians: int) -> Optional[np.ndarray]:
+    """(M,) the Gaussians the object's points still show after deletions, in point order; None when
+    every Gaussian is there in order."""
+    if obj.type == "POINTCLOUD":
+        return native_splats.kept_indices(obj, num_gaussians)
+    values = native_splats.read_attribute(obj.data, INDEX_ATTR)
+    if values is None:
+        return None if len(obj.data.vertices) == num_gaussians else np.arange(len(obj.data.vertices))
+    index = values[:, 0].astype(np.int64)
+    if len(index) == num_gaussians and np.array_equal(index, np.arange(num_gaussians)):
+        return None
+    return np.clip(index, 0, num_gaussians - 1)
+
+
+def visible_indices(obj: bpy.types.Object, num_gaussians: int) -> Optional[np.ndarray]:
+    """(M,) the Gaussians a render shows: the kept ones less the vertices hidden in edit mode (meshes);
+    None when that is every Gaussian in order."""
+    index = kept_indices(obj, num_gaussians)
+    if obj.type != "MESH" or not len(obj.data.vertices):
+        return index
+    hidden = np.zeros(len(obj.data.vertices), bool)
+    obj.data.vertices.foreach_get("hide", hidden)
+    if not hidden.any():
+        return index
+    base = np.arange(num_gaussians) if index is None else index
+    return base[~hidden]
 
 
 def update_object(obj: bpy.types.Object, t: float) -> bool:
@@ -337,17 +255,20 @@ def update_object(obj: bpy.types.Object, t: float) -> bool:
     t = min(max(float(t), 0.0), float(g.num_timesteps - 1))
     if abs(float(obj.get("fourlegs_shown_timestep", -1.0)) - t) < 1e-6:
         return False
-    mesh = obj.data
-    if len(mesh.vertices) != g.num_gaussians:
-        return False
-    mesh.attributes["position"].data.foreach_set("vector", blend_timestep(g.means, t).ravel())
-    if g.colors is not None and g.colors.ndim == 3:
-        _set_attr(mesh, RGB_ATTR, "FLOAT_COLOR", "color", _rgba(blend_timestep(g.colors, t)))
-    release_after_reading(source_key(obj), (g.means, g.colors), 2 if t != int(t) else 1)
+    index = kept_indices(obj, g.num_gaussians)
+    if obj.type == "POINTCLOUD":
+        native_splats.show_timestep(obj, g, t, index)
+        release_after_reading(source_key(obj), (g.means, g.colors, g.rotations, g.log_scales, g.sh),
+                              2 if t != int(t) else 1)
+    else:
+        pick = (lambda a: a) if index is None else (lambda a: a[index])
+        rgb = pick(blend_timestep(g.colors, t)) if g.colors is not None and g.colors.ndim == 3 else None
+        mesh_splats.show_timestep(obj.data, pick(blend_timestep(g.means, t)), rgb)
+        release_after_reading(source_key(obj), (g.means, g.colors), 2 if t != int(t) else 1)
     rel = _RELEVANCY.get(source_key(obj))
     if rel is not None and rel.ndim == 2:
-        _write_relevancy(mesh, blend_timestep(rel[:, :, None], t)[:, 0])
-    mesh.update()
+        _write_relevancy(obj, blend_timestep(rel[:, :, None], t)[:, 0], index)
+    _changed(obj)
     obj["fourlegs_shown_timestep"] = t
     return True
 
@@ -364,6 +285,8 @@ def release_after_reading(key: Optional[str], arrays: tuple, rows: int) -> None:
         _BYTES_READ[key] = 0
         for arr in per_timestep:
             api.release_mapped_pages(arr)
+
+
 
 
 def update_scene_objects(scene: bpy.types.Scene) -> None:
@@ -388,48 +311,35 @@ def on_frame_change(scene: bpy.types.Scene, depsgraph=None) -> None:
     update_scene_objects(scene)
 
 
-def heat_rgb(values: np.ndarray) -> np.ndarray:
-    """(N,) relevancy in [0,1] -> (N,3) blue-to-red heat colours (turbo-like, no matplotlib)."""
-    v = np.clip(np.nan_to_num(np.asarray(values, dtype=np.float32)), 0.0, 1.0)[:, None]
-    stops = np.array([[0.19, 0.07, 0.23], [0.27, 0.51, 0.96], [0.16, 0.90, 0.62], [0.95, 0.80, 0.16],
-                      [0.85, 0.18, 0.02]], np.float32)
-    pos = v * (len(stops) - 1)
-    lo = np.clip(np.floor(pos).astype(int), 0, len(stops) - 2)
-    w = pos - lo
-    return stops[lo[:, 0]] * (1 - w) + stops[lo[:, 0] + 1] * w
-
-
-HEAT_TABLE_SIZE = 4096  # heat colours looked up at 1/4095 steps of relevancy: below one 8-bit level apart
-_HEAT_TABLE: list[np.ndarray] = []
-
-
-def heat_rgba(values: np.ndarray) -> np.ndarray:
-    """(N,) relevancy -> (N,4) scene-linear RGBA heat colours, i.e. ``_rgba(heat_rgb(values))`` read from a
-    table of :data:`HEAT_TABLE_SIZE` entries (one lookup per point: it runs on every frame change)."""
-    if not _HEAT_TABLE:
-        _HEAT_TABLE.append(_rgba(heat_rgb(np.linspace(0.0, 1.0, HEAT_TABLE_SIZE))))
-    v = np.clip(np.nan_to_num(np.asarray(values, dtype=np.float32)), 0.0, 1.0)
-    index = (v * np.float32(HEAT_TABLE_SIZE - 1) + np.float32(0.5)).astype(np.intp)
-    return _HEAT_TABLE[0][index]
-
-
-def _write_relevancy(mesh: bpy.types.Mesh, values: np.ndarray) -> None:
-    values = np.clip(np.nan_to_num(np.asarray(values, dtype=np.float32)), 0.0, 1.0)
-    _set_attr(mesh, RELEVANCY_ATTR, "FLOAT", "value", values)
-    _set_attr(mesh, RELEVANCY_RGB_ATTR, "FLOAT_COLOR", "color", heat_rgba(values))
+def _write_relevancy(obj: bpy.types.Object, values: np.ndarray, index: Optional[np.ndarray]) -> None:
+    values = values if index is None else np.asarray(values)[index]
+    if obj.type == "POINTCLOUD":
+        native_splats.write_relevancy(obj, values)
+    else:
+        mesh_splats.write_relevancy(obj.data, values)
 
 
 def set_relevancy(obj: bpy.types.Object, relevancy: np.ndarray, *, show: bool = True) -> None:
     """Store per-Gaussian relevancy ((N,) or (T,N) in [0,1]) and colour the viewport with it."""
     rel = np.asarray(relevancy, dtype=np.float32)
-    n = len(obj.data.vertices)
+    scene = engine_scene_for(obj)
+    n = scene.num_gaussians if scene is not None else len(obj.data.vertices)
     if rel.shape[-1] != n or rel.ndim not in (1, 2):
         raise ValueError(f"relevancy has shape {rel.shape}, expected ({n},) or (T,{n})")
     _RELEVANCY[source_key(obj)] = rel
     shown = float(obj.get("fourlegs_shown_timestep", 0.0))
-    _write_relevancy(obj.data, rel if rel.ndim == 1 else blend_timestep(rel[:, :, None], shown)[:, 0])
+    _write_relevancy(obj, rel if rel.ndim == 1 else blend_timestep(rel[:, :, None], shown)[:, 0],
+                     kept_indices(obj, n))
     show_relevancy(obj, show)
-    obj.data.update()
+    _changed(obj)
+
+
+def _changed(obj: bpy.types.Object) -> None:
+    """Tell Blender the object's data changed (a mesh recomputes, a point cloud is tagged)."""
+    if obj.type == "MESH":
+        obj.data.update()
+    else:
+        obj.data.update_tag()
 
 
 def set_relevancy_provider(obj: bpy.types.Object, provider: Any) -> None:
@@ -441,6 +351,11 @@ def set_relevancy_provider(obj: bpy.types.Object, provider: Any) -> None:
     _RELEVANCY_PROVIDERS[key] = provider
     for k in [k for k in _RELEVANCY_CACHE if k[0] == key]:
         del _RELEVANCY_CACHE[k]
+
+
+def relevancy_provider(obj: bpy.types.Object) -> Optional[Any]:
+    """The object's relevancy provider (a query engine's ``gaussian_relevancy``), or None."""
+    return _RELEVANCY_PROVIDERS.get(source_key(obj) or "")
 
 
 def gaussian_relevancy(obj: bpy.types.Object, t: int) -> Optional[np.ndarray]:
@@ -459,13 +374,11 @@ def gaussian_relevancy(obj: bpy.types.Object, t: int) -> Optional[np.ndarray]:
 
 
 def show_relevancy(obj: bpy.types.Object, show: bool) -> None:
-    """Switch the viewport/material colouring between the splat colours and the relevancy heat map."""
-    name = RELEVANCY_RGB_ATTR if show else RGB_ATTR
-    mesh = obj.data
-    mesh.color_attributes.active_color = mesh.color_attributes[name]
-    for mat in mesh.materials:
-        if mat and mat.node_tree and "Splat Colour" in mat.node_tree.nodes:
-            mat.node_tree.nodes["Splat Colour"].attribute_name = name
+    """Switch the viewport colouring between the splat colours and the relevancy heat map."""
+    if obj.type == "POINTCLOUD":
+        native_splats.show_relevancy(obj, show)
+    else:
+        mesh_splats.show_relevancy(obj, show)
 
 
 def register() -> None:

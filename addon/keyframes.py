@@ -31,6 +31,7 @@ LENS_ACTION_NAME = "4-LEGS Highlight Lens"
 SCENE_ACTION_NAME = "4-LEGS Scene Time"
 TIMESTEP_PATH = "fourlegs.timestep"
 MARKERS_KEY = "fourlegs_markers"  # scene property: names of the timeline markers Generate made
+SHOT_FRAMES_KEY = "fourlegs_shot_frames"  # scene property: marker name -> the frame its shot starts at
 ORBIT_EFFECTS = ("bullet_time",)
 #: largest deviation from the planned path that thinning dense keys may introduce, per channel
 THIN_TOLERANCE = {"location": 1e-3, "rotation_euler": 1e-3, "lens": 1e-2}  # planner effects whose camera circles the action centre
@@ -236,8 +237,9 @@ def remove_generated(scene: bpy.types.Scene) -> None:
     made = set(scene.get(MARKERS_KEY, []))
     for marker in [m for m in scene.timeline_markers if m.name in made]:
         scene.timeline_markers.remove(marker)
-    if MARKERS_KEY in scene:
-        del scene[MARKERS_KEY]
+    for key in (MARKERS_KEY, SHOT_FRAMES_KEY):
+        if key in scene:
+            del scene[key]
     for obj in [o for o in bpy.data.objects if o.get(GENERATED_KEY)]:
         bpy.data.objects.remove(obj, do_unlink=True)
     for cam in [c for c in bpy.data.cameras if c.get(GENERATED_KEY) and c.users == 0]:
@@ -265,6 +267,7 @@ def add_shot_markers(scene: bpy.types.Scene, plan: dict[str, Any]) -> list[bpy.t
     markers = [scene.timeline_markers.new(shot_marker_name(i, shot), frame=int(shot["frame_start"]))
                for i, shot in enumerate(shots)]
     scene[MARKERS_KEY] = [m.name for m in markers]
+    scene[SHOT_FRAMES_KEY] = {m.name: m.frame for m in markers}
     return markers
 
 
@@ -365,12 +368,15 @@ def _rig_orbits(scene: bpy.types.Scene, plan: dict[str, Any], cam: bpy.types.Obj
     from . import rig
 
     centre = (plan.get("localization") or {}).get("action_centre")
+    up = (plan.get("localization") or {}).get("up")
     shots = sorted(plan["shots"], key=lambda s: int(s["frame_start"]))
     cameras = []
     for shot in shots:
+        first = min(shot["camera_keys"], key=lambda k: int(k["frame"])) if shot["camera_keys"] else None
         if rig.can_rig(shot, centre):
-            first = min(shot["camera_keys"], key=lambda k: int(k["frame"]))
             cameras.append(rig.build_orbit_rig(scene, shot, centre, key_lens_mm(first, width), sensor, GENERATED_KEY))
+        elif rig.can_rig_framed(shot, up):
+            cameras.append(rig.build_framed_orbit_rig(scene, shot, key_lens_mm(first, width), sensor, GENERATED_KEY))
         else:
             cameras.append(cam)
     if any(c is not cam for c in cameras):

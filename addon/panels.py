@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import importer, operators, plots, preferences, prepare, render_engine
+from . import importer, native_splats, plots, preferences, prepare, query_ops, render_engine
 
 
 class FOURLEGS_PT_main(bpy.types.Panel):
@@ -28,6 +28,7 @@ class FOURLEGS_PT_main(bpy.types.Panel):
         problem = importer.missing_message(obj)
         if problem:
             layout.label(text=problem, icon="ERROR")
+            layout.operator("fourlegs.relink_scene", icon="FILE_REFRESH")
         col = layout.column(align=True)
         col.label(text=f"{obj.name}: {len(obj.data.vertices):,} Gaussians", icon="POINTCLOUD_DATA")
         col.prop(props, "timestep")
@@ -68,7 +69,7 @@ class FOURLEGS_PT_query(_SidebarSubPanel, bpy.types.Panel):
             row.operator("fourlegs.cancel_query", text="", icon="CANCEL")
         else:
             layout.operator("fourlegs.run_query", icon="VIEWZOOM")
-            if len(operators.imported_splat_objects()) > 1:
+            if len(query_ops.imported_splat_objects()) > 1:
                 layout.operator("fourlegs.find_best_scene", icon="SORTSIZE")
             if props.status:
                 layout.label(text=props.status)
@@ -101,6 +102,8 @@ class FOURLEGS_PT_highlight(_SidebarSubPanel, bpy.types.Panel):
         layout = self.layout
         props = context.scene.fourlegs
         layout.prop(props, "preset")
+        if native_splats.available():
+            layout.prop(props, "renderer")
         col = layout.column(heading="Effects", align=True)
         col.prop(props, "use_zoom_in")
         col.prop(props, "use_bullet_time")
@@ -117,6 +120,9 @@ class FOURLEGS_PT_render(_SidebarSubPanel, bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         props = context.scene.fourlegs
+        undrawn = render_engine.undrawn_line(context.scene) if context.scene.render.engine == render_engine.ENGINE_ID else ""
+        if undrawn:
+            layout.label(text=undrawn, icon="INFO")
         layout.prop(props, "output_format")
         layout.prop(props, "output_path")
         layout.prop(props, "overwrite")

@@ -78,6 +78,12 @@ class FourlegsSceneProps(bpy.types.PropertyGroup):
     use_bullet_time: BoolProperty(name="Bullet Time", default=True)
     use_zoom_in: BoolProperty(name="Zoom In", default=True)
     use_desaturate: BoolProperty(name="Desaturate Background", default=True)
+    renderer: EnumProperty(
+        name="Renderer", default="NATIVE" if bpy.app.version >= (5, 3, 0) else "FOURLEGS",
+        items=[("NATIVE", "EEVEE / Cycles", "Blender renders the splats with meshes, lights and its compositor "
+                "(Blender 5.3+); the desaturation mask is a view layer Blender renders too"),
+               ("FOURLEGS", "4-LEGS Splats", "The add-on's exact Gaussian rasterizer (any Blender; meshes are not "
+                "drawn)")])
     # --- output
     output_path: StringProperty(name="Output", subtype="FILE_PATH", default="//highlight.mp4")
     output_format: EnumProperty(name="Format", items=[("MP4", "MP4 (H.264)", "One video file"),

@@ -3,13 +3,13 @@ from __future__ import annotations
 
 import bpy
 
-from . import importer, operators, panels, preferences, prepare, properties, render_engine
+from . import (importer, jobs, native_render, operators, panels, preferences, properties, render_engine,
+               retime)
 
 classes = (
     *preferences.classes,
     *properties.classes,
     *operators.classes,
-    *prepare.classes,
     *panels.ui_lists,
     *panels.classes,
     *render_engine.classes,
@@ -23,12 +23,15 @@ def register() -> None:
     properties.register()
     render_engine.register()
     importer.register()
+    native_render.register()
+    retime.register()
 
 
 def unregister() -> None:
-    operators.cancel_all()
-    prepare.cancel_all()
+    jobs.cancel_all()
     preferences.unregister()
+    native_render.unregister()
+    retime.unregister()
     importer.unregister()
     render_engine.unregister()
     properties.unregister()

@@ -7,7 +7,8 @@ scene's active camera, and writes
 - ``Combined``: RGB, scene-linear (the Gaussians' sRGB colours linearized, so a PNG/MP4 written with
   the Standard view transform reproduces the rasterizer's colours), alpha = coverage when the film
   is transparent, else 1,
-- ``Depth``: expected camera depth (1e10 where nothing was hit, as Blender's other engines do),
+- ``Depth``: expected camera depth (1e10 where nothing was hit, as Blender's other engines do), on
+  every frame the view layer's Z pass is on,
 - ``Relevancy``: the query's relevancy of the visible surface in [0, 1], declared through
   ``update_render_passes`` when the view layer asks for it (``view_layer.fourlegs_relevancy``),
   and computed **only on frames the highlight plan lists** in ``passes["relevancy"]`` (elsewhere
@@ -27,8 +28,9 @@ from typing import Any, Optional
 import bpy
 import numpy as np
 
-from . import compositor, convert, importer
+from . import compositor, convert, importer, relevancy_store
 from .keyframes import frames_in_ranges
+from .messages import error_line
 
 ENGINE_ID = "FOURLEGS_SPLATS"
 RELEVANCY_PASS = "Relevancy"
@@ -74,13 +76,8 @@ def relevancy_frames(scene: bpy.types.Scene, plan: Any = ...) -> list:
 
 
 def depth_wanted(scene: bpy.types.Scene, view_layer, frame: int, plan: Any = ...) -> bool:
-    """Depth only where asked: the Z pass is on and, with a highlight plan, the plan lists this frame."""
-    if not view_layer.use_pass_z:
-        return False
-    plan = plan_of(scene) if plan is ... else plan
-    if plan is None:
-        return True
-    return frames_in_ranges((plan.get("passes") or {}).get("depth"), frame)
+    """Depth on every frame the view layer's Z pass is on (a Z pass is never left holding "nothing hit")."""
+    return bool(view_layer.use_pass_z)
 
 
 def wants_relevancy_pass(view_layer: bpy.types.ViewLayer) -> bool:
@@ -108,9 +105,11 @@ def scene_camera(scene: bpy.types.Scene, depsgraph, width: int, height: int):
                   far=max(data.clip_end, data.clip_start * 2), name=cam_obj.name)
 
 
-def gather_gaussians(scene: bpy.types.Scene, t: float, with_relevancy: bool,
-                     plan: Any = ...) -> Optional[dict[str, np.ndarray]]:
-    """Concatenate the visible splat objects' Gaussians at timestep ``t`` (world space)."""
+def gather_gaussians(scene: bpy.types.Scene, t: float, with_relevancy: bool, plan: Any = ...,
+                     camera: Any = None) -> Optional[dict[str, np.ndarray]]:
+    """Concatenate the visible splat objects' Gaussians at timestep ``t`` (world space): the points an
+    editor deleted or hid are left out, SH colours are evaluated for ``camera`` (an engine ``Camera``;
+    None: their DC term)."""
     parts = []
     for obj in importer.splat_objects(scene):
         if obj.hide_render:
@@ -118,39 +117,76 @@ def gather_gaussians(scene: bpy.types.Scene, t: float, with_relevancy: bool,
         src = importer.engine_scene_for(obj)
         if src is None:
             continue
-        g = src.gaussians
-        tt = min(max(float(t), 0.0), float(g.num_timesteps - 1))
-        ti = int(round(tt))
-        means = importer.blend_timestep(g.means, tt)
-        mw = np.array(obj.matrix_world, dtype=np.float64)
-        if not np.allclose(mw, np.eye(4)):
-            means = (means @ mw[:3, :3].T + mw[:3, 3]).astype(np.float32)
-        log_scales = np.asarray(g.log_scales[ti] if g.log_scales.ndim == 3 else g.log_scales, np.float32)
-        if g.colors is not None:
-            colors = importer.blend_timestep(g.colors, tt) if g.colors.ndim == 3 else np.asarray(g.colors, np.float32)
-        else:
-            colors = g.rgb(ti).astype(np.float32)
-        part = {"means": means, "rotations": np.asarray(g.rotations[ti], np.float32), "log_scales": log_scales,
-                "opacity_logits": np.asarray(g.opacity_logits, np.float32), "colors": colors}
-        importer.release_after_reading(importer.source_key(obj), (g.means, g.colors, g.rotations, g.log_scales),
-                                       2 if tt != int(tt) else 1)
+        part = _object_gaussians(obj, src.gaussians, t, camera)
+        timestep, index = part.pop("timestep"), part.pop("index")
         if with_relevancy:
-            rel = importer.gaussian_relevancy(obj, ti)
             query = ((plan_of(scene) if plan is ... else plan) or {}).get("query")
-            if rel is None and query:  # e.g. a saved .blend re-opened: ask the scene's language field
-                from . import querying
-
-                engine = querying.open_query_engine(src, encoder=querying.encoder_config(scene.fourlegs))
-                importer.set_relevancy_provider(obj, lambda t, e=engine, q=query: e.gaussian_relevancy(q, t).numpy())
-                rel = importer.gaussian_relevancy(obj, ti)
-            part["relevancy"] = (np.zeros(g.num_gaussians, np.float32) if rel is None
-                                 else np.asarray(rel, np.float32))
+            rel = relevancy_store.relevancy_for(scene, obj, src, timestep, query)
+            rel = np.zeros(src.num_gaussians, np.float32) if rel is None else np.asarray(rel, np.float32)
+            part["relevancy"] = rel if index is None else rel[index]
         parts.append(part)
     if not parts:
         return None
     if len(parts) == 1:  # the usual case: no copy
         return parts[0]
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def _object_gaussians(obj: bpy.types.Object, g: Any, t: float, camera: Any) -> dict[str, Any]:
+    """One object's Gaussians at scene time ``t``: means, rotations, log_scales, opacity_logits, colors
+    (arrays over the shown Gaussians), plus their ``index`` (None: all) and the nearest ``timestep``."""
+    tt = min(max(float(t), 0.0), float(g.num_timesteps - 1))
+    ti = int(round(tt))
+    index = importer.visible_indices(obj, g.num_gaussians)
+    pick = (lambda a: a) if index is None else (lambda a: a[index])
+    means = pick(importer.blend_timestep(g.means, tt))
+    mw = np.array(obj.matrix_world, dtype=np.float64)
+    if not np.allclose(mw, np.eye(4)):
+        means = (means @ mw[:3, :3].T + mw[:3, 3]).astype(np.float32)
+    log_scales = pick(np.asarray(g.log_scales[ti] if g.log_scales.ndim == 3 else g.log_scales, np.float32))
+    if g.colors is not None:
+        colors = importer.blend_timestep(g.colors, tt) if g.colors.ndim == 3 else np.asarray(g.colors, np.float32)
+        colors = pick(colors)
+    elif camera is not None and g.sh.shape[-2] > 1:
+        colors = _sh_colours(pick(np.asarray(g.sh[ti] if g.sh.ndim == 4 else g.sh, np.float32)), means, camera)
+    else:
+        colors = pick(g.rgb(ti).astype(np.float32))
+    importer.release_after_reading(importer.source_key(obj), (g.means, g.colors, g.rotations, g.log_scales),
+                                   2 if tt != int(tt) else 1)
+    return {"means": means, "rotations": pick(np.asarray(g.rotations[ti], np.float32)), "log_scales": log_scales,
+            "opacity_logits": pick(np.asarray(g.opacity_logits, np.float32)), "colors": colors,
+            "index": index, "timestep": ti}
+
+
+def _sh_colours(sh: np.ndarray, means: np.ndarray, camera: Any) -> np.ndarray:
+    """(M,3) RGB in [0,1] of SH coefficients (M,K,3) seen from ``camera`` (the engine's SH evaluation)."""
+    import torch
+
+    from fourlegs_engine import api
+
+    with torch.no_grad():
+        rgb = api.eval_sh(torch.from_numpy(np.ascontiguousarray(sh)), torch.from_numpy(np.ascontiguousarray(means)),
+                          camera)
+    return rgb.clamp(0.0, 1.0).numpy().astype(np.float32)
+
+
+GEOMETRY_TYPES = ("MESH", "CURVE", "CURVES", "SURFACE", "META", "FONT", "VOLUME", "GREASEPENCIL")
+
+
+def undrawn_objects(scene: bpy.types.Scene) -> list[str]:
+    """Visible objects this engine does not draw (everything but the splats: meshes, text, curves, ...)."""
+    splats = set(importer.splat_objects(scene))
+    return sorted(o.name for o in scene.objects if o.type in GEOMETRY_TYPES and o not in splats and not o.hide_render)
+
+
+def undrawn_line(scene: bpy.types.Scene) -> str:
+    """The panel's one line when the scene holds objects this engine leaves out (empty when none)."""
+    names = undrawn_objects(scene)
+    if not names:
+        return ""
+    where = "EEVEE or Cycles" if bpy.app.version >= (5, 3, 0) else "EEVEE or Cycles on Blender 5.3+"
+    return (f"the 4-LEGS Splats engine draws only the splats; {len(names)} object(s) ({', '.join(names[:3])}) "
+            f"need {where}")
 
 
 def srgb_to_linear_torch(c, out=None):
@@ -192,7 +228,7 @@ def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *,
     compute_rel = relevancy_pass and (frames_in_ranges(relevancy_frames(scene, plan), frame)
                                       or compositor.desaturation_at(scene, frame) > 0.0)
     camera = scene_camera(scene, depsgraph, width, height) if camera is None else camera
-    data = gather_gaussians(scene, t, compute_rel, plan)
+    data = gather_gaussians(scene, t, compute_rel, plan, camera)
     out: dict[str, np.ndarray] = {}
     if data is None:
         out["rgba"] = np.zeros((height, width, 4), np.float32)
@@ -362,12 +398,15 @@ class FourlegsRenderEngine(bpy.types.RenderEngine):
             self.end_result(result, cancel=True)
             return
         except Exception as exc:  # report, leave an empty (black) frame, let the caller see the error
-            stats["last_error"] = f"{type(exc).__name__}: {exc}"
+            stats["last_error"] = error_line(exc)
             self.report({"ERROR"}, f"4-LEGS Splats: {stats['last_error']}")
             self.end_result(result, cancel=False)
             return
         layer = result.layers[0]
         write_pass(layer.passes["Combined"], arrays["rgba"])
+        undrawn = undrawn_line(scene)
+        if undrawn:
+            self.report({"WARNING"}, undrawn)
         depth_pass = layer.passes.get("Depth")
         if depth_pass is not None:
             write_pass(depth_pass, arrays["depth"])

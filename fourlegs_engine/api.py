@@ -32,7 +32,7 @@ _LAZY = {
     "language_field_steps": "pipeline", "ensure_language_field": "pipeline",
     "has_language_field": "pipeline", "open_query_engine": "pipeline", "open_scene": "pipeline",
     "plan_language_field": "pipeline", "text_encoder": "pipeline",
-    "rasterize": "render",
+    "rasterize": "render", "eval_sh": "render.sh",
     "rank_scenes_opening": "query.multiscene",
     "Camera": "scene", "Scene": "scene", "load_scene": "scene",
     "release_mapped_pages": "scene.gaussians",
@@ -52,15 +52,11 @@ if TYPE_CHECKING:
                            text_encoder)
     from .query.multiscene import rank_scenes_opening
     from .render import rasterize
+    from .render.sh import eval_sh
     from .scene import Camera, Scene, load_scene
     from .scene.gaussians import release_mapped_pages
     from .threads import kernel_threads, torch_threads, usable_cpu_count
     from .validate import check_text
 
-_lazy_attribute, __dir__, __all__ = lazy_exports(__name__, _LAZY, base=__package__)
-#: earlier names still used by add-on code being rewritten beside this change (addon/prepare.py)
-_RENAMED = {"EncoderOptions": "EncoderOptions"}
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _LAZY, base=__package__)
 
-
-def __getattr__(name: str) -> Any:
-    return _lazy_attribute(_RENAMED.get(name, name))

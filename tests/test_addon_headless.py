@@ -174,7 +174,9 @@ def test_highlight_end_to_end(tmp_path, request, capsys):
     assert [props.segment_start, props.segment_end] == plan["localization"]["segment"]
     assert props.peak == plan["localization"]["peak"]
     assert [[g.start, g.end] for g in props.segments] == plan["localization"]["segments"]
-    assert props.output_path == str(out / "highlight.mp4") and s.render.image_settings.file_format == "FFMPEG"
+    # relative to the .blend, so the project folder can move (issue #31)
+    assert props.output_path == "//highlight.mp4" and s.render.image_settings.file_format == "FFMPEG"
+    assert bl.path.abspath(props.output_path) == str(out / "highlight.mp4")
     assert bl.data.images["fourlegs_scores"].packed_file is not None
     # the saved file re-opens its scene from disk: the timeline drives the point cloud again
     import numpy as np

@@ -329,8 +329,6 @@ def test_no_engine_file_or_function_is_oversized():
     assert oversized_units(ENGINE) == []
 
 
-@pytest.mark.xfail(strict=False, reason="addon/operators.py (636 lines) is split by feature on the add-on's "
-                                        "own branch of the architecture step")
 def test_no_addon_file_or_function_is_oversized():
     assert oversized_units(REPO / "addon") == []
 

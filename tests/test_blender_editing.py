@@ -20,7 +20,7 @@ def _generate(bl, plan=None):
 
 
 def test_one_marker_per_shot_replaced_not_duplicated(bl):
-    from fourlegs_addon import keyframes, operators
+    from fourlegs_addon import highlight_ops, keyframes, operators
 
     _generate(bl)
     scene = bl.context.scene
@@ -227,7 +227,7 @@ def test_generate_asks_before_replacing_a_generated_highlight(bl, tmp_path):
     import json
     import types
 
-    from fourlegs_addon import keyframes, operators
+    from fourlegs_addon import highlight_ops, keyframes, operators
 
     plan_file = tmp_path / "plan.json"
     plan_file.write_text(json.dumps(hand_plan(desaturate=True)))
@@ -242,10 +242,10 @@ def test_generate_asks_before_replacing_a_generated_highlight(bl, tmp_path):
     context = types.SimpleNamespace(scene=bl.context.scene, window_manager=window_manager)
     op = types.SimpleNamespace(execute=lambda ctx: executed.append(1) or {"FINISHED"})
     assert keyframes.has_generated(bl.context.scene)
-    assert operators.FOURLEGS_OT_generate_highlight.invoke(op, context, None) == {"RUNNING_MODAL"}
+    assert highlight_ops.FOURLEGS_OT_generate_highlight.invoke(op, context, None) == {"RUNNING_MODAL"}
     assert executed == [] and asked[0]["title"] == "Replace the highlight?" and "edits" in asked[0]["message"]
     bl.ops.wm.read_factory_settings(use_empty=True)
     context.scene = bl.context.scene
     assert not keyframes.has_generated(bl.context.scene)
-    assert operators.FOURLEGS_OT_generate_highlight.invoke(op, context, None) == {"FINISHED"}
+    assert highlight_ops.FOURLEGS_OT_generate_highlight.invoke(op, context, None) == {"FINISHED"}
     assert executed == [1] and len(asked) == 1

@@ -53,7 +53,7 @@ def test_manifest_passes_blenders_validator(tmp_path):
     build.validate(src)  # raises BuildError with the validator's message on failure
     manifest = (src / "blender_manifest.toml").read_text()
     assert 'license = ["SPDX:GPL-3.0-or-later"]' in manifest
-    assert 'blender_version_min = "4.2.0"' in manifest
+    assert 'blender_version_min = "5.0.0"' in manifest and 'blender_version_max = "5.4.0"' in manifest
     assert "[permissions]" in manifest and "files =" in manifest
 
 
@@ -162,4 +162,4 @@ def test_manifest_version_matches_the_package():
 
     manifest = tomllib.loads((REPO / "blender_manifest.toml").read_text())
     assert manifest["version"] == fourlegs_engine.__version__
-    assert manifest["blender_version_min"] == "4.2.0" and manifest["type"] == "add-on"
+    assert manifest["blender_version_min"] == "5.0.0" and manifest["type"] == "add-on"

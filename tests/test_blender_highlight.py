@@ -16,6 +16,7 @@ pytestmark = pytest.mark.blender
 def _setup(bl, plan):
     from fourlegs_addon import importer, operators
 
+    bl.context.scene.fourlegs.renderer = "FOURLEGS"  # the 4-LEGS Splats engine's compositor (EEVEE/Cycles: test_blender_native_splats)
     importer.import_scene(bl.context.scene, tiny_scene())
     cam = operators.generate_highlight(bl.context.scene, plan)
     return cam
@@ -171,9 +172,9 @@ def test_bad_plan_is_reported_not_crashed(bl, tmp_path):
 def test_undo_after_generate_highlight_restores_the_previous_state(bl, tmp_path):
     """In background mode Blender pushes no undo steps by itself: push them as the UI would
     (the operator has the UNDO flag) inside a window/screen context, then undo and redo."""
-    from fourlegs_addon import compositor, importer, operators
+    from fourlegs_addon import compositor, highlight_ops, importer
 
-    assert "UNDO" in operators.FOURLEGS_OT_generate_highlight.bl_options
+    assert "UNDO" in highlight_ops.FOURLEGS_OT_generate_highlight.bl_options
     importer.import_scene(bl.context.scene, tiny_scene())
     path = tmp_path / "plan.json"
     path.write_text(json.dumps(hand_plan(desaturate=True)))

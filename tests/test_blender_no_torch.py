@@ -137,7 +137,7 @@ def test_import_and_playback_without_torch(tmp_path, probe_wheel_dir):
         r = bpy.ops.fourlegs.import_scene(filepath={str(tmp_path / "ply")!r})
         out["import"] = sorted(r)
         obj = bpy.context.scene.fourlegs.splat_object
-        co = lambda: [tuple(v.co) for v in obj.data.vertices]
+        co = lambda: [tuple(v.vector) for v in obj.data.attributes["position"].data]  # mesh or point cloud
         first = co()
         bpy.context.scene.frame_set(3)  # playback: the import keyed frame f to timestep f - 1
         out["moved"] = max(abs(a[0] - b[0]) for a, b in zip(first, co()))
@@ -242,7 +242,7 @@ def test_installed_zip_carries_plyfile_numba_and_the_scipy_of_its_python(tmp_pat
         import plyfile, scipy
         out["plyfile"], out["scipy"] = plyfile.__file__, [scipy.__version__, scipy.__file__]
         out["ply_import"] = sorted(bpy.ops.fourlegs.import_scene(filepath={str(tmp_path / "ply")!r}))
-        out["ply_points"] = len(bpy.context.scene.fourlegs.splat_object.data.vertices)
+        out["ply_points"] = len(bpy.context.scene.fourlegs.splat_object.data.attributes["position"].data)
         try:
             import torch
         except ImportError:

@@ -25,7 +25,7 @@ def _engine_for(scene):
 
 
 def test_run_query_stores_results_and_colours_by_relevancy(bl, monkeypatch):
-    from fourlegs_addon import importer, operators, plots, querying
+    from fourlegs_addon import importer, plots, querying
 
     scene = tiny_scene()
     engine = _engine_for(scene)
@@ -63,12 +63,12 @@ def test_run_query_reports_a_missing_language_field(bl):
 
 
 def test_cancelled_query_changes_nothing(bl, monkeypatch):
-    from fourlegs_addon import operators
+    from fourlegs_addon import query_ops
 
     scene = tiny_scene()
-    job = operators._QueryJob(scene, "the cube")
+    job = query_ops.QueryJob(scene, "the cube")
     job.cancelled = True
-    monkeypatch.setattr(operators.querying, "open_query_engine", lambda s, **kw: _engine_for(s))
+    monkeypatch.setattr(query_ops.querying, "open_query_engine", lambda s, **kw: _engine_for(s))
     job.run()
     assert job.done and job.localization is None and job.error is None
 
@@ -162,12 +162,12 @@ def test_panel_workflow_import_query_generate_with_the_real_planner(bl, tmp_path
 
 
 def test_missing_dependency_message_names_the_install_command():
-    from fourlegs_addon import operators
+    from fourlegs_addon import messages
 
     exc = ModuleNotFoundError("No module named 'torch'", name="torch")
-    msg = operators._err(exc)
+    msg = messages.error_line(exc)
     assert msg.startswith("torch is missing (querying") and "Preferences > Add-ons" in msg
-    assert operators._err(ValueError("bad: field")) == "bad: field"
+    assert messages.error_line(ValueError("bad: field")) == "bad: field"
 
 
 def test_viclip_weights_come_from_the_scene_properties(bl, tmp_path):
@@ -190,17 +190,17 @@ def test_generate_without_a_query_result_starts_the_query_instead_of_blocking(bl
     """With a UI, Generate Highlight never localizes on the main thread: it starts Run Query (background)
     and asks to press Generate again; the second press plans from the query's cached result."""
     from _blender_helpers import language_bundle
-    from fourlegs_addon import operators, render_engine
+    from fourlegs_addon import jobs, query_ops, render_engine
 
     bundle = language_bundle(tmp_path / "scene")
     assert bl.ops.fourlegs.import_scene(filepath=str(bundle / "scene.json")) == {"FINISHED"}
     props = bl.context.scene.fourlegs
     props.query = "the red cube"
     props.preset = "broadcast"
-    monkeypatch.setattr(operators, "interactive", lambda: True)
+    monkeypatch.setattr(jobs, "interactive", lambda: True)
     opened = []
-    real_open = operators.querying.open_query_engine
-    monkeypatch.setattr(operators.querying, "open_query_engine",
+    real_open = query_ops.querying.open_query_engine
+    monkeypatch.setattr(query_ops.querying, "open_query_engine",
                         lambda *a, **k: opened.append(1) or real_open(*a, **k))
     assert bl.ops.fourlegs.generate_highlight() == {"CANCELLED"}
     assert render_engine.plan_of(bl.context.scene) is None
@@ -212,12 +212,12 @@ def test_generate_without_a_query_result_starts_the_query_instead_of_blocking(bl
 
 def test_cancel_stops_the_query_inside_the_temporal_pass(bl, monkeypatch):
     """Cancel pressed while the engine scores timesteps: it stops at the next timestep, no error shown."""
-    from fourlegs_addon import operators
+    from fourlegs_addon import query_ops
 
     scene = tiny_scene()
     engine = _engine_for(scene)
-    monkeypatch.setattr(operators.querying, "open_query_engine", lambda s, **kw: engine)
-    job = operators._QueryJob(scene, "the cube")
+    monkeypatch.setattr(query_ops.querying, "open_query_engine", lambda s, **kw: engine)
+    job = query_ops.QueryJob(scene, "the cube")
     seen = []
     real = job.on_progress
 
@@ -239,7 +239,7 @@ def test_cancel_stops_the_query_while_the_engine_opens(bl, tmp_path, monkeypatch
     opening stops there, nothing is cached or stored, and the operator ends cancelled without an error."""
     from _blender_helpers import language_bundle
 
-    from fourlegs_addon import importer, operators, querying
+    from fourlegs_addon import importer, jobs, query_ops, querying
     from fourlegs_engine.language.field import LanguageField
 
     path = language_bundle(tmp_path / "bundle")
@@ -251,22 +251,22 @@ def test_cancel_stops_the_query_while_the_engine_opens(bl, tmp_path, monkeypatch
     real_open = LanguageField.open.__func__
     monkeypatch.setattr(LanguageField, "open",
                         classmethod(lambda cls, *a, **k: opened.append(1) or real_open(cls, *a, **k)))
-    real_progress = operators._QueryJob.on_open_progress
+    real_progress = query_ops.QueryJob.on_open_progress
 
     def cancel_when_the_field_opens(job, fraction, stage):
         stages.append(stage)
         if stage == "opening the language field":
-            operators.cancel_all()  # what the Cancel button does
+            jobs.cancel_all()  # what the Cancel button does
         real_progress(job, fraction, stage)
 
-    monkeypatch.setattr(operators._QueryJob, "on_open_progress", cancel_when_the_field_opens)
+    monkeypatch.setattr(query_ops.QueryJob, "on_open_progress", cancel_when_the_field_opens)
     querying._ENGINES.clear()
     assert bl.ops.fourlegs.run_query() == {"CANCELLED"}
     assert stages == ["loading the text encoder", "opening the language field"] and opened == []
-    assert querying._ENGINES == {} and importer.source_key(obj) not in operators._LOCALIZERS
+    assert querying._ENGINES == {} and importer.source_key(obj) not in query_ops._LOCALIZERS
     assert not props.running and props.status == "cancelled" and not props.found and len(props.segments) == 0
 
-    monkeypatch.setattr(operators._QueryJob, "on_open_progress", real_progress)
+    monkeypatch.setattr(query_ops.QueryJob, "on_open_progress", real_progress)
     assert bl.ops.fourlegs.run_query() == {"FINISHED"}  # nothing left half-open: the next run works
     assert opened == [1] and props.found and (props.segment_start, props.segment_end) == (1, 4)
 
@@ -283,7 +283,7 @@ def _ranked_bundle(path, label, active):
 
 
 def test_find_best_scene_ranks_the_imported_scenes_and_selects_the_best(bl, tmp_path):
-    from fourlegs_addon import importer, operators, querying
+    from fourlegs_addon import importer, query_ops, querying
     from fourlegs_engine.query.multiscene import scene_relevance
 
     cube = _ranked_bundle(tmp_path / "cube", "red cube", active=(0, 1))
@@ -303,7 +303,7 @@ def test_find_best_scene_ranks_the_imported_scenes_and_selects_the_best(bl, tmp_
             for name, obj in objs.items()}
     assert want["cube"] > want["ball"] and want["cube"] > 0  # the paper's stride 10 samples t=0 here
     for name, obj in objs.items():
-        assert obj[operators.RELEVANCE_KEY] == pytest.approx(want[name])
+        assert obj[query_ops.RELEVANCE_KEY] == pytest.approx(want[name])
     assert props.splat_object == objs["cube"] and objs["cube"].select_get() and not objs["ball"].select_get()
     assert bl.context.view_layer.objects.active == objs["cube"]
     assert props.status == f"best scene: {objs['cube'].name}" and not props.running

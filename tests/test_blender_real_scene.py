@@ -260,11 +260,11 @@ def test_rendering_every_timestep_does_not_keep_them_all_resident(bl, long_bundl
 @given(hnp.arrays(np.float32, st.integers(1, 300), elements=st.floats(-0.5, 1.5, width=32) | st.just(math.nan)))
 def test_heat_table_matches_the_heat_ramp(bpy_addon, values):
     """The per-frame heat colours (a table lookup) are the heat ramp's to well under one 8-bit level."""
-    from fourlegs_addon import importer
+    from fourlegs_addon import importer, mesh_splats
 
-    direct = importer._rgba(importer.heat_rgb(values))
+    direct = mesh_splats.rgba(importer.heat_rgb(values))
     looked_up = importer.heat_rgba(values)
     assert looked_up.shape == (len(values), 4) and looked_up.dtype == np.float32
     np.testing.assert_allclose(looked_up, direct, atol=1e-3)
     np.testing.assert_array_equal(importer.heat_rgba(np.float32([0.0, 1.0])),
-                                  importer._rgba(importer.heat_rgb(np.float32([0.0, 1.0]))))
+                                  mesh_splats.rgba(importer.heat_rgb(np.float32([0.0, 1.0]))))

@@ -308,7 +308,7 @@ def test_a_failed_encode_is_one_line_and_leaves_nothing(highlight, bl, tmp_path)
 
 
 def test_render_video_operator_cancel_button_stops_it_between_frames(highlight, bl, tmp_path):
-    from fourlegs_addon import operators, video
+    from fourlegs_addon import jobs, video
 
     scene, _, _ = highlight
     scene.frame_end = 5
@@ -330,7 +330,7 @@ def test_render_video_operator_cancel_button_stops_it_between_frames(highlight, 
     finally:
         video.RenderJob.step = real_step
     assert rendered == [1, 2] and not props.running and props.status == "render cancelled"
-    assert list(tmp_path.iterdir()) == [] and operators._RENDERS == []
+    assert list(tmp_path.iterdir()) == [] and jobs.active() == []
 
 
 def test_viewport_image_is_the_render_seen_from_the_viewport_matrices(highlight, bl):

@@ -137,7 +137,7 @@ def run_synthetic(rows: Sequence[tuple[str, str, ExtractPlan]], *, size: str, se
     from fourlegs_engine.language.field import LanguageField
     from fourlegs_engine.pipeline import text_encoder
     from fourlegs_engine.scene.bundle import load_bundle
-    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
     from .accuracy_time import evaluate
     from .grounding import build_context
     from .ground_truth import ensure_ground_truth
@@ -516,7 +516,7 @@ def run_cli(args: argparse.Namespace) -> int:
     new_rows = []
     if "synthetic" in proxies:
         from fourlegs_engine.scene.bundle import load_bundle
-        from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+        from fourlegs_engine.demo.synthetic import ensure_demo_bundle
         cams = load_bundle(ensure_demo_bundle(args.scene, args.seed)).cameras.num_cameras("train")
         new_rows += run_synthetic(pick(knob_rows(cams)), size=args.scene, seed=args.seed, work=work,
                                   ae_epochs=args.ae_epochs, view_scale=args.view_scale, progress=True,

@@ -146,7 +146,7 @@ def main() -> int:
 
     from fourlegs_addon import relevancy_store
     from fourlegs_engine.scene import load_scene
-    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
 
     shutil.rmtree(out / "scene", ignore_errors=True)
     (out / "frames").mkdir(parents=True, exist_ok=True)

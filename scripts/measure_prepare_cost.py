@@ -40,7 +40,7 @@ def children_cpu() -> float:
 
 
 def main() -> int:
-    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("size", nargs="?", default="tiny", help="synthetic scene size (tiny, demo, ...)")

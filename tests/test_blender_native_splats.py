@@ -123,7 +123,7 @@ def test_the_demo_scene_imports_as_gaussian_splats_that_move_with_the_timeline(b
     """The --demo scene (30k Gaussians, 48 timesteps) through Import 4D Scene: one GAUSSIAN_SPLAT point
     cloud whose positions are those of the timestep each frame shows."""
     from fourlegs_addon import importer, native_splats
-    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
 
     path = ensure_demo_bundle("demo")
     assert bl.ops.fourlegs.import_scene(filepath=str(path / "scene.json")) == {"FINISHED"}
@@ -165,7 +165,7 @@ def ball_scene(tmp_path_factory):
     timestep 8 stored beside it as a query engine would have stored it (1 on the ball, 0 elsewhere)."""
     from fourlegs_addon import relevancy_store
     from fourlegs_engine.scene import load_scene
-    from fourlegs_engine.scene.synthetic import ensure_demo_bundle
+    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
 
     path = tmp_path_factory.mktemp("native") / "scene"
     shutil.copytree(ensure_demo_bundle("tiny"), path)

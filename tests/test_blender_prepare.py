@@ -85,7 +85,7 @@ def test_prepare_extracts_every_timestep_in_one_call_as_the_main_job(bl, tmp_pat
     assert bl.ops.fourlegs.import_scene(filepath=str(tmp_path / "b" / "scene.json")) == {"FINISHED"}
     calls, done = [], set()
 
-    def fake_extract(scene, encoder, timesteps=None, **kw):
+    def fake_extract(scene, encoder, config=None, *, timesteps=None, **kw):
         calls.append(("extract", None if timesteps is None else tuple(timesteps)))
         done.update(range(scene.num_timesteps) if timesteps is None else timesteps)
 

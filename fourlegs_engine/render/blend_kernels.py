@@ -1,0 +1,465 @@
+"""Fused CPU blending kernels (numba) over :class:`~.tile_lists.TileLists`: forward, backward, splat.
+
+Every kernel walks a tile's depth-ordered list front to back, one Gaussian at a time, and visits only
+the pixels of that Gaussian's footprint, row by row: for pixel row y the footprint
+{dᵀΣ⁻¹d ≤ q} is the x-interval centred at mx − b·dy/a with half-width sqrt(a·q − (ac − b²)·dy²)/a
+(:func:`_row_span`), so no pixel outside it is ever evaluated. Along a row the exponent is a quadratic
+in x, so α = o·exp(power) follows a two-term recurrence — G(x+1) = G(x)·R(x), R(x+1) = R(x)·e^(−a) —
+two multiplications per pixel instead of an exp (:data:`RECURRENCE_MAX_A` bounds where it is used; the
+steepest footprints, a handful of pixels wide, take one exp per pixel). Each pixel keeps its own
+transmittance and stops as in 3DGS; a row whose pixels have all stopped is skipped, a tile whose
+pixels have all stopped ends its list.
+
+The α test (α ≤ α_floor is skipped), the α_max clamp, the stop rule and the blending order are those of
+:mod:`.rasterizer`; arithmetic is float64 except the channel loops, which run in the working dtype.
+
+The backward pass recomputes α and T in the same order as the forward (the same code decides what is
+blended), and needs no back-to-front walk: with s_i = ∂L/∂w_i = g_p·v_i,
+
+    ∂L/∂α_i = T_i s_i − (Σ_{k>i} w_k s_k + T_final ∂L/∂T_final) / (1 − α_i)
+
+and the suffix sum is (g_p·accum_p + T_final ∂L/∂T_final) − Σ_{k≤i} w_k s_k, where accum_p is the
+forward's output. ∂L/∂power = ∂L/∂α·α (where α is not clamped), chained per Gaussian to
+(mx, my, a, b, c, o) through six running sums over its pixels.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+try:  # pragma: no cover - exercised when numba is missing
+    import numba
+except ImportError:  # pragma: no cover
+    numba = None
+
+#: the α recurrence along a row is used while the conic's a (1/px²) is at most this; above it the
+#: footprint is a few pixels wide and α is evaluated directly (bounds the recurrence's factors by e^±36)
+RECURRENCE_MAX_A = 16.0
+#: slack, in pixels, added to each end of a row's footprint interval before the exact α test
+SPAN_SLACK_PX = 1e-6
+#: work counters of :func:`count_work` (see its docstring)
+WORK_COUNTERS = ("in_boxes", "in_footprints", "evaluated", "blended")
+#: channels the narrow forward kernel carries in registers (fewer are zero-padded)
+NARROW_LANES = 4
+
+
+def _pair_setup_py(packed, k):  # pragma: no cover - compiled by numba
+    """Per-Gaussian constants of the row footprints: (slope, h0, h1, recurrence, step).
+
+    Row offset dy has the footprint x-interval centred at mx − slope·dy with half-width
+    sqrt(h0 − h1·dy²) (slope = b/a, h0 = q/a, h1 = (ac − b²)/a²); ``recurrence`` says whether α may
+    follow the two-term recurrence along the row, whose ratio shrinks by ``step`` = e^(−a) per pixel.
+    A conic that is not positive definite gets h0 = inf (every pixel of the box is evaluated).
+    """
+    a, b, c, reach = packed[k, 2], packed[k, 3], packed[k, 4], packed[k, 7]
+    if not a > 0.0:
+        return 0.0, math.inf, 0.0, False, 1.0
+    inv_a = 1.0 / a
+    recurrence = a <= RECURRENCE_MAX_A
+    return b * inv_a, reach * inv_a, (a * c - b * b) * inv_a * inv_a, recurrence, math.exp(-a) if recurrence else 1.0
+
+
+def _row_span_py(centre, half_sq, lo, hi):  # pragma: no cover - compiled by numba
+    """Columns [x_start, x_end] of a row whose footprint is centred at column ``centre`` (pixel-centre
+    coordinate − 0.5) with squared half-width ``half_sq``, clipped to [lo, hi] (empty: x_start > x_end)."""
+    if half_sq < 0.0:
+        return 1, 0
+    half = math.sqrt(half_sq) + SPAN_SLACK_PX
+    start = min(max(centre - half, lo - 1.0), hi + 1.0)  # also maps NaN/inf into range
+    end = min(max(centre + half, lo - 1.0), hi + 1.0)
+    x_start = max(int(math.ceil(start)), lo)
+    x_end = min(int(math.floor(end)), hi)
+    if half_sq == math.inf:
+        x_start, x_end = lo, hi
+    return x_start, x_end
+
+
+def _tile_reset_py(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live):  # pragma: no cover
+    """Set up a tile's pixel state (T = 1, every row live); returns (x0, y0, tile width, tile height)."""
+    x0 = (tile % tiles_x) * tile_w
+    y0 = (tile // tiles_x) * tile_h
+    tw = min(tile_w, width - x0)
+    th = min(tile_h, height - y0)
+    for p in range(tw * th):
+        transmittance[p] = 1.0
+    for r in range(th):
+        row_live[r] = tw
+    return x0, y0, tw, th
+
+
+def _row_start_py(packed, k, x, y):  # pragma: no cover - compiled by numba
+    """(α-before-clamp at pixel (x, y), ratio to the next pixel's) for Gaussian rank k."""
+    mx, my, a, b, c, log_o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], packed[k, 6]
+    dx = x + 0.5 - mx
+    dy = y + 0.5 - my
+    return (math.exp(log_o - 0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)),
+            math.exp(-(a * dx + b * dy) - 0.5 * a))
+
+
+def _gauss_at_py(packed, k, x, y):  # pragma: no cover - compiled by numba
+    """α before the clamp at pixel (x, y) for Gaussian rank k, evaluated directly."""
+    mx, my, a, b, c, log_o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], packed[k, 6]
+    dx = x + 0.5 - mx
+    dy = y + 0.5 - my
+    return math.exp(log_o - 0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy))
+
+
+def _row_blend4_py(transmittance, acc0, acc1, acc2, acc3, p0, n, gauss, ratio, step, v0, v1, v2, v3, alpha_floor,
+                   alpha_max, transmittance_min):  # pragma: no cover - compiled by numba
+    """Blend one row segment of one Gaussian into four channel sums: pixels p0 .. p0 + n − 1 of the
+    tile state, α following the recurrence from (gauss, ratio, step). Returns how many pixels stopped.
+    Indices are unsigned (no negative-index wraparound code in the loop)."""
+    stopped = 0
+    for i in range(n):
+        alpha = gauss
+        gauss *= ratio
+        ratio *= step
+        p = p0 + np.uint64(i)
+        t_before = transmittance[p]
+        if t_before < 0.0:
+            continue
+        if alpha > alpha_max:
+            alpha = alpha_max
+        if alpha <= alpha_floor:
+            continue
+        after = t_before * (1.0 - alpha)
+        if after < transmittance_min:
+            transmittance[p] = -t_before
+            stopped += 1
+            continue
+        w = alpha * t_before
+        acc0[p] += w * v0
+        acc1[p] += w * v1
+        acc2[p] += w * v2
+        acc3[p] += w * v3
+        transmittance[p] = after
+    return stopped
+
+
+def _blend_narrow_py(tiles, offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, height, lanes,
+                     alpha_floor, alpha_max, transmittance_min, accum, transmittance_out):  # pragma: no cover
+    """accum[p, :C] = Σ_i w_i(p)·lanes[rank_i, :C] and transmittance_out[p] = T_final for the pixels of
+    ``tiles``, for C ≤ 4 channels: lanes (V, 4) float64 holds each rank's values, zero-padded.
+
+    Arrays: see :class:`~.tile_lists.TileLists`; accum (H·W, C) and transmittance_out (H·W,) are written
+    for every pixel of the listed tiles (tiles own disjoint pixels, so tile subsets run concurrently).
+    A stopped pixel keeps −T in ``transmittance`` (T ≥ transmittance_min > 0, so the sign is free).
+    """
+    channels = accum.shape[1]
+    n_pix = tile_w * tile_h
+    transmittance = np.empty(n_pix, dtype=np.float64)
+    row_live = np.empty(tile_h, dtype=np.int64)
+    acc = np.empty((NARROW_LANES, n_pix), dtype=np.float64)
+    acc0, acc1, acc2, acc3 = acc[0], acc[1], acc[2], acc[3]
+    seg_p0 = np.empty(tile_h, dtype=np.uint64)
+    seg_n = np.empty(tile_h, dtype=np.int64)
+    seg_row = np.empty(tile_h, dtype=np.int64)
+    seg_exp = np.empty(2 * tile_h, dtype=np.float64)
+    for tile in tiles:
+        x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
+        acc[:, :tw * th] = 0.0
+        live = tw * th
+        for m in range(offsets[tile], offsets[tile + 1]):
+            k = ranks[m]
+            slope, h0, h1, recurrence, step = _pair_setup(packed, k)
+            mx, my, a, b, c, log_o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], packed[k, 6]
+            lo = max(boxes[k, 0], x0)
+            hi = min(boxes[k, 1], x0 + tw - 1)
+            # the row segments first (their exponents are independent: the exps overlap), then the pixels
+            n_seg = 0
+            for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
+                r = y - y0
+                if row_live[r] == 0:
+                    continue
+                dy = y + 0.5 - my
+                xs, xe = _row_span(mx - 0.5 - slope * dy, h0 - h1 * dy * dy, lo, hi)
+                if xs > xe:
+                    continue
+                dx = xs + 0.5 - mx
+                seg_p0[n_seg] = np.uint64(r * tw + xs - x0)
+                seg_n[n_seg] = xe - xs + 1
+                seg_row[n_seg] = r
+                seg_exp[2 * n_seg] = log_o - 0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)
+                seg_exp[2 * n_seg + 1] = -(a * dx + b * dy) - 0.5 * a
+                n_seg += 1
+            if n_seg == 0:
+                continue
+            for i in range(2 * n_seg):
+                seg_exp[i] = math.exp(seg_exp[i])
+            v0, v1, v2, v3 = lanes[k, 0], lanes[k, 1], lanes[k, 2], lanes[k, 3]
+            for i in range(n_seg):
+                if recurrence:
+                    stopped = _row_blend4(transmittance, acc0, acc1, acc2, acc3, seg_p0[i], seg_n[i], seg_exp[2 * i],
+                                          seg_exp[2 * i + 1], step, v0, v1, v2, v3, alpha_floor, alpha_max,
+                                          transmittance_min)
+                else:  # steep footprint, a few pixels wide: α evaluated directly, one pixel at a time
+                    stopped = 0
+                    y = y0 + seg_row[i]
+                    xs = x0 + int(seg_p0[i]) - seg_row[i] * tw
+                    for j in range(seg_n[i]):
+                        stopped += _row_blend4(transmittance, acc0, acc1, acc2, acc3, seg_p0[i] + np.uint64(j), 1,
+                                               _gauss_at(packed, k, xs + j, y), 1.0, 1.0, v0, v1, v2, v3,
+                                               alpha_floor, alpha_max, transmittance_min)
+                row_live[seg_row[i]] -= stopped
+                live -= stopped
+            if live == 0:
+                break
+        for r in range(th):
+            row = (y0 + r) * width + x0
+            for x in range(tw):
+                p = r * tw + x
+                transmittance_out[row + x] = abs(transmittance[p])
+                for s in range(channels):
+                    accum[row + x, s] = acc[s, p]
+
+
+def _blend_wide_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile_h, width, height, values,
+                   alpha_floor, alpha_max, transmittance_min, accum, transmittance_out):  # pragma: no cover
+    """As :func:`_blend_narrow_py` for any number of channels: values (N, C) indexed by Gaussian id
+    (order[rank]); the channel sums run in accum's dtype (SIMD over the channels)."""
+    channels = values.shape[1]
+    n_pix = tile_w * tile_h
+    transmittance = np.empty(n_pix, dtype=np.float64)
+    row_live = np.empty(tile_h, dtype=np.int64)
+    acc = np.empty((n_pix, channels), dtype=accum.dtype)
+    weight_cast = np.empty(1, dtype=accum.dtype)  # the weight in the output dtype keeps the channel loop SIMD
+    for tile in tiles:
+        x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
+        acc[:tw * th] = 0
+        live = tw * th
+        for m in range(offsets[tile], offsets[tile + 1]):
+            k = ranks[m]
+            vals = values[order[k]]
+            slope, h0, h1, recurrence, step = _pair_setup(packed, k)
+            centre0 = packed[k, 0] - 0.5
+            my = packed[k, 1]
+            lo = max(boxes[k, 0], x0)
+            hi = min(boxes[k, 1], x0 + tw - 1)
+            for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
+                r = y - y0
+                if row_live[r] == 0:
+                    continue
+                dy = y + 0.5 - my
+                xs, xe = _row_span(centre0 - slope * dy, h0 - h1 * dy * dy, lo, hi)
+                if xs > xe:
+                    continue
+                gauss, ratio = _row_start(packed, k, xs, y)
+                base = r * tw - x0
+                for x in range(xs, xe + 1):
+                    if recurrence:
+                        alpha = gauss
+                        gauss *= ratio
+                        ratio *= step
+                    else:
+                        alpha = _gauss_at(packed, k, x, y)
+                    p = base + x
+                    t_before = transmittance[p]
+                    if t_before < 0.0:
+                        continue
+                    if alpha > alpha_max:
+                        alpha = alpha_max
+                    if alpha <= alpha_floor:
+                        continue
+                    after = t_before * (1.0 - alpha)
+                    if after < transmittance_min:
+                        transmittance[p] = -t_before
+                        row_live[r] -= 1
+                        live -= 1
+                        continue
+                    weight_cast[0] = alpha * t_before
+                    weight = weight_cast[0]
+                    acc_row = acc[p]
+                    for s in range(channels):
+                        acc_row[s] += weight * vals[s]
+                    transmittance[p] = after
+            if live == 0:
+                break
+        for r in range(th):
+            row = (y0 + r) * width + x0
+            for x in range(tw):
+                p = r * tw + x
+                transmittance_out[row + x] = abs(transmittance[p])
+                for s in range(channels):
+                    accum[row + x, s] = acc[p, s]
+
+
+def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile_h, width, height, values,
+                 grad_accum, grad_transmittance, transmittance_final, accum, alpha_floor, alpha_max,
+                 transmittance_min, need_values, need_geometry, grad_values, grad_geometry):  # pragma: no cover
+    """Add ∂L/∂values (N, C) to ``grad_values`` and ∂L/∂(mx, my, a, b, c, o) (N, 6) to ``grad_geometry``.
+
+    grad_accum (H·W, C) = ∂L/∂accum; grad_transmittance (H·W,) = ∂L/∂T_final; transmittance_final
+    (H·W,) and accum (H·W, C): the forward's outputs (used only for the geometry). With only
+    ``need_values`` this is the splat Σ_p w_i(p)·grad_accum[p].
+    """
+    channels = grad_accum.shape[1]
+    n_pix = tile_w * tile_h
+    transmittance = np.empty(n_pix, dtype=np.float64)
+    row_live = np.empty(tile_h, dtype=np.int64)
+    prefix = np.empty(n_pix, dtype=np.float64)
+    total = np.empty(n_pix, dtype=np.float64)
+    grad_local = np.empty((n_pix, channels), dtype=grad_accum.dtype)
+    sums = np.empty(channels, dtype=grad_values.dtype)
+    weight_cast = np.empty(1, dtype=grad_values.dtype)
+    for tile in tiles:
+        x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
+        for r in range(th):
+            row = (y0 + r) * width + x0
+            for x in range(tw):
+                p = r * tw + x
+                for s in range(channels):
+                    grad_local[p, s] = grad_accum[row + x, s]
+                if need_geometry:
+                    dot = 0.0
+                    for s in range(channels):
+                        dot += np.float64(grad_accum[row + x, s]) * np.float64(accum[row + x, s])
+                    total[p] = dot + transmittance_final[row + x] * grad_transmittance[row + x]
+                    prefix[p] = 0.0
+        live = tw * th
+        for m in range(offsets[tile], offsets[tile + 1]):
+            k = ranks[m]
+            g = order[k]
+            mx, my, a, b, c, o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], packed[k, 5]
+            slope, h0, h1, recurrence, step = _pair_setup(packed, k)
+            lo = max(boxes[k, 0], x0)
+            hi = min(boxes[k, 1], x0 + tw - 1)
+            touched = False
+            s_1 = s_x = s_y = s_xx = s_xy = s_yy = 0.0
+            for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
+                r = y - y0
+                if row_live[r] == 0:
+                    continue
+                dy = y + 0.5 - my
+                xs, xe = _row_span(mx - 0.5 - slope * dy, h0 - h1 * dy * dy, lo, hi)
+                if xs > xe:
+                    continue
+                gauss, ratio = _row_start(packed, k, xs, y)
+                base = r * tw - x0
+                for x in range(xs, xe + 1):
+                    if recurrence:
+                        alpha = gauss
+                        gauss *= ratio
+                        ratio *= step
+                    else:
+                        alpha = _gauss_at(packed, k, x, y)
+                    p = base + x
+                    t_before = transmittance[p]
+                    if t_before < 0.0:
+                        continue
+                    clamped = alpha >= alpha_max
+                    if clamped:
+                        alpha = alpha_max
+                    if alpha <= alpha_floor:
+                        continue
+                    after = t_before * (1.0 - alpha)
+                    if after < transmittance_min:
+                        transmittance[p] = -t_before
+                        row_live[r] -= 1
+                        live -= 1
+                        continue
+                    weight = alpha * t_before
+                    if need_values:
+                        weight_cast[0] = weight
+                        w_cast = weight_cast[0]
+                        grad_row = grad_local[p]
+                        if touched:
+                            for s in range(channels):
+                                sums[s] += w_cast * grad_row[s]
+                        else:
+                            for s in range(channels):
+                                sums[s] = w_cast * grad_row[s]
+                        touched = True
+                    if need_geometry:
+                        dot = 0.0
+                        for s in range(channels):
+                            dot += np.float64(grad_local[p, s]) * np.float64(values[g, s])
+                        prefix[p] += weight * dot
+                        d_alpha = t_before * dot - (total[p] - prefix[p]) / (1.0 - alpha)
+                        if not clamped:
+                            dx = x + 0.5 - mx
+                            d_power = d_alpha * alpha
+                            s_1 += d_power
+                            s_x += d_power * dx
+                            s_y += d_power * dy
+                            s_xx += d_power * dx * dx
+                            s_xy += d_power * dx * dy
+                            s_yy += d_power * dy * dy
+                    transmittance[p] = after
+            if touched:
+                for s in range(channels):
+                    grad_values[g, s] += sums[s]
+            if need_geometry:
+                # power = ln o − ½(a dx² + 2b dx dy + c dy²), dx = x + 0.5 − mx
+                grad_geometry[g, 0] += a * s_x + b * s_y
+                grad_geometry[g, 1] += b * s_x + c * s_y
+                grad_geometry[g, 2] -= 0.5 * s_xx
+                grad_geometry[g, 3] -= s_xy
+                grad_geometry[g, 4] -= 0.5 * s_yy
+                grad_geometry[g, 5] += s_1 / o
+            if live == 0:
+                break
+
+
+def _count_py(offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, height, alpha_floor, alpha_max,
+              transmittance_min, counters):  # pragma: no cover - compiled by numba
+    """Add the work counters of :func:`count_work` to ``counters`` (4,) int64."""
+    transmittance = np.empty(tile_w * tile_h, dtype=np.float64)
+    row_live = np.empty(tile_h, dtype=np.int64)
+    for k in range(packed.shape[0]):
+        counters[0] += (boxes[k, 1] - boxes[k, 0] + 1) * (boxes[k, 3] - boxes[k, 2] + 1)
+        for y in range(boxes[k, 2], boxes[k, 3] + 1):
+            for x in range(boxes[k, 0], boxes[k, 1] + 1):
+                if min(_gauss_at(packed, k, x, y), alpha_max) > alpha_floor:
+                    counters[1] += 1
+    for tile in range(offsets.shape[0] - 1):
+        x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
+        live = tw * th
+        for m in range(offsets[tile], offsets[tile + 1]):
+            k = ranks[m]
+            slope, h0, h1, recurrence, step = _pair_setup(packed, k)
+            lo = max(boxes[k, 0], x0)
+            hi = min(boxes[k, 1], x0 + tw - 1)
+            for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
+                r = y - y0
+                if row_live[r] == 0:
+                    continue
+                dy = y + 0.5 - packed[k, 1]
+                xs, xe = _row_span(packed[k, 0] - 0.5 - slope * dy, h0 - h1 * dy * dy, lo, hi)
+                for x in range(xs, xe + 1):
+                    p = r * tw + x - x0
+                    counters[2] += 1
+                    t_before = transmittance[p]
+                    if t_before < 0.0:
+                        continue
+                    alpha = min(_gauss_at(packed, k, x, y), alpha_max)
+                    if alpha <= alpha_floor:
+                        continue
+                    after = t_before * (1.0 - alpha)
+                    if after < transmittance_min:
+                        transmittance[p] = -t_before
+                        row_live[r] -= 1
+                        live -= 1
+                        continue
+                    counters[3] += 1
+                    transmittance[p] = after
+            if live == 0:
+                break
+
+
+if numba is not None:
+    _jit_inline = numba.njit(nogil=True, cache=True, inline="always")
+    _pair_setup = _jit_inline(_pair_setup_py)
+    _row_span = _jit_inline(_row_span_py)
+    _tile_reset = _jit_inline(_tile_reset_py)
+    _row_start = _jit_inline(_row_start_py)
+    _gauss_at = _jit_inline(_gauss_at_py)
+    _jit = numba.njit(nogil=True, cache=True)
+    _row_blend4 = _jit_inline(_row_blend4_py)
+    _blend_narrow = _jit(_blend_narrow_py)
+    _blend_wide = _jit(_blend_wide_py)
+    _backward = _jit(_backward_py)
+    _count = _jit(_count_py)
+else:  # pragma: no cover
+    _pair_setup = _row_span = _tile_reset = _row_start = _gauss_at = _row_blend4 = None
+    _blend_narrow = _blend_wide = _backward = _count = None

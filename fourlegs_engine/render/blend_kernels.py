@@ -42,6 +42,8 @@ SPAN_SLACK_PX = 1e-6
 WORK_COUNTERS = ("in_boxes", "in_footprints", "evaluated", "blended")
 #: channels the narrow forward kernel carries in registers (fewer are zero-padded)
 NARROW_LANES = 4
+#: fragments the many-channel kernels collect before forming their channel sums
+FRAGMENT_BATCH = 1 << 14
 
 
 def _pair_setup_py(packed, k):  # pragma: no cover - compiled by numba
@@ -76,7 +78,8 @@ def _row_span_py(centre, half_sq, lo, hi):  # pragma: no cover - compiled by num
 
 
 def _tile_reset_py(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live):  # pragma: no cover
-    """Set up a tile's pixel state (T = 1, every row live); returns (x0, y0, tile width, tile height)."""
+    """Set up a tile's pixel state: T = 1, and every row's live columns (tile-local, inclusive) the
+    whole row. Returns (x0, y0, tile width, tile height)."""
     x0 = (tile % tiles_x) * tile_w
     y0 = (tile // tiles_x) * tile_h
     tw = min(tile_w, width - x0)
@@ -84,8 +87,23 @@ def _tile_reset_py(tile, tiles_x, tile_w, tile_h, width, height, transmittance, 
     for p in range(tw * th):
         transmittance[p] = 1.0
     for r in range(th):
-        row_live[r] = tw
+        row_live[r, 0] = 0
+        row_live[r, 1] = tw - 1
     return x0, y0, tw, th
+
+
+def _shrink_row_py(transmittance, row_live, r, tw):  # pragma: no cover - compiled by numba
+    """Move row r's live column range inward past the pixels that have stopped (T stored negative), so
+    later Gaussians skip a row, or its ends, where nothing can be blended any more."""
+    lo = row_live[r, 0]
+    hi = row_live[r, 1]
+    base = r * tw
+    while lo <= hi and transmittance[base + lo] < 0.0:
+        lo += 1
+    while hi >= lo and transmittance[base + hi] < 0.0:
+        hi -= 1
+    row_live[r, 0] = lo
+    row_live[r, 1] = hi
 
 
 def _row_start_py(packed, k, x, y):  # pragma: no cover - compiled by numba
@@ -149,7 +167,7 @@ def _blend_narrow_py(tiles, offsets, ranks, packed, boxes, tiles_x, tile_w, tile
     channels = accum.shape[1]
     n_pix = tile_w * tile_h
     transmittance = np.empty(n_pix, dtype=np.float64)
-    row_live = np.empty(tile_h, dtype=np.int64)
+    row_live = np.empty((tile_h, 2), dtype=np.int64)
     acc = np.empty((NARROW_LANES, n_pix), dtype=np.float64)
     acc0, acc1, acc2, acc3 = acc[0], acc[1], acc[2], acc[3]
     seg_p0 = np.empty(tile_h, dtype=np.uint64)
@@ -170,10 +188,12 @@ def _blend_narrow_py(tiles, offsets, ranks, packed, boxes, tiles_x, tile_w, tile
             n_seg = 0
             for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
                 r = y - y0
-                if row_live[r] == 0:
+                lo_r = max(lo, x0 + row_live[r, 0])
+                hi_r = min(hi, x0 + row_live[r, 1])
+                if lo_r > hi_r:
                     continue
                 dy = y + 0.5 - my
-                xs, xe = _row_span(mx - 0.5 - slope * dy, h0 - h1 * dy * dy, lo, hi)
+                xs, xe = _row_span(mx - 0.5 - slope * dy, h0 - h1 * dy * dy, lo_r, hi_r)
                 if xs > xe:
                     continue
                 dx = xs + 0.5 - mx
@@ -201,7 +221,8 @@ def _blend_narrow_py(tiles, offsets, ranks, packed, boxes, tiles_x, tile_w, tile
                         stopped += _row_blend4(transmittance, acc0, acc1, acc2, acc3, seg_p0[i] + np.uint64(j), 1,
                                                _gauss_at(packed, k, xs + j, y), 1.0, 1.0, v0, v1, v2, v3,
                                                alpha_floor, alpha_max, transmittance_min)
-                row_live[seg_row[i]] -= stopped
+                if stopped:
+                    _shrink_row(transmittance, row_live, seg_row[i], tw)
                 live -= stopped
             if live == 0:
                 break
@@ -214,74 +235,190 @@ def _blend_narrow_py(tiles, offsets, ranks, packed, boxes, tiles_x, tile_w, tile
                     accum[row + x, s] = acc[s, p]
 
 
+def _row_fragments_py(transmittance, p0, n, gauss, ratio, step, alpha_floor, alpha_max, transmittance_min,
+                      frag_pixel, frag_weight, n_frag):  # pragma: no cover - compiled by numba
+    """Blend one row segment's α into the tile's transmittance (as :func:`_row_blend4_py`) and append
+    its weights w = α·T as fragments (pixel, weight). Returns (fragments now, pixels stopped)."""
+    stopped = 0
+    for i in range(n):
+        alpha = gauss
+        gauss *= ratio
+        ratio *= step
+        p = p0 + np.uint64(i)
+        t_before = transmittance[p]
+        if t_before < 0.0:
+            continue
+        if alpha > alpha_max:
+            alpha = alpha_max
+        if alpha <= alpha_floor:
+            continue
+        after = t_before * (1.0 - alpha)
+        if after < transmittance_min:
+            transmittance[p] = -t_before
+            stopped += 1
+            continue
+        frag_pixel[n_frag] = p
+        frag_weight[n_frag] = alpha * t_before
+        n_frag += 1
+        transmittance[p] = after
+    return n_frag, stopped
+
+
+def _pair_fragments_py(packed, boxes, k, x0, y0, tw, th, transmittance, row_live, seg_p0, seg_n, seg_row, seg_exp,
+                       alpha_floor, alpha_max, transmittance_min, frag_pixel, frag_weight, n_frag):  # pragma: no cover
+    """All fragments of Gaussian rank k in the tile at (x0, y0) of size tw × th, front to back after
+    those already blended. Returns (fragments now, pixels stopped)."""
+    slope, h0, h1, recurrence, step = _pair_setup(packed, k)
+    mx, my, a, b, c, log_o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], packed[k, 6]
+    lo = max(boxes[k, 0], x0)
+    hi = min(boxes[k, 1], x0 + tw - 1)
+    # the row segments first (their exponents are independent: the exps overlap), then the pixels
+    n_seg = 0
+    for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
+        r = y - y0
+        lo_r = max(lo, x0 + row_live[r, 0])
+        hi_r = min(hi, x0 + row_live[r, 1])
+        if lo_r > hi_r:
+            continue
+        dy = y + 0.5 - my
+        xs, xe = _row_span(mx - 0.5 - slope * dy, h0 - h1 * dy * dy, lo_r, hi_r)
+        if xs > xe:
+            continue
+        dx = xs + 0.5 - mx
+        seg_p0[n_seg] = np.uint64(r * tw + xs - x0)
+        seg_n[n_seg] = xe - xs + 1
+        seg_row[n_seg] = r
+        seg_exp[2 * n_seg] = log_o - 0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)
+        seg_exp[2 * n_seg + 1] = -(a * dx + b * dy) - 0.5 * a
+        n_seg += 1
+    for i in range(2 * n_seg):
+        seg_exp[i] = math.exp(seg_exp[i])
+    stopped = 0
+    for i in range(n_seg):
+        if recurrence:
+            n_frag, row_stopped = _row_fragments(transmittance, seg_p0[i], seg_n[i], seg_exp[2 * i], seg_exp[2 * i + 1],
+                                                 step, alpha_floor, alpha_max, transmittance_min, frag_pixel,
+                                                 frag_weight, n_frag)
+        else:  # steep footprint, a few pixels wide: α evaluated directly, one pixel at a time
+            row_stopped = 0
+            y = y0 + seg_row[i]
+            xs = x0 + int(seg_p0[i]) - seg_row[i] * tw
+            for j in range(seg_n[i]):
+                n_frag, one = _row_fragments(transmittance, seg_p0[i] + np.uint64(j), 1, _gauss_at(packed, k, xs + j, y),
+                                             1.0, 1.0, alpha_floor, alpha_max, transmittance_min, frag_pixel,
+                                             frag_weight, n_frag)
+                row_stopped += one
+        if row_stopped:
+            _shrink_row(transmittance, row_live, seg_row[i], tw)
+        stopped += row_stopped
+    return n_frag, stopped
+
+
 def _blend_wide_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile_h, width, height, values,
                    alpha_floor, alpha_max, transmittance_min, accum, transmittance_out):  # pragma: no cover
     """As :func:`_blend_narrow_py` for any number of channels: values (N, C) indexed by Gaussian id
-    (order[rank]); the channel sums run in accum's dtype (SIMD over the channels)."""
+    (order[rank]). Two phases per batch of list entries: the fragments (pixel, w) of every entry
+    (scalar work, as in the narrow kernel), then the channel sums acc[pixel] += w·values[g] over
+    them (SIMD over the channels, in accum's dtype)."""
     channels = values.shape[1]
     n_pix = tile_w * tile_h
     transmittance = np.empty(n_pix, dtype=np.float64)
-    row_live = np.empty(tile_h, dtype=np.int64)
+    row_live = np.empty((tile_h, 2), dtype=np.int64)
     acc = np.empty((n_pix, channels), dtype=accum.dtype)
-    weight_cast = np.empty(1, dtype=accum.dtype)  # the weight in the output dtype keeps the channel loop SIMD
+    seg_p0 = np.empty(tile_h, dtype=np.uint64)
+    seg_n = np.empty(tile_h, dtype=np.int64)
+    seg_row = np.empty(tile_h, dtype=np.int64)
+    seg_exp = np.empty(2 * tile_h, dtype=np.float64)
+    capacity = max(FRAGMENT_BATCH, 2 * n_pix)
+    frag_pixel = np.empty(capacity, dtype=np.uint64)
+    frag_weight = np.empty(capacity, dtype=accum.dtype)
+    entry_gaussian = np.empty(capacity, dtype=np.int64)
+    entry_start = np.empty(capacity + 1, dtype=np.int64)
     for tile in tiles:
         x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
         acc[:tw * th] = 0
         live = tw * th
-        for m in range(offsets[tile], offsets[tile + 1]):
+        n_frag = 0
+        n_entry = 0
+        start = offsets[tile]
+        end = offsets[tile + 1]
+        for m in range(start, end + 1):
+            if m == end or live == 0 or n_frag + tw * th > capacity:  # channel sums of the batch so far
+                entry_start[n_entry] = n_frag
+                for e in range(n_entry):
+                    vals = values[entry_gaussian[e]]
+                    for f in range(entry_start[e], entry_start[e + 1]):
+                        acc_row = acc[frag_pixel[f]]
+                        w = frag_weight[f]
+                        for s in range(channels):
+                            acc_row[s] += w * vals[s]
+                n_frag = 0
+                n_entry = 0
+                if m == end or live == 0:
+                    break
             k = ranks[m]
-            vals = values[order[k]]
-            slope, h0, h1, recurrence, step = _pair_setup(packed, k)
-            centre0 = packed[k, 0] - 0.5
-            my = packed[k, 1]
-            lo = max(boxes[k, 0], x0)
-            hi = min(boxes[k, 1], x0 + tw - 1)
-            for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
-                r = y - y0
-                if row_live[r] == 0:
-                    continue
-                dy = y + 0.5 - my
-                xs, xe = _row_span(centre0 - slope * dy, h0 - h1 * dy * dy, lo, hi)
-                if xs > xe:
-                    continue
-                gauss, ratio = _row_start(packed, k, xs, y)
-                base = r * tw - x0
-                for x in range(xs, xe + 1):
-                    if recurrence:
-                        alpha = gauss
-                        gauss *= ratio
-                        ratio *= step
-                    else:
-                        alpha = _gauss_at(packed, k, x, y)
-                    p = base + x
-                    t_before = transmittance[p]
-                    if t_before < 0.0:
-                        continue
-                    if alpha > alpha_max:
-                        alpha = alpha_max
-                    if alpha <= alpha_floor:
-                        continue
-                    after = t_before * (1.0 - alpha)
-                    if after < transmittance_min:
-                        transmittance[p] = -t_before
-                        row_live[r] -= 1
-                        live -= 1
-                        continue
-                    weight_cast[0] = alpha * t_before
-                    weight = weight_cast[0]
-                    acc_row = acc[p]
-                    for s in range(channels):
-                        acc_row[s] += weight * vals[s]
-                    transmittance[p] = after
-            if live == 0:
-                break
+            entry_gaussian[n_entry] = order[k]
+            entry_start[n_entry] = n_frag
+            n_entry += 1
+            n_frag, stopped = _pair_fragments(packed, boxes, k, x0, y0, tw, th, transmittance, row_live, seg_p0, seg_n,
+                                              seg_row, seg_exp, alpha_floor, alpha_max, transmittance_min, frag_pixel,
+                                              frag_weight, n_frag)
+            live -= stopped
         for r in range(th):
             row = (y0 + r) * width + x0
             for x in range(tw):
                 p = r * tw + x
                 transmittance_out[row + x] = abs(transmittance[p])
+                out_row = accum[row + x]
+                acc_row = acc[p]
                 for s in range(channels):
-                    accum[row + x, s] = acc[p, s]
+                    out_row[s] = acc_row[s]
+
+
+def _splat_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile_h, width, height, pixel_values,
+              alpha_floor, alpha_max, transmittance_min, out):  # pragma: no cover - compiled by numba
+    """out[g] += Σ_p w_g(p)·pixel_values[p] (pixel_values (H·W, S), out (N, S)): the transpose of
+    :func:`_blend_wide_py`, in the same two phases (fragments of one list entry, then its S-wide sum)."""
+    channels = pixel_values.shape[1]
+    n_pix = tile_w * tile_h
+    transmittance = np.empty(n_pix, dtype=np.float64)
+    row_live = np.empty((tile_h, 2), dtype=np.int64)
+    local = np.empty((n_pix, channels), dtype=out.dtype)
+    sums = np.empty(channels, dtype=out.dtype)
+    seg_p0 = np.empty(tile_h, dtype=np.uint64)
+    seg_n = np.empty(tile_h, dtype=np.int64)
+    seg_row = np.empty(tile_h, dtype=np.int64)
+    seg_exp = np.empty(2 * tile_h, dtype=np.float64)
+    frag_pixel = np.empty(n_pix, dtype=np.uint64)
+    frag_weight = np.empty(n_pix, dtype=out.dtype)
+    for tile in tiles:
+        x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
+        for r in range(th):
+            row = (y0 + r) * width + x0
+            for x in range(tw):
+                src = pixel_values[row + x]
+                dst = local[r * tw + x]
+                for s in range(channels):
+                    dst[s] = src[s]
+        live = tw * th
+        for m in range(offsets[tile], offsets[tile + 1]):
+            k = ranks[m]
+            n_frag, stopped = _pair_fragments(packed, boxes, k, x0, y0, tw, th, transmittance, row_live, seg_p0, seg_n,
+                                              seg_row, seg_exp, alpha_floor, alpha_max, transmittance_min, frag_pixel,
+                                              frag_weight, 0)
+            live -= stopped
+            if n_frag:
+                sums[:] = 0
+                for f in range(n_frag):
+                    w = frag_weight[f]
+                    src = local[frag_pixel[f]]
+                    for s in range(channels):
+                        sums[s] += w * src[s]
+                dst = out[order[k]]
+                for s in range(channels):
+                    dst[s] += sums[s]
+            if live == 0:
+                break
 
 
 def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile_h, width, height, values,
@@ -296,7 +433,7 @@ def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, t
     channels = grad_accum.shape[1]
     n_pix = tile_w * tile_h
     transmittance = np.empty(n_pix, dtype=np.float64)
-    row_live = np.empty(tile_h, dtype=np.int64)
+    row_live = np.empty((tile_h, 2), dtype=np.int64)
     prefix = np.empty(n_pix, dtype=np.float64)
     total = np.empty(n_pix, dtype=np.float64)
     grad_local = np.empty((n_pix, channels), dtype=grad_accum.dtype)
@@ -328,14 +465,17 @@ def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, t
             s_1 = s_x = s_y = s_xx = s_xy = s_yy = 0.0
             for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
                 r = y - y0
-                if row_live[r] == 0:
+                lo_r = max(lo, x0 + row_live[r, 0])
+                hi_r = min(hi, x0 + row_live[r, 1])
+                if lo_r > hi_r:
                     continue
                 dy = y + 0.5 - my
-                xs, xe = _row_span(mx - 0.5 - slope * dy, h0 - h1 * dy * dy, lo, hi)
+                xs, xe = _row_span(mx - 0.5 - slope * dy, h0 - h1 * dy * dy, lo_r, hi_r)
                 if xs > xe:
                     continue
                 gauss, ratio = _row_start(packed, k, xs, y)
                 base = r * tw - x0
+                row_stopped = 0
                 for x in range(xs, xe + 1):
                     if recurrence:
                         alpha = gauss
@@ -355,8 +495,7 @@ def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, t
                     after = t_before * (1.0 - alpha)
                     if after < transmittance_min:
                         transmittance[p] = -t_before
-                        row_live[r] -= 1
-                        live -= 1
+                        row_stopped += 1
                         continue
                     weight = alpha * t_before
                     if need_values:
@@ -386,6 +525,9 @@ def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, t
                             s_xy += d_power * dx * dy
                             s_yy += d_power * dy * dy
                     transmittance[p] = after
+                if row_stopped:
+                    _shrink_row(transmittance, row_live, r, tw)
+                    live -= row_stopped
             if touched:
                 for s in range(channels):
                     grad_values[g, s] += sums[s]
@@ -405,7 +547,7 @@ def _count_py(offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, hei
               transmittance_min, counters):  # pragma: no cover - compiled by numba
     """Add the work counters of :func:`count_work` to ``counters`` (4,) int64."""
     transmittance = np.empty(tile_w * tile_h, dtype=np.float64)
-    row_live = np.empty(tile_h, dtype=np.int64)
+    row_live = np.empty((tile_h, 2), dtype=np.int64)
     for k in range(packed.shape[0]):
         counters[0] += (boxes[k, 1] - boxes[k, 0] + 1) * (boxes[k, 3] - boxes[k, 2] + 1)
         for y in range(boxes[k, 2], boxes[k, 3] + 1):
@@ -422,10 +564,13 @@ def _count_py(offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, hei
             hi = min(boxes[k, 1], x0 + tw - 1)
             for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
                 r = y - y0
-                if row_live[r] == 0:
+                lo_r = max(lo, x0 + row_live[r, 0])
+                hi_r = min(hi, x0 + row_live[r, 1])
+                if lo_r > hi_r:
                     continue
                 dy = y + 0.5 - packed[k, 1]
-                xs, xe = _row_span(packed[k, 0] - 0.5 - slope * dy, h0 - h1 * dy * dy, lo, hi)
+                xs, xe = _row_span(packed[k, 0] - 0.5 - slope * dy, h0 - h1 * dy * dy, lo_r, hi_r)
+                row_stopped = 0
                 for x in range(xs, xe + 1):
                     p = r * tw + x - x0
                     counters[2] += 1
@@ -438,11 +583,13 @@ def _count_py(offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, hei
                     after = t_before * (1.0 - alpha)
                     if after < transmittance_min:
                         transmittance[p] = -t_before
-                        row_live[r] -= 1
-                        live -= 1
+                        row_stopped += 1
                         continue
                     counters[3] += 1
                     transmittance[p] = after
+                if row_stopped:
+                    _shrink_row(transmittance, row_live, r, tw)
+                    live -= row_stopped
             if live == 0:
                 break
 
@@ -452,14 +599,18 @@ if numba is not None:
     _pair_setup = _jit_inline(_pair_setup_py)
     _row_span = _jit_inline(_row_span_py)
     _tile_reset = _jit_inline(_tile_reset_py)
+    _shrink_row = _jit_inline(_shrink_row_py)
     _row_start = _jit_inline(_row_start_py)
     _gauss_at = _jit_inline(_gauss_at_py)
     _jit = numba.njit(nogil=True, cache=True)
     _row_blend4 = _jit_inline(_row_blend4_py)
     _blend_narrow = _jit(_blend_narrow_py)
+    _row_fragments = _jit_inline(_row_fragments_py)
+    _pair_fragments = _jit_inline(_pair_fragments_py)
     _blend_wide = _jit(_blend_wide_py)
+    _splat = _jit(_splat_py)
     _backward = _jit(_backward_py)
     _count = _jit(_count_py)
 else:  # pragma: no cover
-    _pair_setup = _row_span = _tile_reset = _row_start = _gauss_at = _row_blend4 = None
-    _blend_narrow = _blend_wide = _backward = _count = None
+    _pair_setup = _row_span = _tile_reset = _shrink_row = _row_start = _gauss_at = _row_blend4 = None
+    _blend_narrow = _blend_wide = _backward = _count = _splat = _row_fragments = _pair_fragments = None

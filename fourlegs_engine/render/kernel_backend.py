@@ -113,24 +113,24 @@ def blend_forward(lists: TileLists, values: torch.Tensor, options: RasterOptions
     dtype = values.dtype if values.dtype in (torch.float32, torch.float64) else torch.float32
     n_pix = lists.width * lists.height
     C = values.shape[1]
-    accum = torch.zeros(n_pix, C, dtype=dtype)
-    trans = torch.ones(n_pix, dtype=dtype)
-    busy = _busy_tiles(lists)
-    if busy.size:
-        vals = values.detach().to(dtype).numpy()
-        shape = (lists.tiles_x, lists.tile_w, lists.tile_h, lists.width, lists.height)
-        rules = (_floor(options, dtype), float(options.alpha_max), float(options.transmittance_min))
-        if C <= blend_kernels.NARROW_LANES:
-            lanes = np.zeros((lists.num_visible, blend_kernels.NARROW_LANES), dtype=np.float64)
-            lanes[:, :C] = vals[lists.order]
-            args = (lists.tile_offsets, lists.tile_ranks, lists.packed, lists.boxes, *shape, lanes, *rules,
-                    accum.numpy(), trans.numpy())
-            kernel = blend_kernels._blend_narrow
-        else:
-            args = (lists.tile_offsets, lists.tile_ranks, lists.order, lists.packed, lists.boxes, *shape,
-                    np.ascontiguousarray(vals), *rules, accum.numpy(), trans.numpy())
-            kernel = blend_kernels._blend_wide
-        cpu_kernels.run_on_workers(lambda part, _: kernel(part, *args), busy, _workers(busy.size))
+    # every tile is written by the kernel (empty ones with zeros and T = 1): no separate fill pass
+    accum = torch.empty(n_pix, C, dtype=dtype)
+    trans = torch.empty(n_pix, dtype=dtype)
+    tiles = np.arange(lists.num_tiles)
+    vals = values.detach().to(dtype).numpy()
+    shape = (lists.tiles_x, lists.tile_w, lists.tile_h, lists.width, lists.height)
+    rules = (_floor(options, dtype), float(options.alpha_max), float(options.transmittance_min))
+    if C <= blend_kernels.NARROW_LANES:
+        lanes = np.zeros((lists.num_visible, blend_kernels.NARROW_LANES), dtype=np.float64)
+        lanes[:, :C] = vals[lists.order]
+        args = (lists.tile_offsets, lists.tile_ranks, lists.packed, lists.boxes, *shape, lanes, *rules,
+                accum.numpy(), trans.numpy())
+        kernel = blend_kernels._blend_narrow
+    else:
+        args = (lists.tile_offsets, lists.tile_ranks, lists.order, lists.packed, lists.boxes, *shape,
+                np.ascontiguousarray(vals), *rules, accum.numpy(), trans.numpy())
+        kernel = blend_kernels._blend_wide
+    cpu_kernels.run_on_workers(lambda part, _: kernel(part, *args), tiles, _workers(_busy_tiles(lists).size))
     return accum, trans
 
 
@@ -156,25 +156,26 @@ def blend_backward(lists: TileLists, values: torch.Tensor, grad_accum: torch.Ten
 
 def _backward_threads(lists: TileLists, values, grad_accum, grad_trans, trans, accum, options: RasterOptions,
                       grad_values: torch.Tensor | None, grad_geometry: torch.Tensor | None, workers: int) -> None:
-    """Run the backward kernel over every busy tile on ``workers`` threads, each adding into its own
-    gradient buffers (the first worker's are the outputs themselves)."""
+    """Run the backward kernel (the splat kernel when only value gradients are needed) over every busy
+    tile on ``workers`` threads, each adding into its own gradient buffers (the first worker's are the
+    outputs themselves)."""
     dtype = torch.float64 if grad_accum.dtype == np.float64 else torch.float32
     C = grad_accum.shape[1]
-    empty = np.zeros((0, C), dtype=grad_accum.dtype)
     need_values, need_geometry = grad_values is not None, grad_geometry is not None
     gv_main = grad_values.numpy() if need_values else np.zeros((0, C), dtype=grad_accum.dtype)
     gg_main = grad_geometry.numpy() if need_geometry else np.zeros((0, 6), dtype=np.float64)
     buffers = [(gv_main, gg_main)] + [
         (np.zeros_like(gv_main), np.zeros_like(gg_main)) for _ in range(workers - 1)]
     busy = _busy_tiles(lists)
-    common = (lists.tile_offsets, lists.tile_ranks, lists.order, lists.packed, lists.boxes, lists.tiles_x,
-              lists.tile_w, lists.tile_h, lists.width, lists.height, values if values is not None else empty, grad_accum,
-              grad_trans if grad_trans is not None else np.zeros(0, dtype=grad_accum.dtype),
-              trans if trans is not None else np.zeros(0, dtype=grad_accum.dtype),
-              accum if accum is not None else empty, _floor(options, dtype), float(options.alpha_max),
-              float(options.transmittance_min), need_values, need_geometry)
-
-    cpu_kernels.run_on_workers(lambda part, k: blend_kernels._backward(part, *common, *buffers[k]), busy, workers)
+    grid = (lists.tile_offsets, lists.tile_ranks, lists.order, lists.packed, lists.boxes, lists.tiles_x,
+            lists.tile_w, lists.tile_h, lists.width, lists.height)
+    rules = (_floor(options, dtype), float(options.alpha_max), float(options.transmittance_min))
+    if need_geometry:
+        common = (*grid, values, grad_accum, grad_trans, trans, accum, *rules, need_values, need_geometry)
+        kernel = lambda part, k: blend_kernels._backward(part, *common, *buffers[k])  # noqa: E731
+    else:
+        kernel = lambda part, k: blend_kernels._splat(part, *grid, grad_accum, *rules, buffers[k][0])  # noqa: E731
+    cpu_kernels.run_on_workers(kernel, busy, workers)
     if workers > 1:
         for gv, gg in buffers[1:]:
             gv_main += gv

@@ -38,6 +38,8 @@ except ImportError:  # pragma: no cover
 RECURRENCE_MAX_A = 16.0
 #: slack, in pixels, added to each end of a row's footprint interval before the exact α test
 SPAN_SLACK_PX = 1e-6
+#: relative slack on a row's squared half-width (rounding at rows tangent to the footprint)
+SPAN_SLACK_REL = 1e-12
 #: work counters of :func:`count_work` (see its docstring)
 WORK_COUNTERS = ("in_boxes", "in_footprints", "evaluated", "blended")
 #: channels the narrow forward kernel carries in registers (fewer are zero-padded)
@@ -62,17 +64,20 @@ def _pair_setup_py(packed, k):  # pragma: no cover - compiled by numba
     return b * inv_a, reach * inv_a, (a * c - b * b) * inv_a * inv_a, recurrence, math.exp(-a) if recurrence else 1.0
 
 
-def _row_span_py(centre, half_sq, lo, hi):  # pragma: no cover - compiled by numba
+def _row_span_py(centre, h0, h1_dy2, lo, hi):  # pragma: no cover - compiled by numba
     """Columns [x_start, x_end] of a row whose footprint is centred at column ``centre`` (pixel-centre
-    coordinate − 0.5) with squared half-width ``half_sq``, clipped to [lo, hi] (empty: x_start > x_end)."""
-    if half_sq < 0.0:
+    coordinate − 0.5) with squared half-width h0 − h1_dy2, clipped to [lo, hi] (empty: x_start > x_end).
+    A row that only grazes the footprint (squared half-width negative by rounding) keeps its tangent
+    column; h0 = inf (conic not positive definite) gives all of [lo, hi]."""
+    half_sq = h0 - h1_dy2
+    if half_sq < -SPAN_SLACK_REL * (abs(h0) + abs(h1_dy2)):
         return 1, 0
-    half = math.sqrt(half_sq) + SPAN_SLACK_PX
+    half = math.sqrt(max(half_sq, 0.0)) + SPAN_SLACK_PX
     start = min(max(centre - half, lo - 1.0), hi + 1.0)  # also maps NaN/inf into range
     end = min(max(centre + half, lo - 1.0), hi + 1.0)
     x_start = max(int(math.ceil(start)), lo)
     x_end = min(int(math.floor(end)), hi)
-    if half_sq == math.inf:
+    if h0 == math.inf:
         x_start, x_end = lo, hi
     return x_start, x_end
 
@@ -193,7 +198,7 @@ def _blend_narrow_py(tiles, offsets, ranks, packed, boxes, tiles_x, tile_w, tile
                 if lo_r > hi_r:
                     continue
                 dy = y + 0.5 - my
-                xs, xe = _row_span(mx - 0.5 - slope * dy, h0 - h1 * dy * dy, lo_r, hi_r)
+                xs, xe = _row_span(mx - 0.5 - slope * dy, h0, h1 * dy * dy, lo_r, hi_r)
                 if xs > xe:
                     continue
                 dx = xs + 0.5 - mx
@@ -281,7 +286,7 @@ def _pair_fragments_py(packed, boxes, k, x0, y0, tw, th, transmittance, row_live
         if lo_r > hi_r:
             continue
         dy = y + 0.5 - my
-        xs, xe = _row_span(mx - 0.5 - slope * dy, h0 - h1 * dy * dy, lo_r, hi_r)
+        xs, xe = _row_span(mx - 0.5 - slope * dy, h0, h1 * dy * dy, lo_r, hi_r)
         if xs > xe:
             continue
         dx = xs + 0.5 - mx
@@ -470,7 +475,7 @@ def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, t
                 if lo_r > hi_r:
                     continue
                 dy = y + 0.5 - my
-                xs, xe = _row_span(mx - 0.5 - slope * dy, h0 - h1 * dy * dy, lo_r, hi_r)
+                xs, xe = _row_span(mx - 0.5 - slope * dy, h0, h1 * dy * dy, lo_r, hi_r)
                 if xs > xe:
                     continue
                 gauss, ratio = _row_start(packed, k, xs, y)
@@ -569,7 +574,7 @@ def _count_py(offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, hei
                 if lo_r > hi_r:
                     continue
                 dy = y + 0.5 - packed[k, 1]
-                xs, xe = _row_span(packed[k, 0] - 0.5 - slope * dy, h0 - h1 * dy * dy, lo_r, hi_r)
+                xs, xe = _row_span(packed[k, 0] - 0.5 - slope * dy, h0, h1 * dy * dy, lo_r, hi_r)
                 row_stopped = 0
                 for x in range(xs, xe + 1):
                     p = r * tw + x - x0

@@ -219,3 +219,28 @@ def _busy_tiles(lists: TileLists) -> np.ndarray:
 
 def _workers(busy_tiles: int) -> int:
     return max(1, min(kernel_thread_count(), busy_tiles // TILES_PER_WORKER))
+
+
+def count_work(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Tensor, opacity_logits: torch.Tensor,
+               camera: Camera, options: RasterOptions | None = None, channels: int = 3) -> dict[str, int]:
+    """How much work one view is, in pixel–Gaussian pairs (for the benchmark's floor):
+
+    * ``in_boxes``: pixels inside the visible Gaussians' bounding boxes;
+    * ``in_footprints``: of those, the ones where α ≥ alpha_min (ignoring occlusion);
+    * ``evaluated``: the pairs the v2 kernels evaluate (row footprints, live pixels);
+    * ``blended``: the pairs actually blended (front to back, until each pixel stops);
+    * ``tile_pairs``, ``tile_pairs_in_boxes``: tile–Gaussian list entries of the v2 lists, and how many
+      the bounding boxes alone would give; ``visible``: Gaussians drawn.
+    """
+    options = (options or RasterOptions()).check()
+    dtype = means.dtype if means.dtype in (torch.float32, torch.float64) else torch.float32
+    with torch.no_grad():
+        proj = project_gaussians_fused(means, rotations, log_scales, opacity_logits, camera, options, dtype)
+        lists = tile_lists(proj, camera, options, dtype, channels)
+        counters = np.zeros(len(blend_kernels.WORK_COUNTERS), dtype=np.int64)
+        blend_kernels._count(lists.tile_offsets, lists.tile_ranks, lists.packed, lists.boxes, lists.tiles_x,
+                             lists.tile_w, lists.tile_h, lists.width, lists.height, alpha_floor(options, dtype),
+                             float(options.alpha_max), float(options.transmittance_min), counters)
+    work = {name: int(v) for name, v in zip(blend_kernels.WORK_COUNTERS, counters)}
+    work.update(tile_pairs=lists.num_pairs, tile_pairs_in_boxes=lists.pairs_in_boxes, visible=lists.num_visible)
+    return work

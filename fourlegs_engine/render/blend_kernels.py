@@ -42,8 +42,8 @@ SPAN_SLACK_PX = 1e-6
 SPAN_SLACK_REL = 1e-12
 #: work counters of :func:`count_work` (see its docstring)
 WORK_COUNTERS = ("in_boxes", "in_footprints", "evaluated", "blended")
-#: channels the narrow forward kernel carries in registers (fewer are zero-padded)
-NARROW_LANES = 4
+#: channels the narrow forward kernel keeps next to each pixel's T (fewer are zero-padded)
+NARROW_LANES = 3
 #: fragments the many-channel kernels collect before forming their channel sums
 FRAGMENT_BATCH = 1 << 14
 
@@ -128,18 +128,19 @@ def _gauss_at_py(packed, k, x, y):  # pragma: no cover - compiled by numba
     return math.exp(log_o - 0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy))
 
 
-def _row_blend4_py(transmittance, acc0, acc1, acc2, acc3, p0, n, gauss, ratio, step, v0, v1, v2, v3, alpha_floor,
-                   alpha_max, transmittance_min):  # pragma: no cover - compiled by numba
-    """Blend one row segment of one Gaussian into four channel sums: pixels p0 .. p0 + n − 1 of the
-    tile state, α following the recurrence from (gauss, ratio, step). Returns how many pixels stopped.
-    Indices are unsigned (no negative-index wraparound code in the loop)."""
+def _row_blend3_py(state, p0, n, gauss, ratio, step, v0, v1, v2, alpha_floor, alpha_max,
+                   transmittance_min):  # pragma: no cover - compiled by numba
+    """Blend one row segment of one Gaussian into the tile state (P, 4) = (T, three channel sums) per
+    pixel, interleaved so a pixel is one 32-byte load and store: pixels p0 .. p0 + n − 1, α following
+    the recurrence from (gauss, ratio, step). Returns how many pixels stopped (their T is stored
+    negated). Indices are unsigned (no negative-index wraparound code in the loop)."""
     stopped = 0
     for i in range(n):
         alpha = gauss
         gauss *= ratio
         ratio *= step
         p = p0 + np.uint64(i)
-        t_before = transmittance[p]
+        t_before = state[p, 0]
         if t_before < 0.0:
             continue
         if alpha > alpha_max:
@@ -148,22 +149,22 @@ def _row_blend4_py(transmittance, acc0, acc1, acc2, acc3, p0, n, gauss, ratio, s
             continue
         after = t_before * (1.0 - alpha)
         if after < transmittance_min:
-            transmittance[p] = -t_before
+            state[p, 0] = -t_before
             stopped += 1
             continue
         w = alpha * t_before
-        acc0[p] += w * v0
-        acc1[p] += w * v1
-        acc2[p] += w * v2
-        acc3[p] += w * v3
-        transmittance[p] = after
+        state[p, 0] = after
+        state[p, 1] += w * v0
+        state[p, 2] += w * v1
+        state[p, 3] += w * v2
     return stopped
 
 
-def _blend_narrow_py(tiles, offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, height, lanes,
+def _blend_narrow_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile_h, width, height, values,
                      alpha_floor, alpha_max, transmittance_min, accum, transmittance_out):  # pragma: no cover
-    """accum[p, :C] = Σ_i w_i(p)·lanes[rank_i, :C] and transmittance_out[p] = T_final for the pixels of
-    ``tiles``, for C ≤ 4 channels: lanes (V, 4) float64 holds each rank's values, zero-padded.
+    """accum[p, :C] = Σ_i w_i(p)·values[g_i, :C] and transmittance_out[p] = T_final for the pixels of
+    ``tiles``, for C ≤ 3 channels (values (N, C), g_i = order[rank]); each pixel's T and channel sums
+    (float64) sit together in one 32-byte row of the tile state.
 
     Arrays: see :class:`~.tile_lists.TileLists`; accum (H·W, C) and transmittance_out (H·W,) are written
     for every pixel of the listed tiles (tiles own disjoint pixels, so tile subsets run concurrently).
@@ -171,17 +172,16 @@ def _blend_narrow_py(tiles, offsets, ranks, packed, boxes, tiles_x, tile_w, tile
     """
     channels = accum.shape[1]
     n_pix = tile_w * tile_h
-    transmittance = np.empty(n_pix, dtype=np.float64)
+    state = np.empty((n_pix, NARROW_LANES + 1), dtype=np.float64)
+    transmittance = state[:, 0]
     row_live = np.empty((tile_h, 2), dtype=np.int64)
-    acc = np.empty((NARROW_LANES, n_pix), dtype=np.float64)
-    acc0, acc1, acc2, acc3 = acc[0], acc[1], acc[2], acc[3]
     seg_p0 = np.empty(tile_h, dtype=np.uint64)
     seg_n = np.empty(tile_h, dtype=np.int64)
     seg_row = np.empty(tile_h, dtype=np.int64)
     seg_exp = np.empty(2 * tile_h, dtype=np.float64)
     for tile in tiles:
         x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
-        acc[:, :tw * th] = 0.0
+        state[:tw * th, 1:] = 0.0
         live = tw * th
         for m in range(offsets[tile], offsets[tile + 1]):
             k = ranks[m]
@@ -212,20 +212,21 @@ def _blend_narrow_py(tiles, offsets, ranks, packed, boxes, tiles_x, tile_w, tile
                 continue
             for i in range(2 * n_seg):
                 seg_exp[i] = math.exp(seg_exp[i])
-            v0, v1, v2, v3 = lanes[k, 0], lanes[k, 1], lanes[k, 2], lanes[k, 3]
+            vals = values[order[k]]
+            v0 = np.float64(vals[0]) if channels > 0 else 0.0
+            v1 = np.float64(vals[1]) if channels > 1 else 0.0
+            v2 = np.float64(vals[2]) if channels > 2 else 0.0
             for i in range(n_seg):
                 if recurrence:
-                    stopped = _row_blend4(transmittance, acc0, acc1, acc2, acc3, seg_p0[i], seg_n[i], seg_exp[2 * i],
-                                          seg_exp[2 * i + 1], step, v0, v1, v2, v3, alpha_floor, alpha_max,
-                                          transmittance_min)
+                    stopped = _row_blend3(state, seg_p0[i], seg_n[i], seg_exp[2 * i], seg_exp[2 * i + 1], step,
+                                          v0, v1, v2, alpha_floor, alpha_max, transmittance_min)
                 else:  # steep footprint, a few pixels wide: α evaluated directly, one pixel at a time
                     stopped = 0
                     y = y0 + seg_row[i]
                     xs = x0 + int(seg_p0[i]) - seg_row[i] * tw
                     for j in range(seg_n[i]):
-                        stopped += _row_blend4(transmittance, acc0, acc1, acc2, acc3, seg_p0[i] + np.uint64(j), 1,
-                                               _gauss_at(packed, k, xs + j, y), 1.0, 1.0, v0, v1, v2, v3,
-                                               alpha_floor, alpha_max, transmittance_min)
+                        stopped += _row_blend3(state, seg_p0[i] + np.uint64(j), 1, _gauss_at(packed, k, xs + j, y),
+                                               1.0, 1.0, v0, v1, v2, alpha_floor, alpha_max, transmittance_min)
                 if stopped:
                     _shrink_row(transmittance, row_live, seg_row[i], tw)
                 live -= stopped
@@ -235,15 +236,15 @@ def _blend_narrow_py(tiles, offsets, ranks, packed, boxes, tiles_x, tile_w, tile
             row = (y0 + r) * width + x0
             for x in range(tw):
                 p = r * tw + x
-                transmittance_out[row + x] = abs(transmittance[p])
+                transmittance_out[row + x] = abs(state[p, 0])
                 for s in range(channels):
-                    accum[row + x, s] = acc[s, p]
+                    accum[row + x, s] = state[p, 1 + s]
 
 
 def _row_fragments_py(transmittance, p0, n, gauss, ratio, step, alpha_floor, alpha_max, transmittance_min,
-                      frag_pixel, frag_weight, n_frag):  # pragma: no cover - compiled by numba
-    """Blend one row segment's α into the tile's transmittance (as :func:`_row_blend4_py`) and append
-    its weights w = α·T as fragments (pixel, weight). Returns (fragments now, pixels stopped)."""
+                      frag_pixel, frag_weight, frag_alpha, n_frag):  # pragma: no cover - compiled by numba
+    """Blend one row segment's α into the tile's transmittance (as :func:`_row_blend3_py`) and append
+    its fragments (pixel, weight w = α·T, α). Returns (fragments now, pixels stopped)."""
     stopped = 0
     for i in range(n):
         alpha = gauss
@@ -264,13 +265,15 @@ def _row_fragments_py(transmittance, p0, n, gauss, ratio, step, alpha_floor, alp
             continue
         frag_pixel[n_frag] = p
         frag_weight[n_frag] = alpha * t_before
+        frag_alpha[n_frag] = alpha
         n_frag += 1
         transmittance[p] = after
     return n_frag, stopped
 
 
 def _pair_fragments_py(packed, boxes, k, x0, y0, tw, th, transmittance, row_live, seg_p0, seg_n, seg_row, seg_exp,
-                       alpha_floor, alpha_max, transmittance_min, frag_pixel, frag_weight, n_frag):  # pragma: no cover
+                       alpha_floor, alpha_max, transmittance_min, frag_pixel, frag_weight, frag_alpha,
+                       n_frag):  # pragma: no cover - compiled by numba
     """All fragments of Gaussian rank k in the tile at (x0, y0) of size tw × th, front to back after
     those already blended. Returns (fragments now, pixels stopped)."""
     slope, h0, h1, recurrence, step = _pair_setup(packed, k)
@@ -303,7 +306,7 @@ def _pair_fragments_py(packed, boxes, k, x0, y0, tw, th, transmittance, row_live
         if recurrence:
             n_frag, row_stopped = _row_fragments(transmittance, seg_p0[i], seg_n[i], seg_exp[2 * i], seg_exp[2 * i + 1],
                                                  step, alpha_floor, alpha_max, transmittance_min, frag_pixel,
-                                                 frag_weight, n_frag)
+                                                 frag_weight, frag_alpha, n_frag)
         else:  # steep footprint, a few pixels wide: α evaluated directly, one pixel at a time
             row_stopped = 0
             y = y0 + seg_row[i]
@@ -311,7 +314,7 @@ def _pair_fragments_py(packed, boxes, k, x0, y0, tw, th, transmittance, row_live
             for j in range(seg_n[i]):
                 n_frag, one = _row_fragments(transmittance, seg_p0[i] + np.uint64(j), 1, _gauss_at(packed, k, xs + j, y),
                                              1.0, 1.0, alpha_floor, alpha_max, transmittance_min, frag_pixel,
-                                             frag_weight, n_frag)
+                                             frag_weight, frag_alpha, n_frag)
                 row_stopped += one
         if row_stopped:
             _shrink_row(transmittance, row_live, seg_row[i], tw)
@@ -337,6 +340,7 @@ def _blend_wide_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w,
     capacity = max(FRAGMENT_BATCH, 2 * n_pix)
     frag_pixel = np.empty(capacity, dtype=np.uint64)
     frag_weight = np.empty(capacity, dtype=accum.dtype)
+    frag_alpha = np.empty(capacity, dtype=np.float64)
     entry_gaussian = np.empty(capacity, dtype=np.int64)
     entry_start = np.empty(capacity + 1, dtype=np.int64)
     for tile in tiles:
@@ -367,7 +371,7 @@ def _blend_wide_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w,
             n_entry += 1
             n_frag, stopped = _pair_fragments(packed, boxes, k, x0, y0, tw, th, transmittance, row_live, seg_p0, seg_n,
                                               seg_row, seg_exp, alpha_floor, alpha_max, transmittance_min, frag_pixel,
-                                              frag_weight, n_frag)
+                                              frag_weight, frag_alpha, n_frag)
             live -= stopped
         for r in range(th):
             row = (y0 + r) * width + x0
@@ -396,6 +400,7 @@ def _splat_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile
     seg_exp = np.empty(2 * tile_h, dtype=np.float64)
     frag_pixel = np.empty(n_pix, dtype=np.uint64)
     frag_weight = np.empty(n_pix, dtype=out.dtype)
+    frag_alpha = np.empty(n_pix, dtype=np.float64)
     for tile in tiles:
         x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
         for r in range(th):
@@ -410,7 +415,7 @@ def _splat_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile
             k = ranks[m]
             n_frag, stopped = _pair_fragments(packed, boxes, k, x0, y0, tw, th, transmittance, row_live, seg_p0, seg_n,
                                               seg_row, seg_exp, alpha_floor, alpha_max, transmittance_min, frag_pixel,
-                                              frag_weight, 0)
+                                              frag_weight, frag_alpha, 0)
             live -= stopped
             if n_frag:
                 sums[:] = 0
@@ -432,8 +437,8 @@ def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, t
     """Add ∂L/∂values (N, C) to ``grad_values`` and ∂L/∂(mx, my, a, b, c, o) (N, 6) to ``grad_geometry``.
 
     grad_accum (H·W, C) = ∂L/∂accum; grad_transmittance (H·W,) = ∂L/∂T_final; transmittance_final
-    (H·W,) and accum (H·W, C): the forward's outputs (used only for the geometry). With only
-    ``need_values`` this is the splat Σ_p w_i(p)·grad_accum[p].
+    (H·W,) and accum (H·W, C): the forward's outputs (used only for the geometry). Per list entry, the
+    fragment pass of the forward (same α, same decisions) and then its gradient sums over the fragments.
     """
     channels = grad_accum.shape[1]
     n_pix = tile_w * tile_h
@@ -444,106 +449,85 @@ def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, t
     grad_local = np.empty((n_pix, channels), dtype=grad_accum.dtype)
     sums = np.empty(channels, dtype=grad_values.dtype)
     weight_cast = np.empty(1, dtype=grad_values.dtype)
+    vals64 = np.empty(channels, dtype=np.float64)
+    seg_p0 = np.empty(tile_h, dtype=np.uint64)
+    seg_n = np.empty(tile_h, dtype=np.int64)
+    seg_row = np.empty(tile_h, dtype=np.int64)
+    seg_exp = np.empty(2 * tile_h, dtype=np.float64)
+    frag_pixel = np.empty(n_pix, dtype=np.uint64)
+    frag_weight = np.empty(n_pix, dtype=np.float64)
+    frag_alpha = np.empty(n_pix, dtype=np.float64)
     for tile in tiles:
         x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
         for r in range(th):
             row = (y0 + r) * width + x0
             for x in range(tw):
                 p = r * tw + x
+                src = grad_accum[row + x]
+                dst = grad_local[p]
                 for s in range(channels):
-                    grad_local[p, s] = grad_accum[row + x, s]
+                    dst[s] = src[s]
                 if need_geometry:
                     dot = 0.0
                     for s in range(channels):
-                        dot += np.float64(grad_accum[row + x, s]) * np.float64(accum[row + x, s])
+                        dot += np.float64(src[s]) * np.float64(accum[row + x, s])
                     total[p] = dot + transmittance_final[row + x] * grad_transmittance[row + x]
                     prefix[p] = 0.0
         live = tw * th
         for m in range(offsets[tile], offsets[tile + 1]):
             k = ranks[m]
-            g = order[k]
-            mx, my, a, b, c, o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], packed[k, 5]
-            slope, h0, h1, recurrence, step = _pair_setup(packed, k)
-            lo = max(boxes[k, 0], x0)
-            hi = min(boxes[k, 1], x0 + tw - 1)
-            touched = False
-            s_1 = s_x = s_y = s_xx = s_xy = s_yy = 0.0
-            for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
-                r = y - y0
-                lo_r = max(lo, x0 + row_live[r, 0])
-                hi_r = min(hi, x0 + row_live[r, 1])
-                if lo_r > hi_r:
-                    continue
-                dy = y + 0.5 - my
-                xs, xe = _row_span(mx - 0.5 - slope * dy, h0, h1 * dy * dy, lo_r, hi_r)
-                if xs > xe:
-                    continue
-                gauss, ratio = _row_start(packed, k, xs, y)
-                base = r * tw - x0
-                row_stopped = 0
-                for x in range(xs, xe + 1):
-                    if recurrence:
-                        alpha = gauss
-                        gauss *= ratio
-                        ratio *= step
-                    else:
-                        alpha = _gauss_at(packed, k, x, y)
-                    p = base + x
-                    t_before = transmittance[p]
-                    if t_before < 0.0:
-                        continue
-                    clamped = alpha >= alpha_max
-                    if clamped:
-                        alpha = alpha_max
-                    if alpha <= alpha_floor:
-                        continue
-                    after = t_before * (1.0 - alpha)
-                    if after < transmittance_min:
-                        transmittance[p] = -t_before
-                        row_stopped += 1
-                        continue
-                    weight = alpha * t_before
-                    if need_values:
-                        weight_cast[0] = weight
-                        w_cast = weight_cast[0]
-                        grad_row = grad_local[p]
-                        if touched:
-                            for s in range(channels):
-                                sums[s] += w_cast * grad_row[s]
-                        else:
-                            for s in range(channels):
-                                sums[s] = w_cast * grad_row[s]
-                        touched = True
-                    if need_geometry:
+            n_frag, stopped = _pair_fragments(packed, boxes, k, x0, y0, tw, th, transmittance, row_live, seg_p0, seg_n,
+                                              seg_row, seg_exp, alpha_floor, alpha_max, transmittance_min, frag_pixel,
+                                              frag_weight, frag_alpha, 0)
+            live -= stopped
+            if n_frag:
+                g = order[k]
+                if need_values:
+                    sums[:] = 0
+                    for f in range(n_frag):
+                        weight_cast[0] = frag_weight[f]  # the sums run in the gradient's dtype (SIMD)
+                        w = weight_cast[0]
+                        src = grad_local[frag_pixel[f]]
+                        for s in range(channels):
+                            sums[s] += w * src[s]
+                    dst = grad_values[g]
+                    for s in range(channels):
+                        dst[s] += sums[s]
+                if need_geometry:
+                    mx, my, a, b, c, o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], \
+                        packed[k, 5]
+                    for s in range(channels):
+                        vals64[s] = values[g, s]
+                    s_1 = s_x = s_y = s_xx = s_xy = s_yy = 0.0
+                    ox = x0 + 0.5 - mx
+                    oy = y0 + 0.5 - my
+                    for f in range(n_frag):
+                        p = frag_pixel[f]
+                        weight = frag_weight[f]
+                        alpha = frag_alpha[f]
+                        src = grad_local[p]
                         dot = 0.0
                         for s in range(channels):
-                            dot += np.float64(grad_local[p, s]) * np.float64(values[g, s])
+                            dot += np.float64(src[s]) * vals64[s]
                         prefix[p] += weight * dot
-                        d_alpha = t_before * dot - (total[p] - prefix[p]) / (1.0 - alpha)
-                        if not clamped:
-                            dx = x + 0.5 - mx
+                        if alpha < alpha_max:  # clamped α passes no gradient to the exponent
+                            d_alpha = weight / alpha * dot - (total[p] - prefix[p]) / (1.0 - alpha)
                             d_power = d_alpha * alpha
+                            dx = ox + np.float64(p % np.uint64(tw))
+                            dy = oy + np.float64(p // np.uint64(tw))
                             s_1 += d_power
                             s_x += d_power * dx
                             s_y += d_power * dy
                             s_xx += d_power * dx * dx
                             s_xy += d_power * dx * dy
                             s_yy += d_power * dy * dy
-                    transmittance[p] = after
-                if row_stopped:
-                    _shrink_row(transmittance, row_live, r, tw)
-                    live -= row_stopped
-            if touched:
-                for s in range(channels):
-                    grad_values[g, s] += sums[s]
-            if need_geometry:
-                # power = ln o − ½(a dx² + 2b dx dy + c dy²), dx = x + 0.5 − mx
-                grad_geometry[g, 0] += a * s_x + b * s_y
-                grad_geometry[g, 1] += b * s_x + c * s_y
-                grad_geometry[g, 2] -= 0.5 * s_xx
-                grad_geometry[g, 3] -= s_xy
-                grad_geometry[g, 4] -= 0.5 * s_yy
-                grad_geometry[g, 5] += s_1 / o
+                    # power = ln o − ½(a dx² + 2b dx dy + c dy²), dx = x + 0.5 − mx
+                    grad_geometry[g, 0] += a * s_x + b * s_y
+                    grad_geometry[g, 1] += b * s_x + c * s_y
+                    grad_geometry[g, 2] -= 0.5 * s_xx
+                    grad_geometry[g, 3] -= s_xy
+                    grad_geometry[g, 4] -= 0.5 * s_yy
+                    grad_geometry[g, 5] += s_1 / o
             if live == 0:
                 break
 
@@ -608,7 +592,7 @@ if numba is not None:
     _row_start = _jit_inline(_row_start_py)
     _gauss_at = _jit_inline(_gauss_at_py)
     _jit = numba.njit(nogil=True, cache=True)
-    _row_blend4 = _jit_inline(_row_blend4_py)
+    _row_blend3 = _jit_inline(_row_blend3_py)
     _blend_narrow = _jit(_blend_narrow_py)
     _row_fragments = _jit_inline(_row_fragments_py)
     _pair_fragments = _jit_inline(_pair_fragments_py)
@@ -617,5 +601,5 @@ if numba is not None:
     _backward = _jit(_backward_py)
     _count = _jit(_count_py)
 else:  # pragma: no cover
-    _pair_setup = _row_span = _tile_reset = _shrink_row = _row_start = _gauss_at = _row_blend4 = None
+    _pair_setup = _row_span = _tile_reset = _shrink_row = _row_start = _gauss_at = _row_blend3 = None
     _blend_narrow = _blend_wide = _backward = _count = _splat = _row_fragments = _pair_fragments = None

@@ -13,7 +13,7 @@ def stack_values(geom: torch.Tensor, depths: torch.Tensor, *, colors, features, 
     """The channels to blend, (N, C), and where each output's channels sit in them.
 
     Args:
-        geom: (N, 6) screen-space geometry (only its N and dtype are used when nothing is requested).
+        geom: any (N, ·) per-Gaussian tensor (its N, dtype and device make the empty result).
         depths: (N,) camera z; colors (N, 3) | None; features (N, F) | None.
         keep_half: a lone float16/bfloat16 feature block stays in its dtype (blended per chunk by the
             torch path); otherwise every block is converted to ``dtype``.

@@ -17,7 +17,7 @@ from . import blend_kernels, cpu_kernels
 from .compose import output_maps, stack_values
 from .kernel_projection import project_gaussians_fused
 from .options import RasterOptions
-from .projection import Projected, project_gaussians
+from .projection import Projected
 from .tile_lists import TileLists, build_tile_lists, kernel_tile_shape
 
 #: outputs the fused kernels produce ("depth_median" and "weights" stay on the torch path)
@@ -48,9 +48,7 @@ def _needs_grad(*tensors: torch.Tensor | None) -> bool:
 
 def project(means, rotations, log_scales, opacity_logits, camera: Camera, options: RasterOptions,
             dtype: torch.dtype) -> Projected:
-    """The torch projection when the geometry needs a gradient, its fused twin otherwise."""
-    if _needs_grad(means, rotations, log_scales, opacity_logits):
-        return project_gaussians(means, rotations, log_scales, opacity_logits, camera, options, dtype)
+    """The fused projection (forward and backward kernels); under no gradient, nothing is recorded."""
     return project_gaussians_fused(means, rotations, log_scales, opacity_logits, camera, options, dtype)
 
 
@@ -75,12 +73,12 @@ def rasterize_kernels(means: torch.Tensor, rotations: torch.Tensor, log_scales: 
     """Inputs already checked by :func:`~fourlegs_engine.render.rasterize`; its outputs (when
     :func:`applies`)."""
     proj = project(means, rotations, log_scales, opacity_logits, camera, options, dtype)
-    geom = torch.cat([proj.means2d, proj.conics, proj.opacities[:, None]], dim=-1)
-    values, slices = stack_values(geom, proj.depths, colors=colors, features=features, outputs=outputs, dtype=dtype,
-                                  keep_half=False)
+    values, slices = stack_values(proj.means2d, proj.depths, colors=colors, features=features, outputs=outputs,
+                                  dtype=dtype, keep_half=False)
     lists = tile_lists(proj, camera, options, dtype, values.shape[1])
     H, W = camera.height, camera.width
-    if _needs_grad(geom, values):
+    if _needs_grad(proj.means2d, proj.conics, proj.opacities, values):
+        geom = torch.cat([proj.means2d, proj.conics, proj.opacities[:, None]], dim=-1)
         accum, trans = TileBlend.apply(geom, values, lists, options)
     else:
         accum, trans = blend_forward(lists, values.detach(), options)
@@ -120,16 +118,9 @@ def blend_forward(lists: TileLists, values: torch.Tensor, options: RasterOptions
     vals = values.detach().to(dtype).numpy()
     shape = (lists.tiles_x, lists.tile_w, lists.tile_h, lists.width, lists.height)
     rules = (_floor(options, dtype), float(options.alpha_max), float(options.transmittance_min))
-    if C <= blend_kernels.NARROW_LANES:
-        lanes = np.zeros((lists.num_visible, blend_kernels.NARROW_LANES), dtype=np.float64)
-        lanes[:, :C] = vals[lists.order]
-        args = (lists.tile_offsets, lists.tile_ranks, lists.packed, lists.boxes, *shape, lanes, *rules,
-                accum.numpy(), trans.numpy())
-        kernel = blend_kernels._blend_narrow
-    else:
-        args = (lists.tile_offsets, lists.tile_ranks, lists.order, lists.packed, lists.boxes, *shape,
-                np.ascontiguousarray(vals), *rules, accum.numpy(), trans.numpy())
-        kernel = blend_kernels._blend_wide
+    args = (lists.tile_offsets, lists.tile_ranks, lists.order, lists.packed, lists.boxes, *shape,
+            np.ascontiguousarray(vals), *rules, accum.numpy(), trans.numpy())
+    kernel = blend_kernels._blend_narrow if C <= blend_kernels.NARROW_LANES else blend_kernels._blend_wide
     cpu_kernels.run_on_workers(lambda part, _: kernel(part, *args), tiles, _workers(_busy_tiles(lists).size))
     return accum, trans
 

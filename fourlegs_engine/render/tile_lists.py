@@ -25,6 +25,7 @@ except ImportError:  # pragma: no cover
 
 #: columns of :attr:`TileLists.packed`
 PACKED_COLUMNS = ("mx", "my", "conic_a", "conic_b", "conic_c", "opacity", "log_opacity", "reach")
+N_PACKED = len(PACKED_COLUMNS)
 #: relative slack of the ellipse–tile test (keeps a pixel centre that rounding puts on the border)
 REACH_SLACK = 1e-9
 #: the tile side the fused kernels use for tile_size="auto" when many channels are blended
@@ -102,8 +103,8 @@ def _ellipse_reaches_rect_py(mx, my, a, b, c, reach, x_lo, x_hi, y_lo, y_hi):  #
 
 
 def _radix_order_py(keys, key_bits, out):  # pragma: no cover - compiled by numba
-    """Stable LSD radix sort: ``out`` (V,) ← 0..V−1 ordered by the unsigned ``keys`` (V,) uint64 (only the
-    low ``key_bits`` bits are looked at); equal keys keep index order."""
+    """Stable LSD radix sort: ``out`` (V,) ← 0..V−1 ordered by the unsigned integer ``keys`` (V,) (only
+    the low ``key_bits`` bits are looked at); equal keys keep index order."""
     n = keys.shape[0]
     buckets = 1 << RADIX_BITS
     mask = np.uint64(buckets - 1)
@@ -115,7 +116,7 @@ def _radix_order_py(keys, key_bits, out):  # pragma: no cover - compiled by numb
         counts[:] = 0
         sh = np.uint64(shift)
         for i in range(n):
-            counts[(keys[src[i]] >> sh) & mask] += 1
+            counts[(np.uint64(keys[src[i]]) >> sh) & mask] += 1
         if counts.max() < n:  # a digit that is the same everywhere changes nothing
             total = 0
             for d in range(buckets):
@@ -124,7 +125,7 @@ def _radix_order_py(keys, key_bits, out):  # pragma: no cover - compiled by numb
                 total += cnt
             for i in range(n):
                 j = src[i]
-                d = (keys[j] >> sh) & mask
+                d = (np.uint64(keys[j]) >> sh) & mask
                 dst[counts[d]] = j
                 counts[d] += 1
             src, dst = dst, src
@@ -132,10 +133,25 @@ def _radix_order_py(keys, key_bits, out):  # pragma: no cover - compiled by numb
     out[:] = src
 
 
-def _build_lists_py(visible_ids, keys, key_bits, means2d, conics, opacities, bounds, tile_w, tile_h, tiles_x,
-                    n_tiles, log_alpha_floor, order, packed, boxes, tile_offsets):  # pragma: no cover - numba
-    """Fill order/packed/boxes (V rows, front to back) and tile_offsets; returns (tile_ranks, pairs_in_boxes)."""
-    n_vis = visible_ids.shape[0]
+def _build_lists_py(visible, depth_bits, key_bits, means2d, conics, opacities, bounds, tile_w, tile_h, tiles_x,
+                    n_tiles, log_alpha_floor, tile_offsets):  # pragma: no cover - compiled by numba
+    """Returns (order, packed, boxes, tile_ranks, pairs_in_boxes) and fills tile_offsets; see
+    :class:`TileLists`. depth_bits (N,): the depths' IEEE bits as unsigned integers (positive floats
+    sort like their bits); the other arrays in the working dtype."""
+    n_vis = 0
+    for g in range(visible.shape[0]):
+        n_vis += visible[g]
+    visible_ids = np.empty(n_vis, dtype=np.int64)
+    keys = np.empty(n_vis, dtype=depth_bits.dtype)
+    j = 0
+    for g in range(visible.shape[0]):
+        if visible[g]:
+            visible_ids[j] = g
+            keys[j] = depth_bits[g]
+            j += 1
+    order = np.empty(n_vis, dtype=np.int64)
+    packed = np.empty((n_vis, N_PACKED), dtype=np.float64)
+    boxes = np.empty((n_vis, 4), dtype=np.int64)
     ranked = np.empty(n_vis, dtype=np.int64)
     _radix_order(keys, key_bits, ranked)
     rank_of = np.empty(n_vis, dtype=np.int64)
@@ -199,7 +215,7 @@ def _build_lists_py(visible_ids, keys, key_bits, means2d, conics, opacities, bou
         t = pair_tile[k]
         tile_ranks[counts[t]] = pair_rank[k]
         counts[t] += 1
-    return tile_ranks, in_boxes
+    return order, packed, boxes, tile_ranks, in_boxes
 
 
 if numba is not None:
@@ -246,26 +262,22 @@ def build_tile_lists(means2d: torch.Tensor, conics: torch.Tensor, opacities: tor
     tiles_y = (height + tile_h - 1) // tile_h
     n_tiles = tiles_x * tiles_y
     with torch.no_grad():
-        visible_ids = np.ascontiguousarray(torch.nonzero(visible).squeeze(1).numpy())
-        depth_vis = depths.detach().index_select(0, torch.from_numpy(visible_ids))
-        # depth ≥ near > 0 for visible Gaussians: the IEEE bits of a positive float sort like the float
-        if depth_vis.dtype == torch.float64:
-            keys, key_bits = depth_vis.numpy().view(np.uint64), 64
-        else:
-            keys, key_bits = depth_vis.to(torch.float32).numpy().view(np.uint32).astype(np.uint64), 32
-        n_vis = visible_ids.shape[0]
-        order = np.empty(n_vis, dtype=np.int64)
-        packed = np.empty((n_vis, len(PACKED_COLUMNS)), dtype=np.float64)
-        boxes = np.empty((n_vis, 4), dtype=np.int64)
+        depth_np = _numpy(depths)
+        # visible depths are ≥ near > 0: the IEEE bits of a positive float sort like the float
+        depth_bits, key_bits = (depth_np.view(np.uint64), 64) if depth_np.dtype == np.float64 else (
+            depth_np.view(np.uint32), 32)
         offsets = np.empty(n_tiles + 1, dtype=np.int64)
-        tile_ranks, in_boxes = _build_lists(
-            visible_ids, np.ascontiguousarray(keys), key_bits, _f64(means2d), _f64(conics), _f64(opacities),
-            np.ascontiguousarray(bounds.detach().numpy()), tile_w, tile_h, tiles_x, n_tiles, math.log(alpha_floor),
-            order, packed, boxes, offsets)
+        order, packed, boxes, tile_ranks, in_boxes = _build_lists(
+            _numpy(visible), depth_bits, key_bits, _numpy(means2d), _numpy(conics), _numpy(opacities), _numpy(bounds),
+            tile_w, tile_h, tiles_x, n_tiles, math.log(alpha_floor), offsets)
     return TileLists(order=order, packed=packed, boxes=boxes, tile_offsets=offsets, tile_ranks=tile_ranks,
                      tiles_x=tiles_x, tiles_y=tiles_y, tile_w=tile_w, tile_h=tile_h, width=width, height=height,
                      pairs_in_boxes=int(in_boxes))
 
 
-def _f64(t: torch.Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().to(torch.float64).numpy())
+def _numpy(t: torch.Tensor) -> np.ndarray:
+    """A contiguous numpy view of a CPU tensor (float16/bfloat16 widened to float32)."""
+    t = t.detach()
+    if t.dtype in (torch.float16, torch.bfloat16):
+        t = t.float()
+    return np.ascontiguousarray(t.numpy())

@@ -94,7 +94,7 @@ def splat_kernels(means, rotations, log_scales, opacity_logits, camera: Camera, 
         S = pixel_values.shape[-1]
         lists = tile_lists(proj, camera, options, dtype, S)
         if out is None:
-            out = torch.zeros(means.shape[0], S, dtype=dtype)
+            out = _host_zeros((means.shape[0], S), dtype)
         grad_pixels = np.ascontiguousarray(pixel_values.reshape(-1, S).to(dtype).numpy())
         _backward_threads(lists, None, grad_pixels, None, None, None, options, out, None, workers=1)
     return out
@@ -112,8 +112,8 @@ def blend_forward(lists: TileLists, values: torch.Tensor, options: RasterOptions
     n_pix = lists.width * lists.height
     C = values.shape[1]
     # every tile is written by the kernel (empty ones with zeros and T = 1): no separate fill pass
-    accum = torch.empty(n_pix, C, dtype=dtype)
-    trans = torch.empty(n_pix, dtype=dtype)
+    accum = _host_empty((n_pix, C), dtype)
+    trans = _host_empty((n_pix,), dtype)
     tiles = np.arange(lists.num_tiles)
     vals = values.detach().to(dtype).numpy()
     shape = (lists.tiles_x, lists.tile_w, lists.tile_h, lists.width, lists.height)
@@ -131,7 +131,7 @@ def blend_backward(lists: TileLists, values: torch.Tensor, grad_accum: torch.Ten
     """(∂L/∂geom (N, 6) or None, ∂L/∂values (N, C) or None) from ∂L/∂accum (H·W, C) and ∂L/∂T (H·W,)."""
     dtype = accum.dtype
     N, C = values.shape
-    grad_values = torch.zeros(N, C, dtype=dtype) if need_values else None
+    grad_values = _host_zeros((N, C), dtype) if need_values else None
     grad_geometry = torch.zeros(N, 6, dtype=torch.float64) if need_geometry else None
     if _busy_tiles(lists).size:
         workers = _workers(_busy_tiles(lists).size)
@@ -202,6 +202,21 @@ class TileBlend(torch.autograd.Function):
 # ----------------------------------------------------------------------------------------- helpers
 def _floor(options: RasterOptions, dtype: torch.dtype) -> float:
     return alpha_floor(options, dtype)
+
+
+def _host_empty(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+    """An uninitialized CPU tensor whose memory numpy allocated: numpy asks the kernel for huge pages on
+    large blocks, so a 100 MB feature image costs a few page faults instead of tens of thousands
+    (first touch of torch's own allocation is several times slower than filling it)."""
+    return torch.from_numpy(np.empty(shape, dtype=_NUMPY_DTYPES[dtype]))
+
+
+def _host_zeros(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+    """As :func:`_host_empty`, zero-filled."""
+    return torch.from_numpy(np.zeros(shape, dtype=_NUMPY_DTYPES[dtype]))
+
+
+_NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 
 def _busy_tiles(lists: TileLists) -> np.ndarray:

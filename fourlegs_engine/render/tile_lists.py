@@ -29,9 +29,9 @@ N_PACKED = len(PACKED_COLUMNS)
 #: relative slack of the ellipse–tile test (keeps a pixel centre that rounding puts on the border)
 REACH_SLACK = 1e-9
 #: the tile side the fused kernels use for tile_size="auto" when many channels are blended
-AUTO_TILE_SIZE = 16
+AUTO_TILE_SIZE = 32
 #: (tile_w, tile_h) for tile_size="auto" when at most WIDE_TILE_MAX_CHANNELS channels are blended
-WIDE_TILE = (64, 16)
+WIDE_TILE = (128, 32)
 WIDE_TILE_MAX_CHANNELS = 8
 RADIX_BITS = 11
 
@@ -236,9 +236,9 @@ def ellipse_reaches_rect(mx: float, my: float, a: float, b: float, c: float, rea
 
 
 def kernel_tile_shape(tile_size: int | str, channels: int) -> tuple[int, int]:
-    """(tile_w, tile_h) of the fused kernels: a square of side ``tile_size``, or for "auto" a wide
-    tile for a few channels (fewer Gaussians cut at tile borders: fewer row segments, each set up once)
-    and :data:`AUTO_TILE_SIZE` squares for many (the tile's channel sums stay in cache)."""
+    """(tile_w, tile_h) of the fused kernels: a square of side ``tile_size``, or for "auto" large tiles
+    (fewer Gaussians cut at tile borders: fewer row segments, each set up once) — :data:`WIDE_TILE` for a
+    few channels, :data:`AUTO_TILE_SIZE` squares for many (their channel sums stay in the core's cache)."""
     if tile_size != "auto":
         return int(tile_size), int(tile_size)
     return (WIDE_TILE if channels <= WIDE_TILE_MAX_CHANNELS else (AUTO_TILE_SIZE, AUTO_TILE_SIZE))

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from hypothesis import assume, given, settings, strategies as st  # noqa: F401
+from hypothesis import given, settings, strategies as st
 
 from _render_helpers import as_numpy, random_scene, view_cameras
 from _render_oracle import render as oracle_render

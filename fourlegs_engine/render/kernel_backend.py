@@ -1,10 +1,9 @@
 """The fused CPU path (``RasterOptions(kernel="v2")``): projection → per-tile lists → row-footprint
 kernels, forward and backward, on worker threads that block while idle.
 
-Geometry that needs a gradient is projected by the torch projection (autograd chains the kernels'
-screen-space gradients through it); otherwise by its fused twin (:mod:`.kernel_projection`). The
-blending itself is one :class:`TileBlend` autograd function whose backward is the kernel of
-:mod:`.blend_kernels`.
+The projection is one fused pass each way (:mod:`.kernel_projection`), the lists come from
+:mod:`.tile_lists`, and the blending is one :class:`TileBlend` autograd function whose forward and
+backward are the kernels of :mod:`.blend_kernels`; autograd chains them.
 """
 from __future__ import annotations
 
@@ -46,12 +45,6 @@ def _needs_grad(*tensors: torch.Tensor | None) -> bool:
     return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
 
 
-def project(means, rotations, log_scales, opacity_logits, camera: Camera, options: RasterOptions,
-            dtype: torch.dtype) -> Projected:
-    """The fused projection (forward and backward kernels); under no gradient, nothing is recorded."""
-    return project_gaussians_fused(means, rotations, log_scales, opacity_logits, camera, options, dtype)
-
-
 def tile_lists(proj: Projected, camera: Camera, options: RasterOptions, dtype: torch.dtype,
                channels: int) -> TileLists:
     """The per-tile lists of ``proj`` for ``camera``'s image, tiles shaped for ``channels`` blended values."""
@@ -72,7 +65,7 @@ def rasterize_kernels(means: torch.Tensor, rotations: torch.Tensor, log_scales: 
                       outputs: tuple[str, ...], options: RasterOptions, dtype: torch.dtype) -> dict:
     """Inputs already checked by :func:`~fourlegs_engine.render.rasterize`; its outputs (when
     :func:`applies`)."""
-    proj = project(means, rotations, log_scales, opacity_logits, camera, options, dtype)
+    proj = project_gaussians_fused(means, rotations, log_scales, opacity_logits, camera, options, dtype)
     values, slices = stack_values(proj.means2d, proj.depths, colors=colors, features=features, outputs=outputs,
                                   dtype=dtype, keep_half=False)
     lists = tile_lists(proj, camera, options, dtype, values.shape[1])
@@ -117,7 +110,7 @@ def blend_forward(lists: TileLists, values: torch.Tensor, options: RasterOptions
     tiles = np.arange(lists.num_tiles)
     vals = values.detach().to(dtype).numpy()
     shape = (lists.tiles_x, lists.tile_w, lists.tile_h, lists.width, lists.height)
-    rules = (_floor(options, dtype), float(options.alpha_max), float(options.transmittance_min))
+    rules = (alpha_floor(options, dtype), float(options.alpha_max), float(options.transmittance_min))
     args = (lists.tile_offsets, lists.tile_ranks, lists.order, lists.packed, lists.boxes, *shape,
             np.ascontiguousarray(vals), *rules, accum.numpy(), trans.numpy())
     kernel = blend_kernels._blend_narrow if C <= blend_kernels.NARROW_LANES else blend_kernels._blend_wide
@@ -160,7 +153,7 @@ def _backward_threads(lists: TileLists, values, grad_accum, grad_trans, trans, a
     busy = _busy_tiles(lists)
     grid = (lists.tile_offsets, lists.tile_ranks, lists.order, lists.packed, lists.boxes, lists.tiles_x,
             lists.tile_w, lists.tile_h, lists.width, lists.height)
-    rules = (_floor(options, dtype), float(options.alpha_max), float(options.transmittance_min))
+    rules = (alpha_floor(options, dtype), float(options.alpha_max), float(options.transmittance_min))
     if need_geometry:
         common = (*grid, values, grad_accum, grad_trans, trans, accum, *rules, need_values, need_geometry)
         kernel = lambda part, k: blend_kernels._backward(part, *common, *buffers[k])  # noqa: E731
@@ -200,10 +193,6 @@ class TileBlend(torch.autograd.Function):
 
 
 # ----------------------------------------------------------------------------------------- helpers
-def _floor(options: RasterOptions, dtype: torch.dtype) -> float:
-    return alpha_floor(options, dtype)
-
-
 def _host_empty(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
     """An uninitialized CPU tensor whose memory numpy allocated: numpy asks the kernel for huge pages on
     large blocks, so a 100 MB feature image costs a few page faults instead of tens of thousands

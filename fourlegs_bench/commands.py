@@ -86,8 +86,10 @@ def _add_render(bench_sub: Any) -> None:
     p = bench_sub.add_parser("render", help="rasterizer speed, memory and accuracy (JSON, Markdown table, plot)",
                              description="Median ms/frame and peak memory of the rasterizer (forward and "
                              "forward+backward) on the documented benchmark scene, the float64 oracle and the "
-                             "dense-tile implementation side by side at a small N, and the accuracy knobs "
-                             "(tile size, extent, feature dtype) as time next to error.")
+                             "dense-tile implementation side by side at a small N, the accuracy knobs "
+                             "(tile size, extent, feature dtype) as time next to error, each fused CPU kernel "
+                             "generation side by side, the frame's pair counts with the ratio to the machine's "
+                             "floor, and (--busy) a fit-like step beside a competing busy process.")
     p.add_argument("--sizes", default="10000,100000,300000", help="Gaussian counts, comma-separated")
     p.add_argument("--outputs", default="rgb,features,depth", help="any of rgb,features,depth")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
@@ -101,6 +103,15 @@ def _add_render(bench_sub: Any) -> None:
     p.add_argument("--skip-baselines", action="store_true", help="skip the oracle / dense-tile comparison")
     p.add_argument("--skip-knobs", action="store_true", help="skip the accuracy knobs")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--kernels", default="v2,v1",
+                   help="fused CPU kernel generations of the CPU speed rows (RasterOptions.kernel), comma-separated")
+    p.add_argument("--skip-floor", action="store_true",
+                   help="skip the pair counts, the measured peak of one core and the ratio to the floor")
+    p.add_argument("--busy", action="store_true",
+                   help="also time a fit-like step beside a competing busy process (fresh processes, both "
+                        "OpenMP wait policies)")
+    p.add_argument("--busy-n", type=int, default=100_000, help="Gaussians of the --busy step")
+    p.add_argument("--busy-threads", type=int, default=2, help="torch threads and kernel workers of the --busy step")
     p.add_argument("--json", default=None, metavar="PATH", help="write the records as a JSON list")
     p.add_argument("--markdown", default=None, metavar="PATH", help="write the Markdown tables")
     p.add_argument("--plot", default=None, metavar="PATH", help="write the knob plot (PNG)")

@@ -10,6 +10,14 @@ Three parts, all on the documented benchmark scene (:mod:`.render_scene`):
    fast rasterizer side by side: time and speed ratio.
 3. **knobs** — the fast rasterizer's accuracy knobs (tile size, 3σ vs opacity-aware extent, float32
    vs float16 features) at that small N: time next to max/mean error against the oracle.
+4. **floor** — per N, the frame's pixel–Gaussian pairs (in boxes / footprints / evaluated / blended),
+   the measured peak of one core and the floors they imply (:mod:`.render_floor`), next to each
+   kernel's forward CPU ms: the gap to the floor as a number.
+5. **busy** (``--busy``) — a fit-like step alone and beside a competing busy process, under this
+   project's OpenMP policy and OpenMP's default (:mod:`.render_busy`).
+
+On the CPU every speed case runs once per fused-kernel generation (``--kernels``, default v2 and v1:
+``RasterOptions(kernel=...)``), so the previous kernel's row sits next to the current one.
 
 Every record carries at least ``n, output, mode, device, backend, ms_median, peak_mb``.
 """
@@ -48,6 +56,11 @@ class RenderBenchOptions:
     small_height: int = 180
     baselines: bool = True
     knobs: bool = True
+    kernels: tuple[str, ...] = ("v2", "v1")
+    floor: bool = True
+    busy: bool = False
+    busy_n: int = 100_000
+    busy_threads: int = 2
     seed: int = 0
     extra: dict = field(default_factory=dict)
 
@@ -171,7 +184,14 @@ def _render_fn(scene: BenchScene, output: str, mode: str, backend: str, options=
 
 
 # ------------------------------------------------------------------------------------------- parts
+def _kernels(cfg: RenderBenchOptions, backend: str) -> tuple[str | None, ...]:
+    """The fused-kernel generations a backend's cases run with (only the torch backend on the CPU has them)."""
+    return cfg.kernels if backend == "torch" and cfg.device == "cpu" else (None,)
+
+
 def speed_records(cfg: RenderBenchOptions, progress=None) -> list[dict]:
+    from fourlegs_engine.render import RasterOptions
+
     records = []
     for n in cfg.sizes:
         scene = make_bench_scene(n, feature_dim=cfg.channels, seed=cfg.seed, device=cfg.device,
@@ -179,16 +199,49 @@ def speed_records(cfg: RenderBenchOptions, progress=None) -> list[dict]:
         for backend in cfg.backends:
             for output in cfg.outputs:
                 for mode in ("forward", "backward"):
-                    ms, peak, total = time_case(_render_fn(scene, output, mode, backend), cfg.device, cfg.repeats)
-                    records.append({"part": "speed", "n": n, "output": output, "mode": mode, "device": cfg.device,
-                                    "backend": backend, "ms_median": round(ms, 2), "cpu_ms_median": round(LAST_CPU_MS[0], 2),
-                                    "peak_mb": round(peak, 1),
-                                    "process_peak_mb": round(total, 1), "width": cfg.width, "height": cfg.height,
-                                    "channels": cfg.channels if output == "features" else None})
+                    for kernel in _kernels(cfg, backend):
+                        options = RasterOptions(kernel=kernel) if kernel else None
+                        ms, peak, total = time_case(_render_fn(scene, output, mode, backend, options=options),
+                                                    cfg.device, cfg.repeats)
+                        records.append({"part": "speed", "n": n, "output": output, "mode": mode, "device": cfg.device,
+                                        "backend": backend, "kernel": kernel, "ms_median": round(ms, 2),
+                                        "cpu_ms_median": round(LAST_CPU_MS[0], 2), "peak_mb": round(peak, 1),
+                                        "process_peak_mb": round(total, 1), "width": cfg.width, "height": cfg.height,
+                                        "channels": cfg.channels if output == "features" else None})
+                        if progress:
+                            progress(records[-1])
+        del scene
+        _release_memory()
+    return records
+
+
+def floor_records(cfg: RenderBenchOptions, speed: list[dict], progress=None) -> list[dict]:
+    """Per N: the frame's pair counts, the measured peak and the floors of its rgb and features forward
+    passes, next to each kernel's forward CPU ms (one record per N × output × kernel)."""
+    from .render_floor import floor_ms, frame_work, measure_peak
+
+    peak = measure_peak()
+    records = []
+    for n in cfg.sizes:
+        scene = make_bench_scene(n, feature_dim=cfg.channels, seed=cfg.seed, device="cpu", width=cfg.width,
+                                 height=cfg.height)
+        work = frame_work(scene)
+        for output in ("rgb", "features"):
+            channels = 3 if output == "rgb" else cfg.channels
+            flop_floor, exp_floor = floor_ms(work, peak, channels)
+            for r in speed:
+                if r["n"] == n and r["output"] == output and r["mode"] == "forward" and r["device"] == "cpu":
+                    records.append({
+                        "part": "floor", "n": n, "output": output, "mode": "forward", "device": "cpu",
+                        "backend": r["backend"], "kernel": r.get("kernel"), "ms_median": r["ms_median"],
+                        "cpu_ms_median": r["cpu_ms_median"], "peak_mb": r["peak_mb"], "channels": channels,
+                        **work, "peak_gflops": round(peak["gflops"], 1), "peak_gexp_per_s": round(peak["gexp_per_s"], 3),
+                        "floor_flop_ms": flop_floor, "floor_exp_ms": exp_floor,
+                        "x_flop_floor": round(r["cpu_ms_median"] / max(flop_floor, 1e-9), 1),
+                        "x_exp_floor": round(r["cpu_ms_median"] / max(exp_floor, 1e-9), 1)})
                     if progress:
                         progress(records[-1])
         del scene
-        _release_memory()
     return records
 
 
@@ -291,6 +344,11 @@ def knob_records(cfg: RenderBenchOptions, scene: BenchScene, oracle: dict, progr
 
 def run_bench(cfg: RenderBenchOptions, progress=None) -> list[dict]:
     records = speed_records(cfg, progress)
+    if cfg.floor and cfg.device == "cpu":
+        records += floor_records(cfg, records, progress)
+    if cfg.busy and cfg.device == "cpu":
+        from .render_busy import busy_records
+        records += busy_records(cfg.busy_n, cfg.kernels, cfg.busy_threads, max(1, cfg.repeats), progress)
     if cfg.baselines or cfg.knobs:
         scene = small_scene(cfg)
         if cfg.baselines:
@@ -303,17 +361,48 @@ def run_bench(cfg: RenderBenchOptions, progress=None) -> list[dict]:
 # ------------------------------------------------------------------------------------------ report
 def markdown_report(records: list[dict], command: str, env: dict) -> str:
     lines = [f"Command: `{command}`", "", f"Machine: {env.get('machine', '')}; torch {env.get('torch', '')}, "
-             f"{env.get('threads', '?')} threads", ""]
+             f"{env.get('threads', '?')} threads, OpenMP wait policy {env.get('omp_wait_policy', '?')}", ""]
     speed = [r for r in records if r["part"] == "speed"]
     if speed:
         res = f"{speed[0]['width']}×{speed[0]['height']}"
-        lines += [f"**Speed** ({res}, features = {speed[0].get('channels') or 128} channels; backward = forward+backward)",
-                  "", "| N | output | mode | backend | device | ms/frame (median) | CPU ms/frame | peak MB (above baseline) "
-                  "| process peak MB |", "|---:|---|---|---|---|---:|---:|---:|---:|"]
+        channels = next((r["channels"] for r in speed if r.get("channels")), 128)
+        lines += [f"**Speed** ({res}, features = {channels} channels; backward = forward+backward)",
+                  "", "| N | output | mode | backend | kernel | device | ms/frame (median) | CPU ms/frame "
+                  "| × this kernel's time | peak MB (above baseline) | process peak MB |",
+                  "|---:|---|---|---|---|---|---:|---:|---:|---:|---:|"]
         for r in speed:
-            lines.append(f"| {r['n']:,} | {r['output']} | {r['mode']} | {r['backend']} | {r['device']} | "
-                         f"{r['ms_median']:.1f} | {r['cpu_ms_median']:.1f} | {r['peak_mb']:.0f} | "
-                         f"{r['process_peak_mb']:.0f} |")
+            first = next(q for q in speed if all(q[k] == r[k] for k in ("n", "output", "mode", "backend", "device")))
+            ratio = r["cpu_ms_median"] / max(first["cpu_ms_median"], 1e-9)
+            lines.append(f"| {r['n']:,} | {r['output']} | {r['mode']} | {r['backend']} | {r.get('kernel') or '-'} | "
+                         f"{r['device']} | {r['ms_median']:.1f} | {r['cpu_ms_median']:.1f} | {ratio:.2f} | "
+                         f"{r['peak_mb']:.0f} | {r['process_peak_mb']:.0f} |")
+        lines += ["", "× this kernel's time: CPU ms over the first row's of the same case (the current kernel)", ""]
+    floor = [r for r in records if r["part"] == "floor"]
+    if floor:
+        f0 = floor[0]
+        lines += [f"**Work and floor** (forward; peak of one core measured now: {f0['peak_gflops']:.1f} GFLOP/s fp32 "
+                  f"matmul, {f0['peak_gexp_per_s']:.3f} G exp/s; floors from the pair counts, see "
+                  "fourlegs_bench/render_floor.py)", "",
+                  "| N | output | kernel | visible | pairs in boxes | in footprints | evaluated (v2) | blended "
+                  "| tile pairs (v2 / boxes) | flop floor ms | exp floor ms | CPU ms | × flop floor | × exp floor |",
+                  "|---:|---|---|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|"]
+        for r in floor:
+            lines.append(f"| {r['n']:,} | {r['output']} | {r.get('kernel') or '-'} | {r['visible']:,} | "
+                         f"{r['in_boxes']:,} | {r['in_footprints']:,} | {r['evaluated']:,} | {r['blended']:,} | "
+                         f"{r['tile_pairs']:,} / {r['tile_pairs_in_boxes']:,} | {r['floor_flop_ms']:.2f} | "
+                         f"{r['floor_exp_ms']:.2f} | {r['cpu_ms_median']:.1f} | {r['x_flop_floor']:.0f} | "
+                         f"{r['x_exp_floor']:.0f} |")
+        lines.append("")
+    busy = [r for r in records if r["part"] == "busy"]
+    if busy:
+        lines += [f"**Beside a busy process** (rgb forward+backward with every gradient, N = {busy[0]['n']:,}, "
+                  f"{busy[0]['step_threads']} torch threads and kernel workers, each case a fresh process)", "",
+                  "| kernel | OpenMP policy | competing busy process | wall ms (median) | CPU ms | × alone |",
+                  "|---|---|---|---:|---:|---:|"]
+        for r in busy:
+            lines.append(f"| {r['kernel']} | {r['policy']} ({r['omp_wait_policy']}) | "
+                         f"{'yes' if r['competitor'] else 'no'} | {r['ms_median']:.1f} | {r['cpu_ms_median']:.1f} | "
+                         f"{r['x_alone']:.2f} |")
         lines.append("")
     base = [r for r in records if r["part"] == "baseline"]
     if base:
@@ -368,8 +457,10 @@ def plot_knobs(records: list[dict], path) -> None:
 
 def environment() -> dict:
     import platform
+    from fourlegs_engine.threads import openmp_wait_policy
     return {"machine": f"{platform.machine()} {os.cpu_count()} CPUs", "torch": torch.__version__,
-            "threads": torch.get_num_threads(), "python": platform.python_version()}
+            "threads": torch.get_num_threads(), "python": platform.python_version(),
+            "omp_wait_policy": openmp_wait_policy()}
 
 
 def _ints(text: str, name: str) -> tuple[int, ...]:
@@ -404,6 +495,7 @@ def run_render_cli(args: argparse.Namespace) -> int:
     from fourlegs_engine.errors import InputError, OutputExistsError
     from fourlegs_engine.fileio import atomic_path, write_json_atomic
     from fourlegs_engine.render.backends import gsplat_available
+    from fourlegs_engine.render.options import KERNELS
 
     outputs = tuple(o.strip() for o in args.outputs.split(",") if o.strip())
     bad = [o for o in outputs if o not in OUTPUT_CHOICES]
@@ -422,15 +514,23 @@ def run_render_cli(args: argparse.Namespace) -> int:
         raise InputError("must be >= 1", field="--repeats")
     w, h = _resolution(args.resolution, "--resolution")
     sw, sh = _resolution(args.small_resolution, "--small-resolution")
+    kernels = tuple(k.strip() for k in args.kernels.split(",") if k.strip())
+    if not kernels or any(k not in KERNELS for k in kernels):
+        raise InputError(f"expected kernels from {KERNELS}, got {args.kernels!r}", field="--kernels")
     cfg = RenderBenchOptions(sizes=_ints(args.sizes, "--sizes"), outputs=outputs, device=args.device, backends=backends,
                       repeats=args.repeats, channels=args.channels, width=w, height=h, small_n=args.small_n,
-                      small_width=sw, small_height=sh, baselines=not args.skip_baselines, knobs=not args.skip_knobs)
-    n_cases = len(cfg.sizes) * len(outputs) * len(backends) * 2 + (12 if cfg.baselines else 0) + (14 if cfg.knobs else 0)
+                      small_width=sw, small_height=sh, baselines=not args.skip_baselines, knobs=not args.skip_knobs,
+                      kernels=kernels, floor=not args.skip_floor, busy=args.busy, busy_n=args.busy_n,
+                      busy_threads=args.busy_threads)
+    n_speed = len(cfg.sizes) * len(outputs) * len(backends) * 2 * (len(kernels) if args.device == "cpu" else 1)
+    n_cases = (n_speed + (12 if cfg.baselines else 0) + (14 if cfg.knobs else 0)
+               + (len(cfg.sizes) * 2 * len(kernels) if cfg.floor and args.device == "cpu" else 0)
+               + (8 * len(kernels) if cfg.busy else 0))
     bar = tqdm(total=n_cases, desc="bench render", unit="case", file=sys.stderr)
 
     def progress(rec: dict) -> None:
         bar.update(1)
-        bar.set_postfix_str(f"{rec.get('impl') or rec.get('knob') or ''} n={rec['n']} {rec['output']} "
+        bar.set_postfix_str(f"{rec.get('impl') or rec.get('knob') or rec.get('kernel') or ''} n={rec['n']} {rec['output']} "
                             f"{rec['mode']} {rec['ms_median']:.0f} ms")
 
     threads_before = torch.get_num_threads()

@@ -50,6 +50,14 @@ def kernel_threads(count: Optional[int]) -> Iterator[None]:
         _kernel_threads = before
 
 
+def openmp_wait_policy() -> str:
+    """What OpenMP's idle workers were told to do at barriers: the ``OMP_WAIT_POLICY`` of this process
+    ("PASSIVE": sleep, set by ``import fourlegs_engine`` unless the environment says otherwise;
+    "ACTIVE": spin), or "default" (the OpenMP runtime's own: spin for a while, then sleep). The runtime
+    reads it once, when torch is first imported."""
+    return os.environ.get("OMP_WAIT_POLICY", "default")
+
+
 def usable_cpu_count() -> int:
     """The CPU cores this process may run on (its affinity mask where the OS has one)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)

@@ -11,25 +11,31 @@ SSIM_WINDOW, SSIM_SIGMA = 11, 1.5
 SSIM_C1, SSIM_C2 = 0.01 ** 2, 0.03 ** 2
 
 
-def _window(channels: int, dtype: torch.dtype, device) -> torch.Tensor:
+def _window_1d(dtype: torch.dtype, device) -> torch.Tensor:
+    """(SSIM_WINDOW,) normalized Gaussian: the 2D window is its outer product with itself."""
     x = torch.arange(SSIM_WINDOW, dtype=dtype, device=device) - SSIM_WINDOW // 2
     g = torch.exp(-x * x / (2 * SSIM_SIGMA ** 2))
-    g = g / g.sum()
-    return (g[:, None] * g[None, :]).expand(channels, 1, SSIM_WINDOW, SSIM_WINDOW).contiguous()
+    return g / g.sum()
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM of two (H,W,C) images (Gaussian window, zero padding as in 3DGS); scalar tensor."""
+    """Mean SSIM of two (H,W,C) images (Gaussian window, zero padding as in 3DGS); scalar tensor.
+
+    The five local moments are blurred together, the separable window as a row pass and a column pass
+    (2·11 instead of 11² multiply-adds per pixel; zero padding makes it equal to the 2D window)."""
     x = a.permute(2, 0, 1)[None]
     y = b.permute(2, 0, 1)[None]
     C = x.shape[1]
-    w = _window(C, x.dtype, x.device)
+    g = _window_1d(x.dtype, x.device)
     pad = SSIM_WINDOW // 2
-    mu_x = F.conv2d(x, w, padding=pad, groups=C)
-    mu_y = F.conv2d(y, w, padding=pad, groups=C)
-    sxx = F.conv2d(x * x, w, padding=pad, groups=C) - mu_x ** 2
-    syy = F.conv2d(y * y, w, padding=pad, groups=C) - mu_y ** 2
-    sxy = F.conv2d(x * y, w, padding=pad, groups=C) - mu_x * mu_y
+    moments = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # (1, 5C, H, W)
+    rows = g.view(1, 1, 1, SSIM_WINDOW).expand(5 * C, 1, 1, SSIM_WINDOW)
+    cols = g.view(1, 1, SSIM_WINDOW, 1).expand(5 * C, 1, SSIM_WINDOW, 1)
+    blurred = F.conv2d(F.conv2d(moments, rows, padding=(0, pad), groups=5 * C), cols, padding=(pad, 0), groups=5 * C)
+    mu_x, mu_y, e_xx, e_yy, e_xy = blurred.split(C, dim=1)
+    sxx = e_xx - mu_x ** 2
+    syy = e_yy - mu_y ** 2
+    sxy = e_xy - mu_x * mu_y
     num = (2 * mu_x * mu_y + SSIM_C1) * (2 * sxy + SSIM_C2)
     den = (mu_x ** 2 + mu_y ** 2 + SSIM_C1) * (sxx + syy + SSIM_C2)
     return (num / den).mean()

@@ -229,13 +229,18 @@ def blend_tiles(geom: torch.Tensor, binning: Any, values: torch.Tensor, options:
                 np.ascontiguousarray(values.detach().to(dtype).numpy()), _below(options.alpha_min, dtype),
                 float(options.alpha_max), float(options.transmittance_min), accum.numpy(), trans.numpy())
         busy = np.flatnonzero(np.diff(offsets) > 0)
-        workers = max(1, min(kernel_thread_count(), busy.size // 64))
-        if workers == 1:
-            _blend_tiles(busy, *args)
-        else:  # interleaved tiles balance the load; the kernel releases the GIL
-            with ThreadPoolExecutor(workers) as pool:
-                list(pool.map(lambda k: _blend_tiles(busy[k::workers], *args), range(workers)))
+        run_on_workers(lambda part, _: _blend_tiles(part, *args), busy, max(1, min(kernel_thread_count(), busy.size // 64)))
     return accum.view(H, W, C), trans.view(H, W, 1)
+
+
+def run_on_workers(kernel, tiles: np.ndarray, workers: int) -> None:
+    """``kernel(part, k)`` for the k-th of ``workers`` interleaved parts of ``tiles`` (interleaving
+    balances the load), on threads that block while idle; the kernels release the GIL."""
+    if workers <= 1:
+        kernel(tiles, 0)
+        return
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(lambda k: kernel(tiles[k::workers], k), range(workers)))
 
 
 def splat_tiles(geom: torch.Tensor, binning: Any, pixel_values: torch.Tensor, options: Any,

@@ -16,7 +16,7 @@ import torch
 
 from ..scene.camera import Camera
 from .options import RasterOptions
-from .torch_backend import DEPTH_ALPHA_EPS
+from .compose import DEPTH_ALPHA_EPS
 
 
 def rasterize_gsplat(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Tensor,

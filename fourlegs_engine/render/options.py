@@ -17,6 +17,8 @@ from ..errors import InputError
 OUTPUT_NAMES = ("rgb", "features", "depth", "depth_median", "alpha", "weights")
 #: how far a Gaussian's footprint reaches
 EXTENTS = ("opacity", "3sigma")
+#: generations of the fused CPU kernels
+KERNELS = ("v1", "v2")
 
 
 @dataclass(frozen=True)
@@ -45,10 +47,17 @@ class RasterOptions:
             pixels are all saturated (T < transmittance_min) stop early.
         validate: check inputs for NaN/Inf and shapes (one pass over the data; turn off in tight loops
             whose inputs are known to be good).
-        cpu_kernel: on the CPU, when numba is installed and no gradient is tracked, blend (rgb,
-            features, depth, alpha) and :func:`~fourlegs_engine.render.splat` through the fused kernels
-            of :mod:`.cpu_kernels`; ``False`` forces the batched torch path (the reference the
-            kernels are tested against; it also serves gradients, "depth_median" and "weights").
+        cpu_kernel: on the CPU, when numba is installed, render (rgb, features, depth, alpha) and
+            :func:`~fourlegs_engine.render.splat` through the fused kernels chosen by ``kernel``;
+            ``False`` forces the batched torch path (the reference the kernels are tested against; it
+            also serves "depth_median" and "weights").
+        kernel: which fused CPU kernels ``cpu_kernel`` uses. ``"v2"`` (default): the fused projection,
+            per-tile lists built from the exact footprint ellipses and the per-row footprint kernels of
+            :mod:`.blend_kernels`, forward and backward (gradients included, except for float16/bfloat16
+            features that need a gradient, which the torch path widens chunk by chunk). ``"v1"``: the
+            previous generation — torch projection and binning, the per-tile kernels of
+            :mod:`.cpu_kernels` for passes without gradients, the torch path for gradients (kept for
+            side-by-side benchmarks).
     """
 
     tile_size: int | str = "auto"
@@ -62,6 +71,7 @@ class RasterOptions:
     chunk: int = 32
     validate: bool = True
     cpu_kernel: bool = True
+    kernel: str = "v2"
 
     def check(self) -> "RasterOptions":
         if self.tile_size != "auto" and not (isinstance(self.tile_size, int) and not isinstance(self.tile_size, bool)
@@ -79,6 +89,8 @@ class RasterOptions:
             raise InputError(f"must be in (0, 1), got {self.transmittance_min}", field="options.transmittance_min")
         if not self.fov_clamp > 0:
             raise InputError(f"must be > 0, got {self.fov_clamp}", field="options.fov_clamp")
+        if self.kernel not in KERNELS:
+            raise InputError(f"must be one of {KERNELS}, got {self.kernel!r}", field="options.kernel")
         if not (isinstance(self.chunk, int) and self.chunk >= 1):
             raise InputError(f"must be a positive integer, got {self.chunk!r}", field="options.chunk")
         if not self.batch_elements >= 1024:

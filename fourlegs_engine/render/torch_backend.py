@@ -4,21 +4,24 @@ from __future__ import annotations
 import torch
 
 from ..scene.camera import Camera
-from . import cpu_kernels
+from . import cpu_kernels, kernel_backend
 from .binning import bin_gaussians
+from .compose import output_maps, stack_values
 from .options import BlendWeights, RasterOptions
 from .projection import project_gaussians
 from .rasterizer import RasterizeTiles, tiles_to_image
-
-#: alpha below this counts as empty for the expected depth (depth is 0 there)
-DEPTH_ALPHA_EPS = 1e-6
 
 
 def rasterize_torch(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Tensor,
                     opacity_logits: torch.Tensor, camera: Camera, *, colors: torch.Tensor | None,
                     features: torch.Tensor | None, bg_rgb: torch.Tensor | None, bg_feat: torch.Tensor | None,
                     outputs: tuple[str, ...], options: RasterOptions, dtype: torch.dtype) -> dict:
-    """Inputs already checked by :func:`~fourlegs_engine.render.rasterize`; same outputs."""
+    """Inputs already checked by :func:`~fourlegs_engine.render.rasterize`; same outputs. Served by the
+    fused kernels of :mod:`.kernel_backend` where they apply (``RasterOptions(kernel="v2")``)."""
+    if kernel_backend.applies(options, outputs, means.device, features, dtype):
+        return kernel_backend.rasterize_kernels(means, rotations, log_scales, opacity_logits, camera, colors=colors,
+                                                features=features, bg_rgb=bg_rgb, bg_feat=bg_feat, outputs=outputs,
+                                                options=options, dtype=dtype)
     proj = project_gaussians(means, rotations, log_scales, opacity_logits, camera, options, dtype)
     channels = (3 if "rgb" in outputs else 0) + (features.shape[1] if "features" in outputs else 0) + 1
     binning = bin_gaussians(proj, camera.width, camera.height, options.tile_size, channels)
@@ -35,18 +38,10 @@ def composite(geom: torch.Tensor, depths: torch.Tensor, binning, *, colors, feat
         geom: (N,6) screen-space mx, my, conic a, b, c, opacity. depths: (N,) camera z.
     """
     N = geom.shape[0]
-    parts, slices, start = [], {}, 0
-    for name, tensor in (("rgb", colors), ("features", features), ("depth", depths[:, None])):
-        if name in outputs:
-            parts.append(tensor)
-            slices[name] = slice(start, start + tensor.shape[1])
-            start += tensor.shape[1]
-    if len(parts) == 1:
-        # one channel group: blended straight from its own storage (float16 features stay float16 in
-        # memory and are widened per chunk: half the gather traffic)
-        values = parts[0] if parts[0].dtype in (dtype, torch.float16, torch.bfloat16) else parts[0].to(dtype)
-    else:
-        values = torch.cat([p.to(dtype) for p in parts], dim=-1) if parts else geom.new_zeros(N, 0)
+    # one channel group is blended straight from its own storage (float16 features stay float16 in
+    # memory and are widened per chunk: half the gather traffic)
+    values, slices = stack_values(geom, depths, colors=colors, features=features, outputs=outputs, dtype=dtype,
+                                  keep_half=True)
     want_median, want_weights = "depth_median" in outputs, "weights" in outputs
     if not (want_median or want_weights) and cpu_kernels.usable(options, geom, values):
         accum, trans = cpu_kernels.blend_tiles(geom, binning, values, options, dtype)  # (H,W,C), (H,W,1)
@@ -55,33 +50,15 @@ def composite(geom: torch.Tensor, depths: torch.Tensor, binning, *, colors, feat
             geom, values, binning, options, want_median, want_weights)
         accum = tiles_to_image(accum_t, binning)
         trans = tiles_to_image(trans_t, binning)  # (H,W,1)
-    alpha = 1.0 - trans
-    out: dict = {}
-    if "rgb" in outputs:
-        out["rgb"] = _over_background(accum[..., slices["rgb"]], trans, bg_rgb)
-    if "features" in outputs:
-        out["features"] = _over_background(accum[..., slices["features"]], trans, bg_feat)
-    if "depth" in outputs:
-        has = alpha > DEPTH_ALPHA_EPS
-        safe = torch.where(has, alpha, torch.ones_like(alpha))
-        out["depth"] = torch.where(has, accum[..., slices["depth"]] / safe, torch.zeros_like(alpha))
+    out = output_maps(accum, trans, slices, bg_rgb=bg_rgb, bg_feat=bg_feat, outputs=outputs)
     if "depth_median" in outputs:
         ids = tiles_to_image(median_t, binning)
-        picked = depths.to(dtype)[ids.clamp_min(0)] if N else torch.zeros_like(alpha)
+        picked = depths.to(dtype)[ids.clamp_min(0)] if N else torch.zeros_like(trans)
         out["depth_median"] = torch.where(ids >= 0, picked, torch.zeros_like(picked))
-    if "alpha" in outputs:
-        out["alpha"] = alpha
     if "weights" in outputs:
         out["weights"] = BlendWeights(pixel=pix, gaussian=gid, weight=wt, width=binning.width,
                                       height=binning.height)
     return out
-
-
-def _over_background(accum: torch.Tensor, trans: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
-    """accum + T·background; a black background costs no pass over the image."""
-    if not background.requires_grad and not bool(background.any()):
-        return accum
-    return accum + trans * background
 
 
 def splat_torch(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.Tensor,
@@ -89,6 +66,9 @@ def splat_torch(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.
                 options: RasterOptions, dtype: torch.dtype, out: torch.Tensor | None = None) -> torch.Tensor:
     """(H,W,S) per-pixel values -> (N,S) Σ_p w_i(p)·values(p); see :func:`~fourlegs_engine.render.splat`."""
     from .rasterizer import rasterize_forward
+    if kernel_backend.applies(options, ("features",), means.device, None, dtype):
+        return kernel_backend.splat_kernels(means, rotations, log_scales, opacity_logits, camera, pixel_values, options,
+                                            dtype, out)
     with torch.no_grad():
         proj = project_gaussians(means, rotations, log_scales, opacity_logits, camera, options, dtype)
         binning = bin_gaussians(proj, camera.width, camera.height, options.tile_size, pixel_values.shape[-1])

@@ -1,0 +1,173 @@
+"""Fused CPU kernels (numba) over :class:`~.tile_lists.TileLists` that walk the forward's decisions again:
+the backward pass and the work counter.
+
+The backward recomputes α and T in the same order as the forward (:mod:`.blend_kernels`: the same code
+decides what is blended) and needs no back-to-front walk; see that module for the suffix-sum form.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .blend_kernels import _gauss_at, _pair_fragments, _pair_setup, _row_span, _shrink_row, _tile_reset, numba
+
+#: work counters of :func:`count_work` (see its docstring)
+WORK_COUNTERS = ("in_boxes", "in_footprints", "evaluated", "blended")
+
+
+def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile_h, width, height, values,
+                 grad_accum, grad_transmittance, transmittance_final, accum, alpha_floor, alpha_max,
+                 transmittance_min, need_values, need_geometry, grad_values, grad_geometry):  # pragma: no cover
+    """Add ∂L/∂values (N, C) to ``grad_values`` and ∂L/∂(mx, my, a, b, c, o) (N, 6) to ``grad_geometry``.
+
+    grad_accum (H·W, C) = ∂L/∂accum; grad_transmittance (H·W,) = ∂L/∂T_final; transmittance_final
+    (H·W,) and accum (H·W, C): the forward's outputs (used only for the geometry). Per list entry, the
+    fragment pass of the forward (same α, same decisions) and then its gradient sums over the fragments.
+    """
+    channels = grad_accum.shape[1]
+    n_pix = tile_w * tile_h
+    transmittance = np.empty(n_pix, dtype=np.float64)
+    row_live = np.empty((tile_h, 2), dtype=np.int64)
+    prefix = np.empty(n_pix, dtype=np.float64)
+    total = np.empty(n_pix, dtype=np.float64)
+    grad_local = np.empty((n_pix, channels), dtype=grad_accum.dtype)
+    sums = np.empty(channels, dtype=grad_values.dtype)
+    weight_cast = np.empty(1, dtype=grad_values.dtype)
+    vals64 = np.empty(channels, dtype=np.float64)
+    seg_p0 = np.empty(tile_h, dtype=np.uint64)
+    seg_n = np.empty(tile_h, dtype=np.int64)
+    seg_row = np.empty(tile_h, dtype=np.int64)
+    seg_exp = np.empty(2 * tile_h, dtype=np.float64)
+    frag_pixel = np.empty(n_pix, dtype=np.uint64)
+    frag_weight = np.empty(n_pix, dtype=np.float64)
+    frag_alpha = np.empty(n_pix, dtype=np.float64)
+    for tile in tiles:
+        x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
+        for r in range(th):
+            row = (y0 + r) * width + x0
+            for x in range(tw):
+                p = r * tw + x
+                src = grad_accum[row + x]
+                dst = grad_local[p]
+                for s in range(channels):
+                    dst[s] = src[s]
+                if need_geometry:
+                    dot = 0.0
+                    for s in range(channels):
+                        dot += np.float64(src[s]) * np.float64(accum[row + x, s])
+                    total[p] = dot + transmittance_final[row + x] * grad_transmittance[row + x]
+                    prefix[p] = 0.0
+        live = tw * th
+        for m in range(offsets[tile], offsets[tile + 1]):
+            k = ranks[m]
+            n_frag, stopped = _pair_fragments(packed, boxes, k, x0, y0, tw, th, transmittance, row_live, seg_p0, seg_n,
+                                              seg_row, seg_exp, alpha_floor, alpha_max, transmittance_min, frag_pixel,
+                                              frag_weight, frag_alpha, 0)
+            live -= stopped
+            if n_frag:
+                g = order[k]
+                if need_values:
+                    sums[:] = 0
+                    for f in range(n_frag):
+                        weight_cast[0] = frag_weight[f]  # the sums run in the gradient's dtype (SIMD)
+                        w = weight_cast[0]
+                        src = grad_local[frag_pixel[f]]
+                        for s in range(channels):
+                            sums[s] += w * src[s]
+                    dst = grad_values[g]
+                    for s in range(channels):
+                        dst[s] += sums[s]
+                if need_geometry:
+                    mx, my, a, b, c, o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], \
+                        packed[k, 5]
+                    for s in range(channels):
+                        vals64[s] = values[g, s]
+                    s_1 = s_x = s_y = s_xx = s_xy = s_yy = 0.0
+                    ox = x0 + 0.5 - mx
+                    oy = y0 + 0.5 - my
+                    for f in range(n_frag):
+                        p = frag_pixel[f]
+                        weight = frag_weight[f]
+                        alpha = frag_alpha[f]
+                        src = grad_local[p]
+                        dot = 0.0
+                        for s in range(channels):
+                            dot += np.float64(src[s]) * vals64[s]
+                        prefix[p] += weight * dot
+                        if alpha < alpha_max:  # clamped α passes no gradient to the exponent
+                            d_alpha = weight / alpha * dot - (total[p] - prefix[p]) / (1.0 - alpha)
+                            d_power = d_alpha * alpha
+                            dx = ox + np.float64(p % np.uint64(tw))
+                            dy = oy + np.float64(p // np.uint64(tw))
+                            s_1 += d_power
+                            s_x += d_power * dx
+                            s_y += d_power * dy
+                            s_xx += d_power * dx * dx
+                            s_xy += d_power * dx * dy
+                            s_yy += d_power * dy * dy
+                    # power = ln o − ½(a dx² + 2b dx dy + c dy²), dx = x + 0.5 − mx
+                    grad_geometry[g, 0] += a * s_x + b * s_y
+                    grad_geometry[g, 1] += b * s_x + c * s_y
+                    grad_geometry[g, 2] -= 0.5 * s_xx
+                    grad_geometry[g, 3] -= s_xy
+                    grad_geometry[g, 4] -= 0.5 * s_yy
+                    grad_geometry[g, 5] += s_1 / o
+            if live == 0:
+                break
+
+
+def _count_py(offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, height, alpha_floor, alpha_max,
+              transmittance_min, counters):  # pragma: no cover - compiled by numba
+    """Add the work counters of :func:`count_work` to ``counters`` (4,) int64."""
+    transmittance = np.empty(tile_w * tile_h, dtype=np.float64)
+    row_live = np.empty((tile_h, 2), dtype=np.int64)
+    for k in range(packed.shape[0]):
+        counters[0] += (boxes[k, 1] - boxes[k, 0] + 1) * (boxes[k, 3] - boxes[k, 2] + 1)
+        for y in range(boxes[k, 2], boxes[k, 3] + 1):
+            for x in range(boxes[k, 0], boxes[k, 1] + 1):
+                if min(_gauss_at(packed, k, x, y), alpha_max) > alpha_floor:
+                    counters[1] += 1
+    for tile in range(offsets.shape[0] - 1):
+        x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
+        live = tw * th
+        for m in range(offsets[tile], offsets[tile + 1]):
+            k = ranks[m]
+            slope, h0, h1, recurrence, step = _pair_setup(packed, k)
+            lo = max(boxes[k, 0], x0)
+            hi = min(boxes[k, 1], x0 + tw - 1)
+            for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
+                r = y - y0
+                lo_r = max(lo, x0 + row_live[r, 0])
+                hi_r = min(hi, x0 + row_live[r, 1])
+                if lo_r > hi_r:
+                    continue
+                dy = y + 0.5 - packed[k, 1]
+                xs, xe = _row_span(packed[k, 0] - 0.5 - slope * dy, h0, h1 * dy * dy, lo_r, hi_r)
+                row_stopped = 0
+                for x in range(xs, xe + 1):
+                    p = r * tw + x - x0
+                    counters[2] += 1
+                    t_before = transmittance[p]
+                    if t_before < 0.0:
+                        continue
+                    alpha = min(_gauss_at(packed, k, x, y), alpha_max)
+                    if alpha <= alpha_floor:
+                        continue
+                    after = t_before * (1.0 - alpha)
+                    if after < transmittance_min:
+                        transmittance[p] = -t_before
+                        row_stopped += 1
+                        continue
+                    counters[3] += 1
+                    transmittance[p] = after
+                if row_stopped:
+                    _shrink_row(transmittance, row_live, r, tw)
+                    live -= row_stopped
+            if live == 0:
+                break
+
+
+if numba is not None:
+    _backward = numba.njit(nogil=True, cache=True)(_backward_py)
+    _count = numba.njit(nogil=True, cache=True)(_count_py)
+else:  # pragma: no cover
+    _backward = _count = None

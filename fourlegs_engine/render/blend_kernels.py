@@ -183,33 +183,10 @@ def _blend_narrow_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_
         live = tw * th
         for m in range(offsets[tile], offsets[tile + 1]):
             k = ranks[m]
-            slope, h0, h1, recurrence, step = _pair_setup(packed, k)
-            mx, my, a, b, c, log_o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], packed[k, 6]
-            lo = max(boxes[k, 0], x0)
-            hi = min(boxes[k, 1], x0 + tw - 1)
-            # the row segments first (their exponents are independent: the exps overlap), then the pixels
-            n_seg = 0
-            for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
-                r = y - y0
-                lo_r = max(lo, x0 + row_live[r, 0])
-                hi_r = min(hi, x0 + row_live[r, 1])
-                if lo_r > hi_r:
-                    continue
-                dy = y + 0.5 - my
-                xs, xe = _row_span(mx - 0.5 - slope * dy, h0, h1 * dy * dy, lo_r, hi_r)
-                if xs > xe:
-                    continue
-                dx = xs + 0.5 - mx
-                seg_p0[n_seg] = np.uint64(r * tw + xs - x0)
-                seg_n[n_seg] = xe - xs + 1
-                seg_row[n_seg] = r
-                seg_exp[2 * n_seg] = log_o - 0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)
-                seg_exp[2 * n_seg + 1] = -(a * dx + b * dy) - 0.5 * a
-                n_seg += 1
+            n_seg, recurrence, step = _row_segments(packed, boxes, k, x0, y0, tw, th, row_live, seg_p0, seg_n,
+                                                    seg_row, seg_exp)
             if n_seg == 0:
                 continue
-            for i in range(2 * n_seg):
-                seg_exp[i] = math.exp(seg_exp[i])
             vals = values[order[k]]
             v0 = np.float64(vals[0]) if channels > 0 else 0.0
             v1 = np.float64(vals[1]) if channels > 1 else 0.0
@@ -269,11 +246,12 @@ def _row_fragments_py(transmittance, p0, n, gauss, ratio, step, alpha_floor, alp
     return n_frag, stopped
 
 
-def _pair_fragments_py(packed, boxes, k, x0, y0, tw, th, transmittance, row_live, seg_p0, seg_n, seg_row, seg_exp,
-                       alpha_floor, alpha_max, transmittance_min, frag_pixel, frag_weight, frag_alpha,
-                       n_frag):  # pragma: no cover - compiled by numba
-    """All fragments of Gaussian rank k in the tile at (x0, y0) of size tw × th, front to back after
-    those already blended. Returns (fragments now, pixels stopped)."""
+def _row_segments_py(packed, boxes, k, x0, y0, tw, th, row_live, seg_p0, seg_n, seg_row,
+                     seg_exp):  # pragma: no cover - compiled by numba
+    """The row segments of Gaussian rank k's footprint in the tile at (x0, y0) of size tw × th, within each
+    row's live columns: first pixel seg_p0, length seg_n, tile row seg_row, and at seg_exp[2i], seg_exp[2i+1]
+    the α at the first pixel and the recurrence's first ratio (the exps of all rows together: they
+    overlap). Returns (segments, whether the α recurrence applies, its step e^(−a))."""
     slope, h0, h1, recurrence, step = _pair_setup(packed, k)
     mx, my, a, b, c, log_o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], packed[k, 6]
     lo = max(boxes[k, 0], x0)
@@ -299,6 +277,16 @@ def _pair_fragments_py(packed, boxes, k, x0, y0, tw, th, transmittance, row_live
         n_seg += 1
     for i in range(2 * n_seg):
         seg_exp[i] = math.exp(seg_exp[i])
+    return n_seg, recurrence, step
+
+
+def _pair_fragments_py(packed, boxes, k, x0, y0, tw, th, transmittance, row_live, seg_p0, seg_n, seg_row, seg_exp,
+                       alpha_floor, alpha_max, transmittance_min, frag_pixel, frag_weight, frag_alpha,
+                       n_frag):  # pragma: no cover - compiled by numba
+    """All fragments of Gaussian rank k in the tile at (x0, y0) of size tw × th, front to back after
+    those already blended. Returns (fragments now, pixels stopped)."""
+    n_seg, recurrence, step = _row_segments(packed, boxes, k, x0, y0, tw, th, row_live, seg_p0, seg_n, seg_row,
+                                            seg_exp)
     stopped = 0
     for i in range(n_seg):
         if recurrence:
@@ -441,9 +429,10 @@ if numba is not None:
     _row_blend3 = _jit_inline(_row_blend3_py)
     _blend_narrow = _jit(_blend_narrow_py)
     _row_fragments = _jit_inline(_row_fragments_py)
+    _row_segments = _jit_inline(_row_segments_py)
     _pair_fragments = _jit_inline(_pair_fragments_py)
     _blend_wide = _jit(_blend_wide_py)
     _splat = _jit(_splat_py)
 else:  # pragma: no cover
     _pair_setup = _row_span = _tile_reset = _shrink_row = _row_start = _gauss_at = _row_blend3 = None
-    _blend_narrow = _blend_wide = _splat = _row_fragments = _pair_fragments = None
+    _blend_narrow = _blend_wide = _splat = _row_fragments = _row_segments = _pair_fragments = None

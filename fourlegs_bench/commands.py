@@ -240,6 +240,18 @@ def _add_blender(bench_subparsers: Any) -> None:
     from . import blender
     blender.build_parser(b)
     b.set_defaults(func=_bench_blender)
+    n = bench_subparsers.add_parser(
+        "native-render", help="the same highlight frames by the 4-LEGS Splats engine (bpy 5.0) and by Blender 5.3's "
+                              "EEVEE and Cycles: PSNR against the 4-LEGS render and seconds per frame")
+    from . import native_render
+    native_render.build_parser(n)
+    n.set_defaults(func=native_render.run)
+    c = bench_subparsers.add_parser(
+        "prepare-cost", help="CPU seconds of one language field: the main job's chain against the panel's "
+                             "Prepare Language Field (bpy), and whether the two fields are identical")
+    from . import prepare_cost
+    prepare_cost.build_parser(c)
+    c.set_defaults(func=prepare_cost.run)
 
 
 def _generate(args: argparse.Namespace) -> int:

@@ -3,7 +3,7 @@ the panel's Prepare Language Field (bpy, its background job), each in its own pr
 the synthetic scene. Prints JSON: both CPU and wall seconds, their ratio, and whether the two fields are
 bit-identical. CPU seconds include every thread of the child process.
 
-    python scripts/measure_prepare_cost.py tiny|demo [--out DIR]
+    fourlegs bench prepare-cost tiny|demo [--out DIR]
 """
 from __future__ import annotations
 
@@ -39,13 +39,16 @@ def children_cpu() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def main() -> int:
-    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
-
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def build_parser(parser: argparse.ArgumentParser) -> None:
+    """The options of ``fourlegs bench prepare-cost``."""
     parser.add_argument("size", nargs="?", default="tiny", help="synthetic scene size (tiny, demo, ...)")
     parser.add_argument("--out", type=Path, default=None, help="work folder (default: a temporary one)")
-    args = parser.parse_args()
+
+
+def run(args: argparse.Namespace) -> int:
+    """Build the field both ways in fresh processes and print the JSON line."""
+    from fourlegs_engine.demo.synthetic import ensure_demo_bundle
+
     root = args.out or Path(tempfile.mkdtemp(prefix="prepare-cost-"))
     shutil.rmtree(root, ignore_errors=True)
     source = ensure_demo_bundle(args.size)
@@ -65,6 +68,3 @@ def main() -> int:
     shutil.rmtree(root, ignore_errors=True)
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

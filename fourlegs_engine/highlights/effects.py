@@ -34,7 +34,7 @@ import numpy as np
 from ..errors import InputError
 from . import timing
 from .camera_paths import Pose, aim, dolly_path, hold_path, interpolate_poses, orbit_path, slerp_rotations
-from .framed_moves import framed_orbit, framed_zoom, upright
+from .framed_moves import follow_subject, framed_orbit, framed_zoom, upright
 from .shot_context import ShotContext, ShotPath
 
 TIME_ANCHORS = ("start", "end", "segment_start", "segment_end", "peak")
@@ -102,6 +102,8 @@ _CAMERA_PARAMS = {
     "camera": Param("str", "previous", "'previous' (continue), 'best_view', or a scene camera name"),
     "transition_s": Param("float", 0.75, "seconds to swing from the previous camera to this shot's",
                           None, 0.0, 60.0),
+    "follow": Param("bool", True, "turn the camera (level) to keep the framed subject mid-frame as it moves "
+                                  "(only where the subject is framed)"),
 }
 _TARGET_HEIGHT = Param("float", 0.0, "the framed subject's height as a fraction of the frame height at the end "
                        "of the move (0 = off: the zoom magnifies by 'factor', the orbit keeps the zoom's distance)",
@@ -203,6 +205,8 @@ def _camera_move(p: dict[str, Any], ctx: ShotContext, n: int) -> tuple[list[Pose
         c = ctx.framing.centre
         level = [upright(q.position, c, ctx.up) for q in poses]
         offset = level[0].T @ ctx.previous.rotation
+        if np.allclose(offset, np.eye(3), atol=1e-6):   # a level previous camera stays exactly level
+            offset = np.eye(3)
         poses = [Pose(q.position, slerp_rotations(R @ offset, R, [wi])[0]) for q, R, wi in zip(poses, level, w)]
         poses[0] = ctx.previous
         eyes = np.array([q.position for q in poses[:m]])
@@ -226,6 +230,8 @@ class Play(Effect):
     def build(self, p: dict[str, Any], ctx: ShotContext) -> ShotPath:
         times, facts = shot_times(p, ctx)
         poses, focals = _camera_move(p, ctx, len(times))
+        if p["follow"]:
+            poses = follow_subject(poses, times, ctx, p["transition_s"])
         return ShotPath(poses, focals, times, {**p, **facts})
 
 
@@ -339,6 +345,8 @@ class DesaturateBackground(Effect):
     def build(self, p: dict[str, Any], ctx: ShotContext) -> ShotPath:
         times, facts = shot_times(p, ctx)
         poses, focals = _camera_move(p, ctx, len(times))
+        if p["follow"]:
+            poses = follow_subject(poses, times, ctx, p["transition_s"])
         weights = desaturation_weights(times, ctx.segment, strength=p["strength"], fade_in=p["fade_in_frames"],
                                        fade_out=p["fade_out_frames"], easing=p["fade_easing"])
         if not np.any(weights > 0):

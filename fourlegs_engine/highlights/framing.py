@@ -180,6 +180,25 @@ class Framing:
     near: float = NEAR_CLIP_M
     max_occlusion: float = MAX_OCCLUSION
     rig: Optional[RigVolume] = None
+    track: Optional[np.ndarray] = None
+
+    def with_track(self, means_over_time: np.ndarray, *, smooth: float = 3.0) -> "Framing":
+        """Record where the subject is at every timestep: the per-axis median of its Gaussians' centres
+        (``means_over_time`` (T,M,3), the subject's M Gaussians), smoothed over ``smooth`` timesteps
+        (a Gaussian's sigma) so a camera following it does not shake. Returns self."""
+        from scipy.ndimage import gaussian_filter1d
+
+        pts = np.asarray(means_over_time, dtype=np.float64)
+        centres = np.nanmedian(np.where(np.isfinite(pts), pts, np.nan), axis=1)
+        if not np.isfinite(centres).all():
+            return self
+        self.track = gaussian_filter1d(centres, smooth, axis=0, mode="nearest") if len(centres) > 1 else centres
+        return self
+
+    def track_at(self, timesteps: np.ndarray) -> np.ndarray:
+        """(n,3) the subject's (smoothed) centre at fractional ``timesteps`` (n,), linearly interpolated."""
+        t = np.clip(np.asarray(timesteps, dtype=np.float64).reshape(-1), 0.0, len(self.track) - 1.0)
+        return np.stack([np.interp(t, np.arange(len(self.track)), self.track[:, k]) for k in range(3)], axis=1)
 
     def within_rig(self, rig: Optional[RigVolume]) -> "Framing":
         """Keep framed cameras inside the volume the capture rig observed (:mod:`.rig_volume`): outside it

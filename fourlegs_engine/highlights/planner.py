@@ -74,7 +74,7 @@ def _find_camera(scene, name: str, t: int):
     raise InputError(f"no camera named {name!r} in scene {scene.name!r} (cameras: {names})", field="camera")
 
 
-def _framing_at(scene, localizer, query: str, t: int, up: np.ndarray, messages: list[str], *,
+def subject_framing(scene, localizer, query: str, t: int, up: np.ndarray, messages: list[str], *,
                 instance: int = 0) -> Optional[Framing]:
     """The framed subject (instance number ``instance`` of the relevant Gaussians, 0: the largest
     relevancy mass) and obstacles at timestep ``t`` from the localizer's per-Gaussian relevancy, its
@@ -94,6 +94,7 @@ def _framing_at(scene, localizer, query: str, t: int, up: np.ndarray, messages: 
                             foreground=getattr(g, "foreground", None), instance=instance)
     if framing is not None:
         framing.within_rig(rig_volume(scene, up, t))
+        framing.with_track(np.asarray(g.means[:, np.flatnonzero(framing.region.members)]))
     if framing is None and instance == 0:
         messages.append(f"no Gaussian is relevant to {query!r} at timestep {t}: the shots follow the best "
                         "view without framing the action region")
@@ -140,7 +141,7 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
     up = scene_up(scene.cameras.cameras(0, "all") if scene.cameras.num_timesteps else [])
     framing = None
     if found.centre is not None and specs and any(NEED_ACTION_CENTRE in needs for _, needs in specs):
-        framing = _framing_at(scene, localizer, query, found.view_t, up, messages)
+        framing = subject_framing(scene, localizer, query, found.view_t, up, messages)
         if framing is not None:
             found.centre = framing.centre
     anchor, anchor_focal = _anchor_camera(scene, found, framing, resolution, preset, up, messages)
@@ -155,7 +156,7 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
                           segment=found.segment, peak=found.peak, action_centre=found.centre, anchor=anchor,
                           anchor_focal=anchor_focal, previous=None, previous_focal=None, camera_pose=camera_pose,
                           up=up, framing=framing, resolution=resolution)
-    subjects = [framing] + [_framing_at(scene, localizer, query, found.view_t, up, messages, instance=k)
+    subjects = [framing] + [subject_framing(scene, localizer, query, found.view_t, up, messages, instance=k)
                             for k in range(1, min(preset.subjects, len(framing.region.instances)))] \
         if framing is not None else [None]
     segments = highlighted_segments(found, preset)

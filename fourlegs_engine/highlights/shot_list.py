@@ -3,7 +3,8 @@ replays repeated per segment.
 
 - Subjects: the framed shots (those that need the action centre: zoom-in, bullet time) form a block;
   with ``subjects = N`` in the preset the block is repeated for each of the first N instances the query
-  matches (best first, :mod:`.instances`), each framing its own instance.
+  matches (best first, :mod:`.instances`), each framing its own instance (the shot's ``subject``
+  parameter: the instance's rank).
 - Segments: with ``segments = "all"`` every replay shot (the masked effects, desaturate or blur the
   background) is repeated once per positive segment, in time order; with ``"picked"`` (the default) it
   replays the picked segment only.
@@ -63,7 +64,7 @@ def expand_shots(specs: Sequence[ShotSpec], subjects: Sequence[Optional[Framing]
                 for s in block:
                     name = s.name if k == 0 else f"{s.name} {k + 1}"
                     over = {} if framing is None or k == 0 else {"framing": framing, "action_centre": framing.centre}
-                    out.append(PlannedShot(ShotSpec(name, s.effect, s.params), over))
+                    out.append(PlannedShot(ShotSpec(name, s.effect, {**s.params, "subject": k}), over))
             continue
         if framed and framed[0] < i <= framed[-1]:
             continue

@@ -43,6 +43,8 @@ def upright(eye: np.ndarray, centre: np.ndarray, up: np.ndarray) -> np.ndarray:
 
 
 MAX_ELEVATION = math.radians(75.0)
+#: Seconds a shot that follows the subject takes to turn from the previous shot's view onto it.
+FOLLOW_TURN_S = 0.5
 
 
 def _is_level(rotation: np.ndarray, up: np.ndarray, tol: float = 1e-6) -> bool:
@@ -113,7 +115,7 @@ def framed_zoom(p: dict[str, Any], ctx: ShotContext, times: np.ndarray, facts: d
     rots = slerp_rotations(start.rotation, end_rot, e)
     if _is_level(start.rotation, up):   # a level start stays level all the way (slerp alone would roll a little)
         rots = [look_at_rotation(q, q + R[:, 2], up, previous=R) for q, R in zip(eyes, rots)]
-    poses = [Pose(q, R) for q, R in zip(eyes, rots)]
+    poses = follow_subject([Pose(q, R) for q, R in zip(eyes, rots)], times, ctx, FOLLOW_TURN_S)
     d1, el1, daz = chosen
     if best_bad > 0:
         ctx.messages.append("zoom_in: no approach keeps a clear view of the action on every frame; the least "
@@ -230,7 +232,8 @@ def follow_subject(poses: list[Pose], times: np.ndarray, ctx: ShotContext, trans
     """The same camera positions turned (level about the scene's up) onto the framed subject's centre at
     each frame's scene time (:attr:`Framing.track`), so a replay follows the subject instead of the spot
     where it was at the peak. A shot that continues the previous one starts from its last pose and turns
-    onto the subject over ``transition_s``. Unchanged without a framed subject's track."""
+    onto the subject over ``transition_s`` (at most :data:`FOLLOW_TURN_S`). Unchanged without a framed
+    subject's track."""
     fr = ctx.framing
     if fr is None or fr.track is None or not poses:
         return poses
@@ -239,7 +242,7 @@ def follow_subject(poses: list[Pose], times: np.ndarray, ctx: ShotContext, trans
     if ctx.previous is None:
         w = np.ones(n)
     else:
-        m = min(n, max(2, int(round(transition_s * ctx.output_fps))))
+        m = min(n, max(2, int(round(min(transition_s, FOLLOW_TURN_S) * ctx.output_fps))))
         ramp = np.clip(np.arange(n) / max(m - 1, 1), 0.0, 1.0)
         w = ramp * ramp * (3.0 - 2.0 * ramp)
     out = []

@@ -203,6 +203,9 @@ def _camera_move(p: dict[str, Any], ctx: ShotContext, n: int) -> tuple[list[Pose
         # sides would look away half-way), level about the scene's up; the previous pose's roll is
         # carried along and levelled over the swing
         c = ctx.framing.centre
+        if ctx.framing.rig is not None and ctx.framing.rig.contains(c[None])[0]:   # the swing stays in the rig
+            inside = ctx.framing.rig.pull_inside(np.array([q.position for q in poses]), c)
+            poses = [Pose(x, q.rotation) for x, q in zip(inside, poses)]
         level = [upright(q.position, c, ctx.up) for q in poses]
         offset = level[0].T @ ctx.previous.rotation
         if np.allclose(offset, np.eye(3), atol=1e-6):   # a level previous camera stays exactly level

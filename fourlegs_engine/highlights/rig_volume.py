@@ -81,3 +81,19 @@ class RigVolume:
     def height_above_floor(self, points: np.ndarray) -> np.ndarray:
         """(K,) height of each point above the floor (metres)."""
         return np.atleast_2d(np.asarray(points, dtype=np.float64)) @ self.up - self.floor
+
+    def pull_inside(self, points: np.ndarray, toward: np.ndarray, *, steps: int = 30) -> np.ndarray:
+        """(K,3) the points, each one outside moved along the line to ``toward`` (3,), a point inside, until it
+        is inside (bisection); points inside are returned unchanged."""
+        pts = np.atleast_2d(np.asarray(points, dtype=np.float64)).copy()
+        toward = np.asarray(toward, dtype=np.float64)
+        for k in np.flatnonzero(self.outside(pts) > 0):
+            lo, hi = 0.0, 1.0   # fraction of the way to ``toward``: hi is inside
+            for _ in range(steps):
+                mid = 0.5 * (lo + hi)
+                if self.outside(pts[k] + mid * (toward - pts[k]))[0] > 0:
+                    lo = mid
+                else:
+                    hi = mid
+            pts[k] = pts[k] + hi * (toward - pts[k])
+        return pts

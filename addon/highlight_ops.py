@@ -47,7 +47,7 @@ def generate_highlight(bl_scene, plan: dict[str, Any]) -> bpy.types.Object:
             bl_scene.render.engine = "BLENDER_EEVEE"
         for obj in importer.splat_objects(bl_scene):  # the splats' own radiance, not the heat map
             importer.show_relevancy(obj, False)
-        layer = native_render.setup(bl_scene, rel and bool(plan.get("desaturate")))
+        layer = native_render.setup(bl_scene, rel and bool(plan.get("desaturate") or plan.get("blur")))
         for view_layer in bl_scene.view_layers:
             view_layer.use_pass_z = depth and view_layer != layer
         compositor.build_compositor(bl_scene, plan, mask_layer=layer.name if layer is not None else None)
@@ -68,7 +68,7 @@ def native_renderer(bl_scene) -> bool:
 
 def desaturated_timesteps(bl_scene, plan: dict[str, Any]) -> list[int]:
     """The scene timesteps (rounded) shown on frames whose relevancy the highlight uses."""
-    frames = {f for f, w in compositor.frame_weights(plan).items() if w > 0.0}
+    frames = {f for f, w in compositor.mask_weights(plan).items() if w > 0.0}
     for a, b in (plan.get("passes") or {}).get("relevancy") or []:
         frames.update(range(int(a), int(b) + 1))
     curve = keyframes.find_fcurve(bl_scene, keyframes.TIMESTEP_PATH)

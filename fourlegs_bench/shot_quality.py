@@ -64,20 +64,26 @@ def frame_quality(gaussians_frame, subject: np.ndarray, camera) -> dict[str, Any
             "in_front": float(inside.mean()) if len(inside) else 0.0}
 
 
-def plan_quality(scene, plan, subjects: Sequence[np.ndarray], *, width: int = 320,
+def plan_quality(scene, plan, subjects, *, width: int = 320,
                  frames: Optional[Sequence[int]] = None) -> list[dict[str, Any]]:
     """One record per frame of ``plan`` (or of ``frames``): shot, effect, frame, timestep and the four numbers.
 
-    ``subjects[k]`` (N,) bool is subject k's Gaussians; a shot's subject is its ``subject`` parameter
-    (framed shots of the k-th instance), else subject 0.
+    ``subjects``: a list whose item k (N,) bool is subject k's Gaussians, or a function
+    ``(rank k, timestep t) -> (N,) bool`` (the subject of rank k found at timestep t). A shot's subject is
+    its ``subject`` parameter (0 when absent), found at its ``subject_t`` (the plan's peak when absent).
     """
+    peak = int(plan.localization.get("t") or plan.localization.get("peak") or 0)
+    if not callable(subjects):
+        fixed = list(subjects)
+        subjects_of = lambda k, t: fixed[min(k, len(fixed) - 1)]  # noqa: E731
+    else:
+        subjects_of = subjects
     from fourlegs_engine.highlights.preview import frame_at, key_camera
 
     wanted = None if frames is None else set(int(f) for f in frames)
     out = []
     for shot in plan.shots:
-        k = int(shot.params.get("subject", 0))
-        subject = subjects[min(k, len(subjects) - 1)]
+        subject = subjects_of(int(shot.params.get("subject", 0)), int(shot.params.get("subject_t", peak)))
         for key, tkey in zip(shot.camera_keys, shot.time_keys):
             if wanted is not None and key.frame not in wanted:
                 continue

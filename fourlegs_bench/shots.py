@@ -184,12 +184,15 @@ def measure_shots(scene_path: Path, text: str, out: Path, *, preset: str = "broa
     plan_cpu = time.process_time() - start
     plan.save(out / "plan.json", overwrite=True)
     up = scene_up(scene.cameras.cameras(0, "all"))
-    t = plan.localization.get("t") or 0
-    framed = max(int(plan.localization.get("framed_instances") or 1), 1)
-    subjects = []
-    for k in range(framed):
-        f = subject_framing(scene, localizer, text, t, up, [], instance=k)
-        subjects.append(f.region.members if f is not None else np.asarray(localizer.gaussian_relevancy(text, t)) > 0.5)
+    found: dict[tuple[int, int], np.ndarray] = {}
+
+    def subjects(k: int, t: int) -> np.ndarray:
+        if (k, t) not in found:
+            f = subject_framing(scene, localizer, text, t, up, [], instance=k)
+            rel = localizer.gaussian_relevancy(text, t)
+            found[k, t] = f.region.members if f is not None else np.asarray(rel.detach().cpu() if hasattr(rel, "detach") else rel) > 0.5
+        return found[k, t]
+
     records = plan_quality(scene, plan, subjects, width=width)
     rows = summarize(records)
     write_contact_sheet(out / "contact.png", scene, plan, localizer=localizer, width=width, overwrite=True)

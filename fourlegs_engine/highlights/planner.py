@@ -160,7 +160,10 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
                             for k in range(1, min(preset.subjects, len(framing.region.instances)))] \
         if framing is not None else [None]
     segments = highlighted_segments(found, preset)
-    shots = _build_shots(expand_shots([spec for spec, _ in specs], subjects, segments), context, preset, messages)
+    planned = expand_shots([spec for spec, _ in specs], subjects, segments, subject_t=found.view_t,
+                           segment_framing=None if framing is None else
+                           (lambda t: subject_framing(scene, localizer, query, t, up, [])))
+    shots = _build_shots(planned, context, preset, messages)
     passes, desaturate, blur = _merge_passes(shots)
     plan = HighlightPlan(
         scene={"name": scene.name, "path": None if scene.root is None else str(scene.root),

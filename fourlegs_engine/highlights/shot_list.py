@@ -12,7 +12,7 @@ replays repeated per segment.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 from .effects import MASKED_EFFECTS, NEED_ACTION_CENTRE, get_effect
 from .framing import Framing
@@ -46,13 +46,21 @@ def highlighted_segments(found, preset: Preset) -> list[tuple[int, int]]:
 
 
 def expand_shots(specs: Sequence[ShotSpec], subjects: Sequence[Optional[Framing]],
-                 segments: Sequence[tuple[int, int]]) -> list[PlannedShot]:
+                 segments: Sequence[tuple[int, int]], *, subject_t: int = 0,
+                 segment_framing: Optional[Callable[[int], Optional[Framing]]] = None) -> list[PlannedShot]:
     """The preset's shots with the framed block once per subject and each replay once per segment.
+
+    Framed shots carry ``subject`` (the instance's rank) and ``subject_t`` (the timestep it was found at);
+    a replay of another segment than the picked one follows the subject found at that segment's peak
+    (``segment_framing(peak)``): the Gaussians that show a moving thing at one moment need not be the
+    ones that show it at another.
 
     Args:
         specs: the preset's shots that can be built (needs met), in order.
         subjects: the framing of each subject, best first (``[None]`` without framing).
         segments: the segments to replay, the picked one among them.
+        subject_t: the timestep the subjects were found at (the peak).
+        segment_framing: the subject's framing at a timestep (None: replays keep the picked subject).
     """
     framed = [i for i, s in enumerate(specs) if NEED_ACTION_CENTRE in get_effect(s.effect).needs(s.params, first=False)]
     subjects = [f for f in subjects if f is not None] or [None]
@@ -64,15 +72,22 @@ def expand_shots(specs: Sequence[ShotSpec], subjects: Sequence[Optional[Framing]
                 for s in block:
                     name = s.name if k == 0 else f"{s.name} {k + 1}"
                     over = {} if framing is None or k == 0 else {"framing": framing, "action_centre": framing.centre}
-                    out.append(PlannedShot(ShotSpec(name, s.effect, {**s.params, "subject": k}), over))
+                    out.append(PlannedShot(ShotSpec(name, s.effect, {**s.params, "subject": k,
+                                                                     "subject_t": int(subject_t)}), over))
             continue
         if framed and framed[0] < i <= framed[-1]:
             continue
         if spec.effect in MASKED_EFFECTS and len(segments) > 1:
             for seg in segments:
                 name = f"{spec.name} {seg[0]}-{seg[1]}"
-                out.append(PlannedShot(ShotSpec(name, spec.effect, spec.params),
-                                       {"segment": tuple(seg), "peak": _segment_peak(seg)}))
+                peak = _segment_peak(seg)
+                over: dict[str, Any] = {"segment": tuple(seg), "peak": peak}
+                framing = None if segment_framing is None or peak == subject_t else segment_framing(peak)
+                if framing is not None:
+                    over.update(framing=framing, action_centre=framing.centre)
+                out.append(PlannedShot(ShotSpec(name, spec.effect, {**spec.params, "subject": 0,
+                                                                    "subject_t": peak if framing else int(subject_t)}),
+                                       over))
             continue
         out.append(PlannedShot(spec))
     return out

@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
-import torch
 
 BALL_PHRASES = ("the ball", "the ball in the air")
 #: The ball's Gaussians: foreground Gaussians this far from its triangulated centre (its radius plus
@@ -71,10 +70,14 @@ class AnnotatedBallLocalizer:
         near = d < self.reach
         return near & self.foreground if self.foreground is not None else near
 
-    def gaussian_relevancy(self, query: str, t: int) -> torch.Tensor:
+    def gaussian_relevancy(self, query: str, t: int):
+        """(N,) float32 tensor: 1 on the ball's Gaussians at ``t``."""
+        import torch
+
         return torch.as_tensor(self.members(t).astype(np.float32))
 
     def relevancy_map(self, query: str, camera, t: int, fast: bool = False, outputs=("relevancy",)) -> dict:
+        import torch
         from fourlegs_engine.render import render_frame
 
         g = self.scene.gaussians.at(min(max(int(t), 0), self.scene.num_timesteps - 1))

@@ -34,6 +34,7 @@ def generate_highlight(bl_scene, plan: dict[str, Any]) -> bpy.types.Object:
     relevancy mask on Blender 5.3+ (:mod:`.native_render`), else the 4-LEGS Splats engine.
     """
     cam = keyframes.apply_plan(bl_scene, plan)
+    fill_subjects(bl_scene.fourlegs, plan)
     text = bpy.data.texts.get(render_engine.PLAN_TEXT_NAME) or bpy.data.texts.new(render_engine.PLAN_TEXT_NAME)
     text.clear()
     text.write(json.dumps(plan, indent=1))
@@ -59,6 +60,19 @@ def generate_highlight(bl_scene, plan: dict[str, Any]) -> bpy.types.Object:
         view_layer.fourlegs_relevancy = rel
     compositor.build_compositor(bl_scene, plan)
     return cam
+
+
+def fill_subjects(props, plan: dict[str, Any]) -> None:
+    """List the plan's instances (``localization.instances``, best first) in the panel; the first
+    ``framed_instances`` of them have their own shots."""
+    loc = plan.get("localization") or {}
+    framed = int(loc.get("framed_instances") or 0)
+    props.subjects.clear()
+    for i, inst in enumerate(loc.get("instances") or []):
+        item = props.subjects.add()
+        item.gaussians, item.height = int(inst.get("gaussians", 0)), float(inst.get("height", 0.0))
+        item.mass, item.framed = float(inst.get("mass", 0.0)), i < framed
+    props.subject_index = 0 if len(props.subjects) else -1
 
 
 def native_renderer(bl_scene) -> bool:

@@ -11,7 +11,10 @@ is 1 on the subject (where it is actually seen). From those:
 - ``in_frame``: every subject Gaussian's centre projects inside the frame, in front of the camera, and
   the subject's alpha does not reach the frame border;
 - ``occluded``: 1 - (seen subject coverage) / (coverage alone): the share of the subject hidden by
-  other Gaussians (0 = fully visible).
+  other Gaussians (0 = fully visible);
+- ``floaters``: the share of the frame covered by the fit's floaters in front of the camera — faint
+  Gaussians (opacity below :data:`FLOATER_OPACITY`) nearer to the camera than half its distance to the
+  subject (each pixel's blended weight of those Gaussians, averaged over the frame).
 """
 from __future__ import annotations
 
@@ -22,6 +25,8 @@ import torch
 
 #: Alpha above which a pixel belongs to the subject's silhouette.
 SILHOUETTE_ALPHA = 0.5
+#: Opacity below which a Gaussian near the camera counts as a floater.
+FLOATER_OPACITY = 0.3
 
 
 def frame_quality(gaussians_frame, subject: np.ndarray, camera) -> dict[str, Any]:
@@ -37,13 +42,19 @@ def frame_quality(gaussians_frame, subject: np.ndarray, camera) -> dict[str, Any
     g = gaussians_frame
     idx = torch.as_tensor(np.flatnonzero(subject))
     H, W = camera.height, camera.width
+    means = g.means.double().numpy()
+    distance = np.linalg.norm(means - camera.center, axis=1)
+    subject_distance = float(np.median(distance[subject])) if subject.any() else 0.0
+    faint = torch.sigmoid(g.opacity_logits.double()).numpy() < FLOATER_OPACITY
     with torch.no_grad():
         alone = rasterize(g.means[idx], g.rotations[idx], g.log_scales[idx], g.opacity_logits[idx], camera,
                           outputs=("alpha",))["alpha"].reshape(H, W).double().numpy()
-        flag = torch.zeros((g.means.shape[0], 1), dtype=g.means.dtype)
-        flag[idx] = 1.0
-        seen = rasterize(g.means, g.rotations, g.log_scales, g.opacity_logits, camera, features=flag,
-                         outputs=("features",), background=torch.zeros(1))["features"].reshape(H, W).double().numpy()
+        flags = torch.zeros((g.means.shape[0], 2), dtype=g.means.dtype)
+        flags[idx, 0] = 1.0
+        flags[:, 1] = torch.as_tensor(faint & (distance < 0.5 * subject_distance), dtype=g.means.dtype)
+        both = rasterize(g.means, g.rotations, g.log_scales, g.opacity_logits, camera, features=flags,
+                         outputs=("features",), background=torch.zeros(2))["features"].reshape(H, W, 2).double().numpy()
+    seen, floaters = both[..., 0], float(np.nan_to_num(both[..., 1]).mean())
     alone = np.nan_to_num(alone)
     seen = np.nan_to_num(seen)
     rows = np.flatnonzero((alone > SILHOUETTE_ALPHA).any(axis=1))
@@ -61,7 +72,7 @@ def frame_quality(gaussians_frame, subject: np.ndarray, camera) -> dict[str, Any
     in_frame = bool(inside.all() and (border <= SILHOUETTE_ALPHA).all() and mass > 1e-9)
     occluded = float(np.clip(1.0 - seen.sum() / mass, 0.0, 1.0)) if mass > 1e-9 else 1.0
     return {"height": height, "offset": offset, "in_frame": in_frame, "occluded": occluded,
-            "in_front": float(inside.mean()) if len(inside) else 0.0}
+            "in_front": float(inside.mean()) if len(inside) else 0.0, "floaters": floaters}
 
 
 def plan_quality(scene, plan, subjects, *, width: int = 320,
@@ -109,16 +120,18 @@ def summarize(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
                      "height_last": float(h[-1]),
                      "offset_max": float(max(r["offset"] for r in rs)),
                      "in_frame_share": float(np.mean([r["in_frame"] for r in rs])),
-                     "occluded_mean": float(occ.mean()), "occluded_max": float(occ.max())})
+                     "occluded_mean": float(occ.mean()), "occluded_max": float(occ.max()),
+                     "floaters_max": float(max(r["floaters"] for r in rs))})
     return rows
 
 
 def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     """The per-shot summary as a Markdown table."""
     lines = ["| shot | effect | frames | height (min / mean / max / last) | max centre offset | wholly in frame | "
-             "occluded (mean / max) |", "|---|---|---:|---|---:|---:|---|"]
+             "occluded (mean / max) | floaters (max) |", "|---|---|---:|---|---:|---:|---|---:|"]
     for r in rows:
         lines.append(f"| {r['shot']} | {r['effect']} | {r['frames']} | {r['height_min']:.2f} / {r['height_mean']:.2f} / "
                      f"{r['height_max']:.2f} / {r['height_last']:.2f} | {r['offset_max']:.2f} | "
-                     f"{100 * r['in_frame_share']:.0f} % | {r['occluded_mean']:.2f} / {r['occluded_max']:.2f} |")
+                     f"{100 * r['in_frame_share']:.0f} % | {r['occluded_mean']:.2f} / {r['occluded_max']:.2f} | "
+                     f"{r['floaters_max']:.4f} |")
     return "\n".join(lines)

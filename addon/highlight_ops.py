@@ -24,6 +24,8 @@ def disabled_effects(props) -> list[str]:
         off.append("bullet_time")
     if not props.use_desaturate:
         off.append("desaturate_background")
+    if not props.use_blur:
+        off.append("blur_background")
     return off
 
 

@@ -114,6 +114,7 @@ class FOURLEGS_PT_highlight(_SidebarSubPanel, bpy.types.Panel):
         col.prop(props, "use_zoom_in")
         col.prop(props, "use_bullet_time")
         col.prop(props, "use_desaturate")
+        col.prop(props, "use_blur")
         layout.operator("fourlegs.generate_highlight", icon="CAMERA_DATA")
         if render_engine.plan_of(context.scene) is not None:
             layout.label(text=f"Frames {context.scene.frame_start}-{context.scene.frame_end}")

@@ -90,6 +90,8 @@ class FourlegsSceneProps(bpy.types.PropertyGroup):
     use_bullet_time: BoolProperty(name="Bullet Time", default=True)
     use_zoom_in: BoolProperty(name="Zoom In", default=True)
     use_desaturate: BoolProperty(name="Desaturate Background", default=True)
+    use_blur: BoolProperty(name="Blur Background", default=True,
+                           description="Keep the preset's blurred-background shots (presets such as broadcast_blur)")
     renderer: EnumProperty(
         name="Renderer", default="NATIVE" if bpy.app.version >= (5, 3, 0) else "FOURLEGS",
         items=[("NATIVE", "EEVEE / Cycles", "Blender renders the splats with meshes, lights and its compositor "

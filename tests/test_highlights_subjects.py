@@ -231,3 +231,11 @@ def test_blur_keeps_the_relevant_pixels_and_blurs_the_rest():
     np.testing.assert_array_equal(out[:, :30], rgb[:, :30])
     assert out[:, 35:].std() < 0.5 * rgb[:, 35:].std()
     np.testing.assert_array_equal(blur_background(rgb, rel, 0.0, 0.05), rgb)
+
+
+def test_the_highlight_job_opens_the_query_engine_for_blur_presets_too():
+    from fourlegs_engine.highlight_job import preset_needs_relevancy
+
+    assert preset_needs_relevancy(load_preset("broadcast_blur"))
+    assert preset_needs_relevancy(load_preset("broadcast"))
+    assert not preset_needs_relevancy(load_preset("broadcast").with_shots(["play", "zoom_in", "bullet_time"]))

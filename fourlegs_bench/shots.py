@@ -8,7 +8,8 @@ The subject comes from the scene's language field through the query engine (the 
 with ``--annotations REPORT`` (``fourlegs bench real-annotations``' report.json), from the capture's
 annotation: the ball's triangulated centre per timestep gives its Gaussians (the foreground Gaussians
 within the ball's radius), "the ball in the air" its in-the-air runs and "the ball" every timestep it
-was found — so the framing is measured apart from how well a field lifts the phrase.
+was found; "a person" is every other foreground Gaussian at every timestep (the people, two in the
+basketball capture) — so the framing is measured apart from how well a field lifts the phrase.
 """
 from __future__ import annotations
 
@@ -21,6 +22,11 @@ from typing import Any, Optional
 import numpy as np
 
 BALL_PHRASES = ("the ball", "the ball in the air")
+#: Phrases the annotation answers: the ball's, and "a person" (every foreground Gaussian that is not the
+#: ball's, at every timestep: the capture's people, which the framing splits into instances).
+ANNOTATED_PHRASES = BALL_PHRASES + ("a person",)
+#: Gaussians fainter than this are not part of a person (the framing ignores them too).
+MIN_OPACITY = 0.1
 #: The ball's Gaussians: foreground Gaussians this far from its triangulated centre (its radius plus
 #: the width of a splat).
 BALL_REACH_M = 0.15
@@ -43,9 +49,9 @@ class AnnotatedBallLocalizer:
     def __init__(self, scene, report: dict[str, Any], phrase: str, *, reach_m: float = BALL_REACH_M):
         from fourlegs_engine.errors import InputError
 
-        if phrase not in BALL_PHRASES:
-            raise InputError(f"the annotation report answers {', '.join(map(repr, BALL_PHRASES))}, not {phrase!r}",
-                             field="text")
+        if phrase not in ANNOTATED_PHRASES:
+            raise InputError(f"the annotation report answers {', '.join(map(repr, ANNOTATED_PHRASES))}, not "
+                             f"{phrase!r}", field="text")
         self.scene, self.phrase, self.reach = scene, phrase, float(reach_m)
         steps = report["per_timestep"]
         self.centres = np.full((scene.num_timesteps, 3), np.nan)
@@ -56,19 +62,29 @@ class AnnotatedBallLocalizer:
                 self.centres[t] = row["centre"]
                 in_air[t] = bool(row.get("in_air"))
         found = np.isfinite(self.centres).all(axis=1)
-        self.positive = found & in_air if phrase == "the ball in the air" else found
+        self.positive = {"the ball in the air": found & in_air, "the ball": found}.get(phrase,
+                                                                                    np.ones(len(found), bool))
         fg = scene.gaussians.foreground
         self.foreground = None if fg is None else np.asarray(fg, dtype=bool)
+        if phrase == "a person" and self.foreground is None:
+            raise InputError("the scene marks no foreground Gaussians, so 'a person' has no annotation",
+                             field="foreground")
+        opacity = 1.0 / (1.0 + np.exp(-np.asarray(scene.gaussians.opacity_logits, np.float64)))
+        self.solid = opacity >= MIN_OPACITY
 
     def members(self, t: int) -> np.ndarray:
-        """(N,) bool: the ball's Gaussians at timestep ``t`` (none where the ball was not found)."""
+        """(N,) bool: the phrase's Gaussians at timestep ``t``: the ball's (none where the ball was not
+        found), or for "a person" every solid foreground Gaussian that is not the ball's."""
         t = min(max(int(t), 0), self.scene.num_timesteps - 1)
         N = self.scene.num_gaussians
-        if not np.isfinite(self.centres[t]).all():
-            return np.zeros(N, bool)
-        d = np.linalg.norm(np.asarray(self.scene.gaussians.means[t], np.float64) - self.centres[t], axis=1)
-        near = d < self.reach
-        return near & self.foreground if self.foreground is not None else near
+        ball = np.zeros(N, bool)
+        if np.isfinite(self.centres[t]).all():
+            d = np.linalg.norm(np.asarray(self.scene.gaussians.means[t], np.float64) - self.centres[t], axis=1)
+            ball = d < self.reach
+            ball = ball & self.foreground if self.foreground is not None else ball
+        if self.phrase == "a person":
+            return self.foreground & self.solid & ~ball
+        return ball
 
     def gaussian_relevancy(self, query: str, t: int):
         """(N,) float32 tensor: 1 on the ball's Gaussians at ``t``."""

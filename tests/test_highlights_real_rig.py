@@ -82,3 +82,22 @@ def test_the_ball_is_zoomed_to_the_target_size_and_orbited_unoccluded(planned):
         assert r["in_frame"] and r["offset"] < 0.15 and r["occluded"] < 0.1, r
         assert r["height"] == pytest.approx(orbit.params["target_height"], abs=0.1)
     assert {k.timestep for k in orbit.time_keys} == {140.0}
+
+
+def test_a_person_splits_into_the_two_players():
+    from fourlegs_bench.shots import AnnotatedBallLocalizer
+    from fourlegs_engine.fileio import read_json
+    from fourlegs_engine.highlights.framing import scene_up
+    from fourlegs_engine.highlights.planner import subject_framing
+    from fourlegs_engine.scene import load_bundle
+
+    scene = load_bundle(SCENE)
+    loc = AnnotatedBallLocalizer(scene, read_json(REPORT), "a person")
+    up = scene_up(scene.cameras.cameras(0, "all"))
+    framing = subject_framing(scene, loc, "a person", 74, up, [])
+    players = [i for i in framing.region.instances if i.count > 1000]
+    assert len(players) == 2 and all(1.3 < p.height < 2.0 for p in players)
+    assert framing.region.instances[0] is players[0]      # the plan frames a player, not a shadow patch
+    gap = players[0].centre - players[1].centre
+    assert np.linalg.norm(gap - (gap @ up) * up) > 2.0    # two people apart, framed one at a time
+    assert not (players[0].members & players[1].members).any()

@@ -24,6 +24,8 @@ def disabled_effects(props) -> list[str]:
         off.append("bullet_time")
     if not props.use_desaturate:
         off.append("desaturate_background")
+    if not props.use_blur:
+        off.append("blur_background")
     return off
 
 
@@ -34,6 +36,7 @@ def generate_highlight(bl_scene, plan: dict[str, Any]) -> bpy.types.Object:
     relevancy mask on Blender 5.3+ (:mod:`.native_render`), else the 4-LEGS Splats engine.
     """
     cam = keyframes.apply_plan(bl_scene, plan)
+    fill_subjects(bl_scene.fourlegs, plan)
     text = bpy.data.texts.get(render_engine.PLAN_TEXT_NAME) or bpy.data.texts.new(render_engine.PLAN_TEXT_NAME)
     text.clear()
     text.write(json.dumps(plan, indent=1))
@@ -47,7 +50,7 @@ def generate_highlight(bl_scene, plan: dict[str, Any]) -> bpy.types.Object:
             bl_scene.render.engine = "BLENDER_EEVEE"
         for obj in importer.splat_objects(bl_scene):  # the splats' own radiance, not the heat map
             importer.show_relevancy(obj, False)
-        layer = native_render.setup(bl_scene, rel and bool(plan.get("desaturate")))
+        layer = native_render.setup(bl_scene, rel and bool(plan.get("desaturate") or plan.get("blur")))
         for view_layer in bl_scene.view_layers:
             view_layer.use_pass_z = depth and view_layer != layer
         compositor.build_compositor(bl_scene, plan, mask_layer=layer.name if layer is not None else None)
@@ -61,6 +64,19 @@ def generate_highlight(bl_scene, plan: dict[str, Any]) -> bpy.types.Object:
     return cam
 
 
+def fill_subjects(props, plan: dict[str, Any]) -> None:
+    """List the plan's instances (``localization.instances``, best first) in the panel; the first
+    ``framed_instances`` of them have their own shots."""
+    loc = plan.get("localization") or {}
+    framed = int(loc.get("framed_instances") or 0)
+    props.subjects.clear()
+    for i, inst in enumerate(loc.get("instances") or []):
+        item = props.subjects.add()
+        item.gaussians, item.height = int(inst.get("gaussians", 0)), float(inst.get("height", 0.0))
+        item.mass, item.framed = float(inst.get("mass", 0.0)), i < framed
+    props.subject_index = 0 if len(props.subjects) else -1
+
+
 def native_renderer(bl_scene) -> bool:
     """Whether the highlight renders with EEVEE/Cycles (Blender 5.3+ and the panel's choice)."""
     return native_splats.available() and bl_scene.fourlegs.renderer == "NATIVE"
@@ -68,7 +84,7 @@ def native_renderer(bl_scene) -> bool:
 
 def desaturated_timesteps(bl_scene, plan: dict[str, Any]) -> list[int]:
     """The scene timesteps (rounded) shown on frames whose relevancy the highlight uses."""
-    frames = {f for f, w in compositor.frame_weights(plan).items() if w > 0.0}
+    frames = {f for f, w in compositor.mask_weights(plan).items() if w > 0.0}
     for a, b in (plan.get("passes") or {}).get("relevancy") or []:
         frames.update(range(int(a), int(b) + 1))
     curve = keyframes.find_fcurve(bl_scene, keyframes.TIMESTEP_PATH)

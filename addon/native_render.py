@@ -76,10 +76,10 @@ def setup(scene: bpy.types.Scene, enabled: bool) -> Optional[bpy.types.ViewLayer
 
 
 def wants_mask(scene: bpy.types.Scene, frame: int) -> bool:
-    """Whether the mask of ``frame`` is used: the plan lists it, or the keyed desaturation is on there."""
+    """Whether the mask of ``frame`` is used: the plan lists it, or the keyed desaturation or blur is on there."""
     plan = plan_of(scene) or {}
     return (frames_in_ranges((plan.get("passes") or {}).get("relevancy"), frame)
-            or compositor.desaturation_at(scene, frame) > 0.0)
+            or compositor.mask_at(scene, frame) > 0.0)
 
 
 def update_relevancy(scene: bpy.types.Scene, force: bool = False) -> int:

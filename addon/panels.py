@@ -42,6 +42,12 @@ class FOURLEGS_UL_segments(bpy.types.UIList):
         layout.label(text=f"peak s_t {item.peak_score:.3f}")
 
 
+class FOURLEGS_UL_subjects(bpy.types.UIList):
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index=0):
+        layout.label(text=f"subject {index + 1}", icon="CAMERA_DATA" if item.framed else "DOT")
+        layout.label(text=f"{item.height:.2f} m, {item.gaussians} splats")
+
+
 class _SidebarSubPanel:
     """Placement shared by the sub-panels of the 4-LEGS sidebar tab."""
     bl_space_type = "VIEW_3D"
@@ -108,9 +114,13 @@ class FOURLEGS_PT_highlight(_SidebarSubPanel, bpy.types.Panel):
         col.prop(props, "use_zoom_in")
         col.prop(props, "use_bullet_time")
         col.prop(props, "use_desaturate")
+        col.prop(props, "use_blur")
         layout.operator("fourlegs.generate_highlight", icon="CAMERA_DATA")
         if render_engine.plan_of(context.scene) is not None:
             layout.label(text=f"Frames {context.scene.frame_start}-{context.scene.frame_end}")
+        if len(props.subjects):
+            layout.label(text="Subjects (camera: framed by its own shots)")
+            layout.template_list("FOURLEGS_UL_subjects", "", props, "subjects", props, "subject_index", rows=2)
 
 
 class FOURLEGS_PT_render(_SidebarSubPanel, bpy.types.Panel):
@@ -134,5 +144,5 @@ class FOURLEGS_PT_render(_SidebarSubPanel, bpy.types.Panel):
             layout.operator("fourlegs.render_video", icon="RENDER_ANIMATION")
 
 
-ui_lists = (FOURLEGS_UL_segments,)
+ui_lists = (FOURLEGS_UL_segments, FOURLEGS_UL_subjects)
 classes = (FOURLEGS_PT_main, FOURLEGS_PT_query, FOURLEGS_PT_highlight, FOURLEGS_PT_render)

@@ -43,6 +43,15 @@ class FourlegsSegment(bpy.types.PropertyGroup):
     peak_score: FloatProperty(name="Peak s_t", default=0.0)
 
 
+class FourlegsSubject(bpy.types.PropertyGroup):
+    """One separate thing the query matches at the peak (an instance of the plan's ``localization.instances``),
+    best first; ``framed``: the highlight gives it its own zoom and orbit."""
+    gaussians: IntProperty(name="Gaussians", default=0)
+    height: FloatProperty(name="Height", default=0.0, subtype="DISTANCE")
+    mass: FloatProperty(name="Relevancy Mass", default=0.0)
+    framed: BoolProperty(name="Framed", default=False)
+
+
 class FourlegsSceneProps(bpy.types.PropertyGroup):
     # --- source
     source_path: StringProperty(name="Scene", description="Scene bundle, params.npz directory or PLY file/directory",
@@ -67,6 +76,9 @@ class FourlegsSceneProps(bpy.types.PropertyGroup):
     segments: CollectionProperty(type=FourlegsSegment, name="Segments",
                                  description="Every segment where the query was found")
     segment_index: IntProperty(name="Segment", default=-1, update=_segment_picked)
+    subjects: CollectionProperty(type=FourlegsSubject, name="Subjects",
+                                 description="The separate things the query matches at the peak, best first")
+    subject_index: IntProperty(name="Subject", default=-1)
     # --- encoder of fields distilled with ViCLIP (what `--checkpoint` / `--vocab` give the commands)
     encoder_checkpoint: StringProperty(name="ViCLIP Weights", subtype="FILE_PATH", default="",
                                        description="ViClip-InternVid-10M-FLT.pth, a .safetensors file or a "
@@ -78,6 +90,8 @@ class FourlegsSceneProps(bpy.types.PropertyGroup):
     use_bullet_time: BoolProperty(name="Bullet Time", default=True)
     use_zoom_in: BoolProperty(name="Zoom In", default=True)
     use_desaturate: BoolProperty(name="Desaturate Background", default=True)
+    use_blur: BoolProperty(name="Blur Background", default=True,
+                           description="Keep the preset's blurred-background shots (presets such as broadcast_blur)")
     renderer: EnumProperty(
         name="Renderer", default="NATIVE" if bpy.app.version >= (5, 3, 0) else "FOURLEGS",
         items=[("NATIVE", "EEVEE / Cycles", "Blender renders the splats with meshes, lights and its compositor "
@@ -93,7 +107,7 @@ class FourlegsSceneProps(bpy.types.PropertyGroup):
     overwrite: BoolProperty(name="Overwrite", default=False, description="Replace an existing output")
 
 
-classes = (FourlegsSegment, FourlegsSceneProps)
+classes = (FourlegsSegment, FourlegsSubject, FourlegsSceneProps)
 
 
 def register() -> None:

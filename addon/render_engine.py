@@ -216,7 +216,7 @@ def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *,
 
     ``depth=False`` skips the depth output (the pass is filled with "nothing hit"); relevancy is
     computed only when ``relevancy_pass`` and ``frame`` is in the plan's relevancy ranges or the keyed
-    desaturation is on there (an editor may have moved the desaturated shot).
+    desaturation or blur is on there (an editor may have moved the masked shot).
     ``plan``: the scene's plan when the caller already has it (default: read it).
     ``camera``: an engine ``Camera`` of ``width`` x ``height`` (default: the scene's active camera).
     ``transparent``: alpha = coverage (default: the scene's ``film_transparent``).
@@ -226,7 +226,7 @@ def render_arrays(scene: bpy.types.Scene, depsgraph, width: int, height: int, *,
     plan = plan_of(scene) if plan is ... else plan
     t = float(scene.fourlegs.timestep)
     compute_rel = relevancy_pass and (frames_in_ranges(relevancy_frames(scene, plan), frame)
-                                      or compositor.desaturation_at(scene, frame) > 0.0)
+                                      or compositor.mask_at(scene, frame) > 0.0)
     camera = scene_camera(scene, depsgraph, width, height) if camera is None else camera
     data = gather_gaussians(scene, t, compute_rel, plan, camera)
     out: dict[str, np.ndarray] = {}

@@ -82,10 +82,11 @@ def _shift_plan(plan: dict[str, Any], start: int, delta: int) -> dict[str, Any]:
 
     out = walk(plan)
     out["passes"] = {name: [[shift(a), shift(b)] for a, b in ranges] for name, ranges in (plan.get("passes") or {}).items()}
-    desat = plan.get("desaturate")
-    if desat:
-        out["desaturate"] = dict(desat, ranges=[[shift(a), shift(b)] for a, b in desat.get("ranges", [])],
-                                 weights={str(shift(f)): w for f, w in (desat.get("weights") or {}).items()})
+    for effect in ("desaturate", "blur"):
+        block = plan.get(effect)
+        if block:
+            out[effect] = dict(block, ranges=[[shift(a), shift(b)] for a, b in block.get("ranges", [])],
+                               weights={str(shift(f)): w for f, w in (block.get("weights") or {}).items()})
     return out
 
 

@@ -142,15 +142,15 @@ def movie_frame_count(path: str | Path) -> int:
 def compositing_frames(scene: bpy.types.Scene) -> Optional[set[int]]:
     """Frames on which the compositor changes the image, or None when that is unknown (always composite).
 
-    Known only for the add-on's own desaturation graph: it passes the image through unchanged where
-    the plan's desaturation weight is 0, so those frames skip the compositor entirely.
+    Known only for the add-on's own blur/desaturation graph: it passes the image through unchanged where
+    the plan's weights are 0, so those frames skip the compositor entirely.
     """
-    if not scene.render.use_compositing or not compositor.has_desaturation(scene):
+    if not scene.render.use_compositing or not compositor.has_masking(scene):
         return None
     plan = render_engine.plan_of(scene)
     if not plan:
         return None
-    return {f for f, w in compositor.frame_weights(plan).items() if w > 0.0}
+    return {f for f, w in compositor.mask_weights(plan).items() if w > 0.0}
 
 
 def render_frames(scene: bpy.types.Scene, frames_dir: str | Path, *,

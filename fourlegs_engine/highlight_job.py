@@ -262,7 +262,9 @@ def plan_digest(plan: dict) -> str:
 
 def preset_needs_relevancy(preset: Any) -> bool:
     """Whether a shot of ``preset`` renders per-Gaussian relevancy (so the job needs the query engine)."""
-    return any(s.effect == "desaturate_background" for s in preset.shots)
+    from .highlights.effects import MASKED_EFFECTS
+
+    return any(s.effect in MASKED_EFFECTS for s in preset.shots)
 
 
 def software_versions() -> dict[str, str]:

@@ -235,3 +235,59 @@ def native_splats_relevancy(obj) -> np.ndarray:
     from fourlegs_addon import native_splats
 
     return native_splats.read_attribute(obj.data, native_splats.RELEVANCY_ATTR)[:, 0]
+
+
+def blur_plan(camera, t: int, width: int, height: int, centre) -> dict:
+    """The desaturation plan's two frames with the background blurred instead (weight 1, then 0)."""
+    plan = desaturate_plan(camera, t, width, height, centre)
+    plan["shots"][0]["effect"] = "blur_background"
+    plan["blur"] = dict(plan.pop("desaturate"), radius=0.06)
+    plan["desaturate"] = None
+    return plan
+
+
+def test_cycles_blurs_the_background_around_the_ball(bl, ball_scene, tmp_path):
+    """The blur through the EEVEE/Cycles path: the same relevancy view layer and AOV mask the compositor's
+    blur; the blurred frame loses the background's fine detail and keeps the ball's."""
+    from fourlegs_addon import compositor, highlight_ops, importer, native_render
+
+    path, ball = ball_scene
+    assert bl.ops.fourlegs.import_scene(filepath=str(path / "scene.json")) == {"FINISHED"}
+    scene = bl.context.scene
+    obj = scene.fourlegs.splat_object
+    src = importer.engine_scene_for(obj)
+    width, height = 160, 90
+    camera = src.cameras.find("cam01", 8)
+    centre = np.asarray(src.gaussians.means[8])[ball].mean(axis=0)
+    highlight_ops.generate_highlight(scene, blur_plan(camera, 8, width, height, centre))
+    assert native_render.LAYER_NAME in scene.view_layers and compositor.has_masking(scene)
+    scene.render.engine = "CYCLES"
+    scene.cycles.samples = 8
+    images = []
+    for frame in (1, 2):
+        scene.frame_set(frame)
+        scene.render.filepath = str(tmp_path / f"blur_{frame}.png")
+        assert bl.ops.render.render(write_still=True) == {"FINISHED"}
+        img = bl.data.images.load(scene.render.filepath)
+        images.append(np.array(img.pixels[:], np.float32).reshape(height, width, 4)[::-1, :, :3])
+    uv, z = camera.scaled(width / camera.width).project(np.asarray(src.gaussians.means[8])[ball])
+    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+    on_ball = np.zeros((height, width), bool)
+    on_ball[uv[inside, 1].astype(int), uv[inside, 0].astype(int)] = True
+    ys, xs = np.nonzero(on_ball)
+    near = np.zeros_like(on_ball)
+    near[max(ys.min() - 8, 0):ys.max() + 9, max(xs.min() - 8, 0):xs.max() + 9] = True
+
+    def detail(img):   # |horizontal + vertical differences| per pixel
+        grey = img.mean(axis=-1)
+        d = np.zeros_like(grey)
+        d[:, 1:] += np.abs(np.diff(grey, axis=1))
+        d[1:] += np.abs(np.diff(grey, axis=0))
+        return d
+
+    blurred, sharp = images
+    # the background is blurred (the synthetic scene's large splats are smooth already: a third of its
+    # pixel-to-pixel detail goes), the picture changes there, and the ball keeps its colour
+    assert detail(blurred)[~near].mean() < 0.8 * detail(sharp)[~near].mean()
+    assert np.abs(blurred - sharp)[~near].mean() > 0.01
+    np.testing.assert_allclose(blurred[on_ball].mean(axis=0), sharp[on_ball].mean(axis=0), atol=0.08)

@@ -112,7 +112,9 @@ def test_panels_draw_every_state(bl, imported):
         importer.import_scene(context.scene, tiny_scene())
         props = context.scene.fourlegs
         props.segment_start, props.segment_end, props.peak, props.best_view = 1, 2, 1, "cam00"
-    drawn = set()
+        subject = props.subjects.add()
+        subject.gaussians, subject.height, subject.framed = 40, 1.8, True
+    drawn, lists = set(), set()
     for running in (False, True):
         context.scene.fourlegs.running = running
         for cls in panels.classes:
@@ -126,7 +128,9 @@ def test_panels_draw_every_state(bl, imported):
             for op in ops:
                 assert hasattr(bl.ops.fourlegs, op.split(".")[1]), op
             drawn |= set(ops)
+            lists |= {a[0] for name, a, k in log if name == "template_list"}
     assert "fourlegs.import_scene" in drawn
+    assert ("FOURLEGS_UL_subjects" in lists) == imported
     if imported:
         assert {"fourlegs.run_query", "fourlegs.cancel_query", "fourlegs.generate_highlight",
                 "fourlegs.render_video"} <= drawn
@@ -159,6 +163,15 @@ def test_panel_workflow_import_query_generate_with_the_real_planner(bl, tmp_path
     assert [s["effect"] for s in plan["shots"]] == ["play", "zoom_in"]
     assert not compositor.has_desaturation(bl.context.scene)
     assert sum(1 for o in bl.data.objects if o.get(keyframes.GENERATED_KEY)) == 1
+    props.preset = "broadcast_blur"   # the blurred-background replay, dropped by its own checkbox
+    assert bl.ops.fourlegs.generate_highlight() == {"FINISHED"}
+    plan = render_engine.plan_of(bl.context.scene)
+    assert [s["effect"] for s in plan["shots"]] == ["play", "zoom_in", "blur_background"]
+    assert compositor.has_masking(bl.context.scene) and not compositor.has_desaturation(bl.context.scene)
+    props.use_blur = False
+    assert bl.ops.fourlegs.generate_highlight() == {"FINISHED"}
+    assert [s["effect"] for s in render_engine.plan_of(bl.context.scene)["shots"]] == ["play", "zoom_in"]
+    assert not compositor.has_masking(bl.context.scene)
 
 
 def test_missing_dependency_message_names_the_install_command():

@@ -77,7 +77,7 @@ def test_invalid_toml_names_the_file(tmp_path):
 
 
 def test_unknown_preset_lists_the_available_ones():
-    with pytest.raises(InputError, match="unknown preset 'nope'; available: broadcast, bullet_time_only"):
+    with pytest.raises(InputError, match="unknown preset 'nope'; available: broadcast, broadcast_blur, bullet_time_only"):
         load_preset("nope")
 
 

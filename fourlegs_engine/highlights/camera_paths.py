@@ -163,8 +163,10 @@ def aim(pose: Pose, target: np.ndarray) -> Pose:
 def slerp_rotations(R0: np.ndarray, R1: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(n,3,3) spherical interpolation between two rotations at ``weights`` in [0,1] (shortest arc)."""
     w = np.clip(np.asarray(weights, dtype=np.float64).reshape(-1), 0.0, 1.0)
-    rots = Rotation.from_matrix(np.stack([orthonormalize(R0), orthonormalize(R1)]))
-    return Slerp([0.0, 1.0], rots)(w).as_matrix()
+    R0, R1 = orthonormalize(R0), orthonormalize(R1)
+    out = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([R0, R1])))(w).as_matrix()
+    out[w == 0.0], out[w == 1.0] = R0, R1   # the ends exactly (no round trip through quaternions)
+    return out
 
 
 def interpolate_poses(start: Pose, end: Pose, weights: np.ndarray, *, pivot: np.ndarray | None = None,

@@ -14,7 +14,11 @@ bullet_time               temporal (peak), best view, action centre  depth if ``
 desaturate_background     temporal (segment), best view if filmed    relevancy, only on the frames whose
                           from it                                    scene time is in the segment, plus
                                                                      the fade-in/out margins
+blur_background           as desaturate_background                   as desaturate_background
 ========================  =========================================  ====================================
+
+``zoom_in`` and ``bullet_time`` take ``target_height``: the subject's height as a fraction of the frame
+height at the end of the zoom and during the orbit (0 leaves the zoom to ``factor``).
 
 Shots start exactly where the previous shot's camera ended (position, orientation and focal length),
 so the camera never jumps at a shot boundary.
@@ -30,7 +34,7 @@ import numpy as np
 from ..errors import InputError
 from . import timing
 from .camera_paths import Pose, aim, dolly_path, hold_path, interpolate_poses, orbit_path, slerp_rotations
-from .framed_moves import framed_orbit, framed_zoom, upright
+from .framed_moves import follow_subject, framed_orbit, framed_zoom, upright
 from .shot_context import ShotContext, ShotPath
 
 TIME_ANCHORS = ("start", "end", "segment_start", "segment_end", "peak")
@@ -98,7 +102,12 @@ _CAMERA_PARAMS = {
     "camera": Param("str", "previous", "'previous' (continue), 'best_view', or a scene camera name"),
     "transition_s": Param("float", 0.75, "seconds to swing from the previous camera to this shot's",
                           None, 0.0, 60.0),
+    "follow": Param("bool", True, "turn the camera (level) to keep the framed subject mid-frame as it moves "
+                                  "(only where the subject is framed)"),
 }
+_TARGET_HEIGHT = Param("float", 0.0, "the framed subject's height as a fraction of the frame height at the end "
+                       "of the move (0 = off: the zoom magnifies by 'factor', the orbit keeps the zoom's distance)",
+                       None, 0.0, 1.0)
 _DOF = {"depth_of_field": Param("bool", False, "focus on the action centre (renderer needs a depth pass)")}
 
 
@@ -194,16 +203,20 @@ def _camera_move(p: dict[str, Any], ctx: ShotContext, n: int) -> tuple[list[Pose
         # sides would look away half-way), level about the scene's up; the previous pose's roll is
         # carried along and levelled over the swing
         c = ctx.framing.centre
+        if ctx.framing.rig is not None and ctx.framing.rig.contains(c[None])[0]:   # the swing stays in the rig
+            inside = ctx.framing.rig.pull_inside(np.array([q.position for q in poses]), c)
+            poses = [Pose(x, q.rotation) for x, q in zip(inside, poses)]
         level = [upright(q.position, c, ctx.up) for q in poses]
         offset = level[0].T @ ctx.previous.rotation
+        if np.allclose(offset, np.eye(3), atol=1e-6):   # a level previous camera stays exactly level
+            offset = np.eye(3)
         poses = [Pose(q.position, slerp_rotations(R @ offset, R, [wi])[0]) for q, R, wi in zip(poses, level, w)]
         poses[0] = ctx.previous
         eyes = np.array([q.position for q in poses[:m]])
         if not ctx.framing.path_is_clear(eyes):
             direct = interpolate_poses(ctx.previous, target, w)
-            if ctx.framing.path_badness(np.array([q.position for q in direct[:m]])) < \
-                    ctx.framing.path_badness(eyes):
-                poses = direct
+            if ctx.framing.path_is_clear(np.array([q.position for q in direct[:m]])):
+                poses = direct   # a straight cut past the action only when nothing is in its way
             ctx.messages.append(f"{p['camera']}: the swing to the camera passes close to or behind scene "
                                 "Gaussians (no clear path found)")
     return poses, focals
@@ -220,6 +233,8 @@ class Play(Effect):
     def build(self, p: dict[str, Any], ctx: ShotContext) -> ShotPath:
         times, facts = shot_times(p, ctx)
         poses, focals = _camera_move(p, ctx, len(times))
+        if p["follow"]:
+            poses = follow_subject(poses, times, ctx, p["transition_s"])
         return ShotPath(poses, focals, times, {**p, **facts})
 
 
@@ -237,7 +252,8 @@ class ZoomIn(Effect):
                             ("dolly", "focal")),
               "factor": Param("float", 2.0, "magnification of the action at the end (>= 1)", None, 1.0, 50.0),
               "min_distance_m": Param("float", 0.25, "closest approach to the action centre (dolly)",
-                                      None, 0.0, 1e4)}
+                                      None, 0.0, 1e4),
+              "target_height": _TARGET_HEIGHT}
     defaults = {"from": "segment_start", "to": "peak", "min_duration_s": 1.5}
 
     def needs(self, p, *, first):
@@ -282,7 +298,8 @@ class BulletTime(Effect):
                                     0.05, 20.0),
               "height_scale": Param("float", 1.0, "height offset at the end / start height offset "
                                     "(>= 0: the orbit never passes through the action's level plane)",
-                                    None, 0.0, 20.0)}
+                                    None, 0.0, 20.0),
+              "target_height": _TARGET_HEIGHT}
     defaults = {"from": "peak", "to": "peak", "duration_s": 3.0, "easing": "ease_in_out_sine"}
 
     def needs(self, p, *, first):
@@ -331,12 +348,34 @@ class DesaturateBackground(Effect):
     def build(self, p: dict[str, Any], ctx: ShotContext) -> ShotPath:
         times, facts = shot_times(p, ctx)
         poses, focals = _camera_move(p, ctx, len(times))
+        if p["follow"]:
+            poses = follow_subject(poses, times, ctx, p["transition_s"])
         weights = desaturation_weights(times, ctx.segment, strength=p["strength"], fade_in=p["fade_in_frames"],
                                        fade_out=p["fade_out_frames"], easing=p["fade_easing"])
         if not np.any(weights > 0):
-            ctx.messages.append("desaturate_background: no frame of the shot shows the localized segment; "
-                                "nothing is desaturated")
+            ctx.messages.append(f"{self.name}: no frame of the shot shows the localized segment; nothing is "
+                                "masked")
         return ShotPath(poses, focals, times, {**p, **facts}, desaturation=weights)
+
+
+class BlurBackground(DesaturateBackground):
+    """Playback (by default a slow-motion replay) with everything but the action blurred (the paper's
+    "blurring the background during the detected temporal segment", §6.1).
+
+    The blur's weight per frame follows the desaturation's rule (``strength`` inside the segment, fades
+    before and after); at weight 1 the background is blurred with a Gaussian of ``radius`` times the
+    frame height. Only the weighted frames need the relevancy pass.
+    """
+
+    name = "blur_background"
+    params = {**DesaturateBackground.params,
+              "strength": Param("float", 1.0, "1 = the full blur radius", None, 0.0, 1.0),
+              "radius": Param("float", 0.02, "blur radius at full strength, as a fraction of the frame height",
+                              None, 0.0, 0.2)}
+
+    def build(self, p: dict[str, Any], ctx: ShotContext) -> ShotPath:
+        path = super().build(p, ctx)
+        return ShotPath(path.poses, path.focals, path.timesteps, path.params, blur=path.desaturation)
 
 
 def desaturation_weights(times: np.ndarray, segment: Optional[tuple[int, int]], *, strength: float,
@@ -365,7 +404,10 @@ def desaturation_weights(times: np.ndarray, segment: Optional[tuple[int, int]], 
     return np.clip(w * strength, 0.0, 1.0)
 
 
-EFFECTS: dict[str, Effect] = {e.name: e for e in (Play(), ZoomIn(), BulletTime(), DesaturateBackground())}
+EFFECTS: dict[str, Effect] = {e.name: e for e in (Play(), ZoomIn(), BulletTime(), DesaturateBackground(),
+                                                  BlurBackground())}
+#: The effects that mask the picture by relevancy (they need the relevancy pass on their weighted frames).
+MASKED_EFFECTS = ("desaturate_background", "blur_background")
 
 
 def get_effect(name: str, *, file: Any = None, field: str = "effect") -> Effect:

@@ -21,10 +21,11 @@ from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
+
+from .instances import split_instances
+from .rig_volume import RigVolume
 
 #: Relevancy above which a Gaussian belongs to the action (the paper's threshold).
 RELEVANT = 0.5
@@ -82,29 +83,38 @@ def scene_up(cameras: Sequence, *, snap_deg: float = 15.0) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ActionRegion:
-    """Where the action is at one timestep.
+    """Where the framed subject is at one timestep.
 
     Attributes:
-        centre: (3,) the middle of the relevant Gaussians (per-axis median).
+        centre: (3,) the middle of the subject's Gaussians (per-axis percentile box).
         radius: distance from ``centre`` within which the robust share of them lies, plus their 3-sigma
             size (metres).
-        members: (N,) bool, the relevant Gaussians.
+        members: (N,) bool, the subject's Gaussians.
+        height: the subject's extent along the scene's up (metres).
+        instances: every instance the query matches, best first (:mod:`.instances`); the subject is
+            ``instances[index]``.
+        index: which instance is framed.
     """
 
     centre: np.ndarray
     radius: float
     members: np.ndarray
+    height: float = 0.0
+    instances: tuple = ()
+    index: int = 0
 
 
 def action_region(means: np.ndarray, relevancy: np.ndarray, scales: np.ndarray, opacities: np.ndarray, *,
-                  threshold: float = RELEVANT, percentile: float = 95.0, min_members: int = 8,
-                  min_share: float = 0.01) -> Optional[ActionRegion]:
-    """The region of the relevant Gaussians, or None when fewer than ``min_members`` are relevant.
+                  threshold: float = RELEVANT, min_members: int = 8, min_share: float = 0.01,
+                  up: Optional[np.ndarray] = None, foreground: Optional[np.ndarray] = None,
+                  instance: int = 0) -> Optional[ActionRegion]:
+    """The region of one instance of the relevant Gaussians, or None when fewer than ``min_members`` are
+    relevant (or there is no instance number ``instance``).
 
-    A lifted field marks a few scattered Gaussians of the background relevant too (floor and wall
-    patches the 2D evidence spilled onto); they must not widen the shot. The relevant Gaussians are
-    linked into clusters (centres closer than 1.5 times their median 3-sigma size) and only clusters holding
-    at least ``min_share`` of them make the region (all of them when no cluster is that large).
+    A lifted field marks a few scattered Gaussians of the background relevant too, and a query may
+    match several separate things: the relevant Gaussians are split into instances (3D connected
+    components, :func:`.instances.split_instances`, best first) and the region is instance number
+    ``instance`` (0: the one with the largest relevancy mass).
 
     Args:
         means: (N,3) Gaussian centres at the timestep.
@@ -112,33 +122,22 @@ def action_region(means: np.ndarray, relevancy: np.ndarray, scales: np.ndarray, 
         scales: (N,3) standard deviations along the Gaussians' axes.
         opacities: (N,) in [0,1]; Gaussians fainter than :data:`MIN_OPACITY` are not part of the region.
         threshold: relevancy above which a Gaussian is relevant.
-        percentile: the centre is the middle of the per-axis (100 - p)..p percentile box and the radius
-            encloses p percent of the region's Gaussians plus their 3-sigma size.
+        up: (3,) the scene's up (default +z); foreground: (N,) bool or None.
     """
     means = np.asarray(means, dtype=np.float64)
     rel = np.nan_to_num(np.asarray(relevancy, dtype=np.float64), nan=0.0)
     ok = np.isfinite(means).all(axis=1)
     members = (rel > threshold) & (np.asarray(opacities) >= MIN_OPACITY) & ok
-    idx = np.flatnonzero(members)
-    if idx.size < min_members:
+    if int(members.sum()) < min_members:
         return None
-    size = np.asarray(scales, dtype=np.float64)[idx].max(axis=1)
-    link = 1.5 * SIGMAS * float(np.median(size))
-    pairs = cKDTree(means[idx]).query_pairs(link, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(idx.size, idx.size))
-    _, labels = connected_components(graph, directed=False)
-    counts = np.bincount(labels)
-    keep = counts >= max(min_members, min_share * idx.size)
-    if keep.any():
-        idx, size = idx[keep[labels]], size[keep[labels]]
-        members = np.zeros_like(members)
-        members[idx] = True
-    pts = means[idx]
-    lo, hi = np.percentile(pts, 100.0 - percentile, axis=0), np.percentile(pts, percentile, axis=0)
-    centre = 0.5 * (lo + hi)
-    reach = np.linalg.norm(pts - centre, axis=1) + np.minimum(SIGMAS * size, np.percentile(SIGMAS * size, 95.0))
-    radius = float(np.percentile(reach, percentile))
-    return ActionRegion(centre=centre, radius=max(radius, 1e-3), members=members)
+    up = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=np.float64)
+    found = split_instances(means, rel, scales, members, up, foreground=foreground, min_members=min_members,
+                            min_share=min_share)
+    if not 0 <= instance < len(found):
+        return None
+    subject = found[instance]
+    return ActionRegion(centre=subject.centre, radius=subject.radius, members=subject.members,
+                        height=subject.height, instances=tuple(found), index=int(instance))
 
 
 def _segment_mahalanobis(eyes: np.ndarray, target: np.ndarray, means: np.ndarray, whiten: np.ndarray) -> np.ndarray:
@@ -180,28 +179,37 @@ class Framing:
     solid_reach: np.ndarray
     near: float = NEAR_CLIP_M
     max_occlusion: float = MAX_OCCLUSION
-    max_height: float = math.inf
-    max_radius: float = math.inf
+    rig: Optional[RigVolume] = None
+    track: Optional[np.ndarray] = None
 
-    def within_rig(self, camera_positions: np.ndarray) -> "Framing":
-        """Keep framed cameras inside the capture rig: no higher above the action centre and no further
-        from its vertical axis than the highest / furthest rig camera (outside the rig lie the dome's
-        back faces and whatever was never reconstructed). Returns self."""
-        rel = np.atleast_2d(np.asarray(camera_positions, dtype=np.float64)) - self.centre
-        if len(rel):
-            up = self.up / np.linalg.norm(self.up)
-            h = rel @ up
-            self.max_height = float(h.max())
-            self.max_radius = float(np.linalg.norm(rel - h[:, None] * up, axis=1).max())
+    def with_track(self, means_over_time: np.ndarray, *, smooth: float = 3.0) -> "Framing":
+        """Record where the subject is at every timestep: the per-axis median of its Gaussians' centres
+        (``means_over_time`` (T,M,3), the subject's M Gaussians), smoothed over ``smooth`` timesteps
+        (a Gaussian's sigma) so a camera following it does not shake. Returns self."""
+        from scipy.ndimage import gaussian_filter1d
+
+        pts = np.asarray(means_over_time, dtype=np.float64)
+        centres = np.nanmedian(np.where(np.isfinite(pts), pts, np.nan), axis=1)
+        if not np.isfinite(centres).all():
+            return self
+        self.track = gaussian_filter1d(centres, smooth, axis=0, mode="nearest") if len(centres) > 1 else centres
+        return self
+
+    def track_at(self, timesteps: np.ndarray) -> np.ndarray:
+        """(n,3) the subject's (smoothed) centre at fractional ``timesteps`` (n,), linearly interpolated."""
+        t = np.clip(np.asarray(timesteps, dtype=np.float64).reshape(-1), 0.0, len(self.track) - 1.0)
+        return np.stack([np.interp(t, np.arange(len(self.track)), self.track[:, k]) for k in range(3)], axis=1)
+
+    def within_rig(self, rig: Optional[RigVolume]) -> "Framing":
+        """Keep framed cameras inside the volume the capture rig observed (:mod:`.rig_volume`): outside it
+        lie the dome's back faces and whatever was never reconstructed. Returns self."""
+        self.rig = rig
         return self
 
     def outside_rig(self, eyes: np.ndarray) -> np.ndarray:
-        """(K,) how far (metres) each eye lies outside the rig's height and radius (0 inside)."""
-        rel = np.atleast_2d(np.asarray(eyes, dtype=np.float64)) - self.centre
-        up = self.up / np.linalg.norm(self.up)
-        h = rel @ up
-        r = np.linalg.norm(rel - h[:, None] * up, axis=1)
-        return np.maximum(h - self.max_height, 0.0) + np.maximum(r - self.max_radius, 0.0)
+        """(K,) how far (metres) each eye lies outside the rig volume (0 inside, or without a rig)."""
+        eyes = np.atleast_2d(np.asarray(eyes, dtype=np.float64))
+        return np.zeros(len(eyes)) if self.rig is None else self.rig.outside(eyes)
 
     @property
     def centre(self) -> np.ndarray:
@@ -209,17 +217,20 @@ class Framing:
 
     @staticmethod
     def build(means: np.ndarray, rotations: np.ndarray, scales: np.ndarray, opacities: np.ndarray,
-              relevancy: np.ndarray, up: np.ndarray, *, near: float = NEAR_CLIP_M) -> Optional["Framing"]:
+              relevancy: np.ndarray, up: np.ndarray, *, near: float = NEAR_CLIP_M,
+              foreground: Optional[np.ndarray] = None, instance: int = 0) -> Optional["Framing"]:
         """Framing of one timestep, or None when nothing is relevant.
 
         Args:
             means: (N,3); rotations: (N,4) quaternions w,x,y,z; scales: (N,3) standard deviations;
-            opacities: (N,) in [0,1]; relevancy: (N,) in [0,1]; up: (3,).
+            opacities: (N,) in [0,1]; relevancy: (N,) in [0,1]; up: (3,); foreground: (N,) bool or None;
+            instance: which instance of the relevant Gaussians to frame (0: the largest relevancy mass).
         """
         means = np.asarray(means, dtype=np.float64)
         scales = np.maximum(np.nan_to_num(np.asarray(scales, dtype=np.float64), nan=1e-6), 1e-6)
         opacities = np.nan_to_num(np.asarray(opacities, dtype=np.float64), nan=0.0)
-        region = action_region(means, relevancy, scales, opacities)
+        region = action_region(means, relevancy, scales, opacities, up=up, foreground=foreground,
+                               instance=instance)
         if region is None:
             return None
         finite = np.isfinite(means).all(axis=1)

@@ -98,7 +98,7 @@ class Shot:
 
     Attributes:
         name: label from the preset ("context", "zoom", ...).
-        effect: "play" | "zoom_in" | "bullet_time" | "desaturate_background".
+        effect: "play" | "zoom_in" | "bullet_time" | "desaturate_background" | "blur_background".
         frame_start, frame_end: inclusive timeline frames.
         camera_keys: one per frame, in frame order.
         time_keys: one per frame, in frame order.
@@ -152,6 +152,7 @@ class HighlightPlan:
     desaturate: Optional[dict[str, Any]] = None
     messages: list[str] = field(default_factory=list)
     preset: Optional[str] = None
+    blur: Optional[dict[str, Any]] = None
 
     @property
     def effects(self) -> list[str]:
@@ -170,6 +171,7 @@ class HighlightPlan:
             "shots": [s.to_dict() for s in self.shots],
             "passes": {k: [[int(a), int(b)] for a, b in v] for k, v in self.passes.items()},
             "desaturate": _jsonable(self.desaturate),
+            "blur": _jsonable(self.blur),
             "messages": list(self.messages),
             "preset": self.preset,
         }
@@ -207,7 +209,7 @@ class HighlightPlan:
                 frame_start=int(d["frame_start"]), frame_end=int(d["frame_end"]), shots=shots,
                 passes={str(k): [[int(a), int(b)] for a, b in v] for k, v in d.get("passes", {}).items()},
                 desaturate=d.get("desaturate"), messages=[str(m) for m in d.get("messages", [])],
-                preset=d.get("preset"))
+                preset=d.get("preset"), blur=d.get("blur"))
         except InputError as exc:
             if exc.file is None and file is not None:
                 raise InputError(exc.problem, file=file, field=exc.field) from None
@@ -281,6 +283,11 @@ class HighlightPlan:
         if not self.desaturate:
             return 0.0
         return float(self.desaturate.get("weights", {}).get(str(int(frame)), 0.0))
+
+    def blur_weight(self, frame: int) -> float:
+        if not self.blur:
+            return 0.0
+        return float(self.blur.get("weights", {}).get(str(int(frame)), 0.0))
 
 
 def _jsonable(obj: Any) -> Any:

@@ -25,7 +25,9 @@ from .effects import LOCALIZATION_NEEDS, NEED_ACTION_CENTRE, NEED_BEST_VIEW, NEE
 from .framing import Framing, scene_up
 from .plan import CameraKey, HighlightPlan, Shot, TimeKey, merge_ranges
 from .presets import Preset, ShotSpec
+from .rig_volume import RigVolume
 from .shot_context import ShotContext
+from .shot_list import PlannedShot, expand_shots, highlighted_segments
 
 
 class Localizer(Protocol):
@@ -72,9 +74,12 @@ def _find_camera(scene, name: str, t: int):
     raise InputError(f"no camera named {name!r} in scene {scene.name!r} (cameras: {names})", field="camera")
 
 
-def _framing_at(scene, localizer, query: str, t: int, up: np.ndarray, messages: list[str]) -> Optional[Framing]:
-    """The action region and obstacles at timestep ``t`` from the localizer's per-Gaussian relevancy
-    (None, with a message, when the localizer cannot give it or nothing is relevant there)."""
+def subject_framing(scene, localizer, query: str, t: int, up: np.ndarray, messages: list[str], *,
+                instance: int = 0) -> Optional[Framing]:
+    """The framed subject (instance number ``instance`` of the relevant Gaussians, 0: the largest
+    relevancy mass) and obstacles at timestep ``t`` from the localizer's per-Gaussian relevancy, its
+    cameras kept inside the rig volume (None, with a message, when the localizer cannot give it or
+    nothing is relevant there)."""
     relevancy_of = getattr(localizer, "gaussian_relevancy", None)
     g = getattr(scene, "gaussians", None)
     if relevancy_of is None or g is None:
@@ -84,15 +89,28 @@ def _framing_at(scene, localizer, query: str, t: int, up: np.ndarray, messages: 
     rel = np.asarray(rel.detach().cpu().numpy() if hasattr(rel, "detach") else rel, dtype=np.float64).reshape(-1)
     log_scales = np.asarray(g.log_scales[t] if np.ndim(g.log_scales) == 3 else g.log_scales, dtype=np.float64)
     opacities = 1.0 / (1.0 + np.exp(-np.asarray(g.opacity_logits, dtype=np.float64)))
-    framing = Framing.build(np.asarray(g.means[t]), np.asarray(g.rotations[t]), np.exp(log_scales), opacities,
-                            rel, up)
-    if framing is not None and scene.cameras.num_timesteps:
-        framing.within_rig(np.array([c.center for c in scene.cameras.cameras(min(t, scene.cameras.num_timesteps - 1),
-                                                                             "all")]))
-    if framing is None:
+    means = np.asarray(g.means[t])
+    framing = Framing.build(means, np.asarray(g.rotations[t]), np.exp(log_scales), opacities, rel, up,
+                            foreground=getattr(g, "foreground", None), instance=instance)
+    if framing is not None:
+        framing.within_rig(rig_volume(scene, up, t))
+        framing.with_track(np.asarray(g.means[:, np.flatnonzero(framing.region.members)]))
+    if framing is None and instance == 0:
         messages.append(f"no Gaussian is relevant to {query!r} at timestep {t}: the shots follow the best "
                         "view without framing the action region")
     return framing
+
+
+def rig_volume(scene, up: np.ndarray, t: int = 0) -> Optional[RigVolume]:
+    """The volume the scene's training cameras observed at timestep ``t`` (:mod:`.rig_volume`), the floor
+    taken from the Gaussians at ``t``; None without cameras spanning a volume."""
+    if not scene.cameras.num_timesteps:
+        return None
+    t_cam = min(max(int(t), 0), scene.cameras.num_timesteps - 1)
+    cams = scene.cameras.cameras(t_cam, "train") or scene.cameras.cameras(t_cam, "all")
+    g = getattr(scene, "gaussians", None)
+    means = None if g is None else np.asarray(g.means[min(max(int(t), 0), int(g.num_timesteps) - 1)])
+    return RigVolume.build(np.array([c.center for c in cams]), up, gaussian_means=means)
 
 
 def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Preset, *,
@@ -123,7 +141,7 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
     up = scene_up(scene.cameras.cameras(0, "all") if scene.cameras.num_timesteps else [])
     framing = None
     if found.centre is not None and specs and any(NEED_ACTION_CENTRE in needs for _, needs in specs):
-        framing = _framing_at(scene, localizer, query, found.view_t, up, messages)
+        framing = subject_framing(scene, localizer, query, found.view_t, up, messages)
         if framing is not None:
             found.centre = framing.centre
     anchor, anchor_focal = _anchor_camera(scene, found, framing, resolution, preset, up, messages)
@@ -138,14 +156,22 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
                           segment=found.segment, peak=found.peak, action_centre=found.centre, anchor=anchor,
                           anchor_focal=anchor_focal, previous=None, previous_focal=None, camera_pose=camera_pose,
                           up=up, framing=framing, resolution=resolution)
-    shots = _build_shots([spec for spec, _ in specs], context, preset, messages)
-    passes, desaturate = _merge_passes(shots)
+    subjects = [framing] + [subject_framing(scene, localizer, query, found.view_t, up, messages, instance=k)
+                            for k in range(1, min(preset.subjects, len(framing.region.instances)))] \
+        if framing is not None else [None]
+    segments = highlighted_segments(found, preset)
+    planned = expand_shots([spec for spec, _ in specs], subjects, segments, subject_t=found.view_t,
+                           segment_framing=None if framing is None else
+                           (lambda t: subject_framing(scene, localizer, query, t, up, [])))
+    shots = _build_shots(planned, context, preset, messages)
+    passes, desaturate, blur = _merge_passes(shots)
     plan = HighlightPlan(
         scene={"name": scene.name, "path": None if scene.root is None else str(scene.root),
                "num_timesteps": int(scene.num_timesteps), "fps": float(scene.fps)},
-        query=query, localization=_localization_record(found, up, framing), fps=out_fps, resolution=resolution,
+        query=query, localization=_localization_record(found, up, framing, subjects, segments, preset),
+        fps=out_fps, resolution=resolution,
         frame_start=int(preset.frame_start), frame_end=shots[-1].frame_end, shots=shots, passes=passes,
-        desaturate=desaturate, messages=messages, preset=preset.name)
+        desaturate=desaturate, blur=blur, messages=messages, preset=preset.name)
     return plan.validate()
 
 
@@ -270,13 +296,14 @@ def _context_shot(scene, anchor: Optional[Pose], anchor_focal: Optional[float], 
     return [(ShotSpec("context", "play", fallback), set())], anchor, anchor_focal
 
 
-def _build_shots(specs: list[ShotSpec], context: ShotContext, preset: Preset, messages: list[str]) -> list[Shot]:
+def _build_shots(planned: list[PlannedShot], context: ShotContext, preset: Preset, messages: list[str]) -> list[Shot]:
     """The shots one after the other on the timeline, each starting where the previous camera ended."""
     shots: list[Shot] = []
     frame = int(preset.frame_start)
     width = context.resolution[0]
-    for spec in specs:
-        ctx = replace(context, messages=[])
+    for item in planned:
+        spec = item.spec
+        ctx = replace(context, messages=[], **item.overrides)
         effect = get_effect(spec.effect)
         path = effect.build(spec.params, ctx)
         messages.extend(f"{spec.name}: {m}" if not m.startswith(spec.name) else m for m in ctx.messages)
@@ -289,48 +316,63 @@ def _build_shots(specs: list[ShotSpec], context: ShotContext, preset: Preset, me
         for extra in effect.passes(spec.params):
             passes[extra] = [[frame, frame + n - 1]]
         params = dict(path.params)
-        if path.desaturation is not None:
-            on = [f for f, w in zip(frames, path.desaturation) if w > 0]
-            passes["relevancy"] = merge_ranges([[f, f] for f in on])
-            params["desaturation_weights"] = [float(w) for w in path.desaturation]
+        for key, weights in (("desaturation_weights", path.desaturation), ("blur_weights", path.blur)):
+            if weights is not None:
+                on = [f for f, w in zip(frames, weights) if w > 0]
+                passes["relevancy"] = merge_ranges(passes.get("relevancy", []) + [[f, f] for f in on])
+                params[key] = [float(w) for w in weights]
         shots.append(Shot(spec.name, spec.effect, frame, frame + n - 1, keys, times, "linear", params, passes))
         context = replace(context, previous=path.poses[-1], previous_focal=float(path.focals[-1]))
         frame += n
     return shots
 
 
-def _merge_passes(shots: list[Shot]) -> tuple[dict[str, list[list[int]]], Optional[dict[str, Any]]]:
-    """The plan's render passes (each shot's frame ranges merged per pass) and its desaturation (the
-    per-frame weights of every desaturating shot, with the first one's fades and strength)."""
+def _merge_passes(shots: list[Shot]) -> tuple[dict[str, list[list[int]]], Optional[dict[str, Any]],
+                                               Optional[dict[str, Any]]]:
+    """The plan's render passes (each shot's frame ranges merged per pass), its desaturation and its blur
+    (the per-frame weights of every such shot, with the first one's fades and strength; the blur adds
+    its radius)."""
     all_passes: dict[str, list[list[int]]] = {}
     for s in shots:
         for k, ranges in s.passes.items():
             all_passes.setdefault(k, []).extend(ranges)
     all_passes = {k: merge_ranges(v) for k, v in all_passes.items()}
-    weights, first_desat = {}, None
+    return all_passes, _mask_block(shots, "desaturation_weights"), _mask_block(shots, "blur_weights")
+
+
+def _mask_block(shots: list[Shot], key: str) -> Optional[dict[str, Any]]:
+    """The plan's ``desaturate`` or ``blur`` block from the shots' per-frame weights under ``key``."""
+    weights, first = {}, None
     for s in shots:
-        w = s.params.pop("desaturation_weights", None)
+        w = s.params.pop(key, None)
         if w is None:
             continue
-        first_desat = first_desat or s
+        first = first or s
         weights.update({str(f): float(x) for f, x in zip(range(s.frame_start, s.frame_end + 1), w) if x > 0})
     if not weights:
-        return all_passes, None
-    return all_passes, {"ranges": all_passes.get("relevancy", []),
-                        "fade_in": int(first_desat.params["fade_in_frames"]),
-                        "fade_out": int(first_desat.params["fade_out_frames"]),
-                        "strength": float(first_desat.params["strength"]), "weights": weights}
+        return None
+    block = {"ranges": merge_ranges([[int(f), int(f)] for f in weights]),
+             "fade_in": int(first.params["fade_in_frames"]), "fade_out": int(first.params["fade_out_frames"]),
+             "strength": float(first.params["strength"]), "weights": weights}
+    if "radius" in first.params:
+        block["radius"] = float(first.params["radius"])
+    return block
 
 
-def _localization_record(found: _Found, up: np.ndarray, framing: Optional[Framing]) -> dict[str, Any]:
-    """The plan's ``localization`` block."""
+def _localization_record(found: _Found, up: np.ndarray, framing: Optional[Framing], subjects: list,
+                         segments: list[tuple[int, int]], preset: Preset) -> dict[str, Any]:
+    """The plan's ``localization`` block: what was found, the instances the query matches (``instances``,
+    best first, the first ``subjects`` of them framed), and which segments the replays show."""
     temporal, centre = found.temporal, found.centre
+    instances = [] if framing is None else [i.to_dict() for i in framing.region.instances]
     return {
         "found": found.found if temporal is not None else None,
         "message": (temporal.message if temporal is not None else "no localization was needed"),
         "segment": None if found.segment is None else list(found.segment),
         "peak": found.peak,
         "segments": [] if temporal is None else [[int(a), int(b)] for a, b in temporal.segments],
+        "segment_mode": preset.segments,
+        "highlighted_segments": [[int(a), int(b)] for a, b in segments],
         "scores": [] if temporal is None else [float(v) for v in np.asarray(temporal.scores).reshape(-1)],
         "action_centre": None if centre is None else [float(v) for v in centre],
         "best_view": None if found.best_view is None else str(found.best_view),
@@ -339,5 +381,7 @@ def _localization_record(found: _Found, up: np.ndarray, framing: Optional[Framin
         "up": [float(v) for v in up],
         "action_region": None if framing is None else {
             "centre": [float(v) for v in framing.centre], "radius": float(framing.region.radius),
-            "gaussians": int(framing.region.members.sum())},
+            "height": float(framing.region.height), "gaussians": int(framing.region.members.sum())},
+        "instances": instances,
+        "framed_instances": len([f for f in subjects if f is not None]),
     }

@@ -10,10 +10,12 @@ A preset file::
     recentre = true                       # turn the best view so the action centre is mid-frame (§6.1)
     frame_start = 1
     sensor_width_mm = 36.0
+    subjects = 1                          # the framed shots are repeated for each of the first N instances
+    segments = "picked"                   # "all": one replay per positive segment
 
     [[shots]]
     name = "context"
-    effect = "play"                       # play | zoom_in | bullet_time | desaturate_background
+    effect = "play"                       # play | zoom_in | bullet_time | desaturate_background | blur_background
     from = "segment_start"                # + any parameter of the effect (see effects.py)
     from_offset_s = -1.5
 
@@ -27,7 +29,7 @@ from __future__ import annotations
 import math
 import os
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Iterable, Optional, Sequence
 
@@ -39,7 +41,9 @@ _PACKAGE_DIR = Path(__file__).resolve().parent
 REPO_PRESETS = _PACKAGE_DIR.parents[1] / "presets"
 PACKAGED_PRESETS = _PACKAGE_DIR / "presets"
 _TOP_KEYS = {"name", "description", "fps", "resolution", "fov_fit", "recentre", "frame_start",
-             "sensor_width_mm", "shots"}
+             "sensor_width_mm", "subjects", "segments", "shots"}
+#: How many of the instances a query matches get their own framed shots, at most.
+MAX_SUBJECTS = 8
 
 
 @dataclass
@@ -65,6 +69,8 @@ class Preset:
     frame_start: int = 1
     sensor_width_mm: float = 36.0
     source: Optional[str] = None
+    subjects: int = 1
+    segments: str = "picked"
 
     def select_effects(self, keep: Sequence[str] = (), drop: Sequence[str] = ()) -> "Preset":
         """A copy with only the shots whose effect is in ``keep`` (every effect when empty) and not in
@@ -80,9 +86,7 @@ class Preset:
     def with_shots(self, effects: Iterable[str]) -> "Preset":
         """A copy keeping only the shots whose effect is in ``effects``."""
         keep = set(effects)
-        return Preset(self.name, self.description, self.fps, self.resolution,
-                      [s for s in self.shots if s.effect in keep], self.fov_fit, self.recentre,
-                      self.frame_start, self.sensor_width_mm, self.source)
+        return replace(self, shots=[s for s in self.shots if s.effect in keep])
 
 
 def search_dirs(extra: Sequence[str | Path] = ()) -> list[Path]:
@@ -164,6 +168,12 @@ def parse_preset(data: dict[str, Any], *, file: Any = None, default_name: str = 
     sensor = data.get("sensor_width_mm", 36.0)
     if isinstance(sensor, bool) or not isinstance(sensor, (int, float)) or not 1.0 <= sensor <= 200.0:
         raise bad(f"must be a sensor width in millimetres (1..200), got {sensor!r}", "sensor_width_mm")
+    subjects = data.get("subjects", 1)
+    if isinstance(subjects, bool) or not isinstance(subjects, int) or not 1 <= subjects <= MAX_SUBJECTS:
+        raise bad(f"must be a whole number of subjects 1..{MAX_SUBJECTS}, got {subjects!r}", "subjects")
+    segments = data.get("segments", "picked")
+    if segments not in ("picked", "all"):
+        raise bad(f"must be 'picked' or 'all', got {segments!r}", "segments")
     raw_shots = data.get("shots")
     if not isinstance(raw_shots, list) or not raw_shots:
         raise bad("needs at least one [[shots]] table", "shots")
@@ -173,7 +183,7 @@ def parse_preset(data: dict[str, Any], *, file: Any = None, default_name: str = 
         if not isinstance(raw, dict):
             raise bad("must be a table", where)
         if "effect" not in raw:
-            raise bad("missing 'effect' (play, zoom_in, bullet_time, desaturate_background)", f"{where}.effect")
+            raise bad(f"missing 'effect' (one of {', '.join(EFFECTS)})", f"{where}.effect")
         effect = get_effect(raw["effect"] if isinstance(raw["effect"], str) else repr(raw["effect"]),
                             file=file, field=f"{where}.effect")
         label = raw.get("name", effect.name)
@@ -184,4 +194,5 @@ def parse_preset(data: dict[str, Any], *, file: Any = None, default_name: str = 
         shots.append(ShotSpec(label, effect.name, effect.resolve(raw, where, file)))
     return Preset(name=name, description=description, fps=float(fps), resolution=(res[0], res[1]),
                   shots=shots, fov_fit=fov_fit, recentre=recentre, frame_start=frame_start,
-                  sensor_width_mm=float(sensor), source=None if file is None else str(file))
+                  sensor_width_mm=float(sensor), source=None if file is None else str(file), subjects=subjects,
+                  segments=segments)

@@ -2,8 +2,8 @@
 
 Each tile is rendered at the shot's camera key and scene time; a fractional timestep linearly blends
 the Gaussian means (and per-timestep colours/scales) of the two neighbouring timesteps and
-normalized-lerps their rotations. Frames the plan desaturates show the desaturation (relevancy from
-the localizer, at the nearest timestep) — the only frames for which relevancy is computed unless
+normalized-lerps their rotations. Frames the plan desaturates or blurs show it (relevancy from the
+localizer, at the nearest timestep) — the only frames for which relevancy is computed unless
 ``overlay`` asks for a relevancy heat overlay on every tile. The action centre is marked with a cross.
 """
 from __future__ import annotations
@@ -21,7 +21,7 @@ from ..scene.gaussians import GaussianFrame
 from .plan import CameraKey, HighlightPlan
 
 EFFECT_COLOURS = {"play": "#9e9e9e", "zoom_in": "#00bcd4", "bullet_time": "#ff9800",
-                  "desaturate_background": "#e040fb"}
+                  "desaturate_background": "#e040fb", "blur_background": "#7c4dff"}
 
 
 def frame_at(gaussians, timestep: float, device: str = "cpu") -> GaussianFrame:
@@ -75,6 +75,19 @@ def desaturate(rgb: np.ndarray, relevancy: np.ndarray, weight: float) -> np.ndar
     return rgb * (1.0 - k) + luma[..., None] * k
 
 
+def blur_background(rgb: np.ndarray, relevancy: np.ndarray, weight: float, radius: float) -> np.ndarray:
+    """Blur the background: lerp(rgb, gaussian_blur(rgb, weight * radius * H), 1 - relevancy).
+    (H,W,3),(H,W) -> (H,W,3); ``radius`` is a fraction of the image height."""
+    from scipy.ndimage import gaussian_filter
+
+    sigma = float(weight) * float(radius) * rgb.shape[0]
+    if sigma <= 0:
+        return rgb
+    blurred = gaussian_filter(rgb, sigma=(sigma, sigma, 0.0), mode="nearest")
+    k = np.clip(1.0 - np.clip(relevancy, 0.0, 1.0), 0.0, 1.0)[..., None]
+    return rgb * (1.0 - k) + blurred * k
+
+
 def render_tiles(scene, plan: HighlightPlan, *, localizer: Any = None, overlay: bool = False, per_shot: int = 4,
                  width: int = 320, background=(0.0, 0.0, 0.0)) -> list[dict[str, Any]]:
     """Render the sampled frames. Returns one dict per tile: image (H,W,3) in [0,1], relevancy or None,
@@ -92,13 +105,15 @@ def render_tiles(scene, plan: HighlightPlan, *, localizer: Any = None, overlay: 
         with torch.no_grad():
             rgb = render_frame(g, cam, outputs=("rgb",), background=torch.tensor(background, dtype=torch.float32))["rgb"]
         img = np.clip(np.nan_to_num(rgb.detach().cpu().numpy().astype(np.float64)), 0.0, 1.0)
-        weight = plan.desaturation_weight(frame)
+        weight, blur = plan.desaturation_weight(frame), plan.blur_weight(frame)
         rel = None
-        if localizer is not None and (weight > 0 or overlay):
+        if localizer is not None and (weight > 0 or blur > 0 or overlay):
             out = localizer.relevancy_map(plan.query, cam, int(round(t)), outputs=("relevancy",))
             rel = np.asarray(out["relevancy"].detach().cpu().numpy() if torch.is_tensor(out["relevancy"])
                              else out["relevancy"], dtype=np.float64).reshape(cam.height, cam.width)
             rel = np.clip(np.nan_to_num(rel), 0.0, 1.0)
+            if blur > 0:
+                img = blur_background(img, rel, blur, float((plan.blur or {}).get("radius", 0.02)))
             if weight > 0:
                 img = desaturate(img, rel, weight)
         uv = None
@@ -107,7 +122,7 @@ def render_tiles(scene, plan: HighlightPlan, *, localizer: Any = None, overlay: 
             if z[0] > 0 and np.all(np.isfinite(p)):
                 uv = p[0]
         tiles.append({"image": img, "relevancy": rel if overlay else None, "shot": shot.name,
-                      "effect": shot.effect, "frame": frame, "timestep": float(t), "weight": weight,
+                      "effect": shot.effect, "frame": frame, "timestep": float(t), "weight": weight, "blur": blur,
                       "centre_uv": uv})
     return tiles
 
@@ -151,6 +166,8 @@ def write_contact_sheet(path: str | Path, scene, plan: HighlightPlan, *, localiz
             label = f"{t['shot']} ({t['effect']})  f{t['frame']}  t={t['timestep']:.1f}"
             if t["weight"] > 0:
                 label += f"  desat {t['weight']:.2f}"
+            if t.get("blur", 0) > 0:
+                label += f"  blur {t['blur']:.2f}"
             ax.set_title(label, fontsize=7)
     loc = plan.localization
     seg = loc.get("segment")

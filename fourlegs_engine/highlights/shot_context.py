@@ -83,6 +83,7 @@ class ShotPath:
     timesteps: np.ndarray
     params: dict[str, Any]
     desaturation: Optional[np.ndarray] = None  # (n,) weights in [0,1] or None
+    blur: Optional[np.ndarray] = None  # (n,) blur weights in [0,1] or None
 
     def __post_init__(self) -> None:
         n = len(self.poses)

@@ -82,7 +82,7 @@ def score(scene: Any, phrase: str, masks: Path, held_out: list[Any], scale: floa
     from fourlegs_engine.language.annotations import read_mask
     from fourlegs_engine.pipeline import QueryOptions, open_query_engine
 
-    engine = open_query_engine(scene, options=QueryOptions(spatial="fast"))
+    engine = open_query_engine(scene, options=QueryOptions.exact(spatial="fast"))
     vious, vaps = [], []
     for t in range(scene.num_timesteps):
         ious, aps = [], []

@@ -31,9 +31,9 @@ def config_hash(config: dict[str, Any]) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 
-def parse_timesteps(spec: str | None, num_timesteps: int) -> list[int]:
+def parse_timesteps(spec: str | None, num_timesteps: int, field: str = "--timesteps") -> list[int]:
     """``None``/``""`` -> all; ``"a:b"`` -> a..b-1 (python slice, negatives allowed); ``"a,b,c"`` -> list;
-    ``"a:b:s"`` -> with step s."""
+    ``"a:b:s"`` -> with step s. ``field`` names the option in an InputError."""
     if not spec:
         return list(range(num_timesteps))
     spec = spec.strip()
@@ -46,12 +46,12 @@ def parse_timesteps(spec: str | None, num_timesteps: int) -> list[int]:
         else:
             steps = sorted({int(p) for p in spec.split(",") if p.strip()})
     except ValueError:
-        raise InputError(f"cannot parse {spec!r}; use a:b, a:b:step or a,b,c", field="--timesteps") from None
+        raise InputError(f"cannot parse {spec!r}; use a:b, a:b:step or a,b,c", field=field) from None
     bad = [t for t in steps if not 0 <= t < num_timesteps]
     if bad:
-        raise InputError(f"timestep {bad[0]} is out of range 0..{num_timesteps - 1}", field="--timesteps")
+        raise InputError(f"timestep {bad[0]} is out of range 0..{num_timesteps - 1}", field=field)
     if not steps:
-        raise InputError(f"{spec!r} selects no timestep of 0..{num_timesteps - 1}", field="--timesteps")
+        raise InputError(f"{spec!r} selects no timestep of 0..{num_timesteps - 1}", field=field)
     return steps
 
 

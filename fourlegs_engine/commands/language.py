@@ -244,11 +244,17 @@ def run_train_ae(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report, indent=2))
     else:
-        held = report.get("heldout_cosine")
-        print(f"train-ae: {'already trained' if report.get('skipped') else 'trained'}; reconstruction cosine "
-              f"held-out view {held if held is None else round(held, 4)}, training views "
-              f"{report.get('train_cosine', float('nan')):.4f}")
+        print(f"train-ae: {'already trained' if report.get('skipped') else 'trained'}; reconstruction cosine: "
+              f"{heldout_text(report)}, training views {report.get('train_cosine', float('nan')):.4f}")
     return 0
+
+
+def heldout_text(report: dict) -> str:
+    """The autoencoder report's held-out reconstruction cosine in words (which camera, or why none)."""
+    cosine, camera = report.get("heldout_cosine"), report.get("heldout_camera")
+    if cosine is not None:
+        return f"held-out camera {camera} cosine {cosine:.4f}"
+    return f"no held-out cosine: {report.get('heldout_note') or 'the held-out camera has no evidence'}"
 
 
 def run_distill(args: argparse.Namespace) -> int:
@@ -304,7 +310,7 @@ def run_language(args: argparse.Namespace) -> int:
         result = distill_scene(scene, config=_distill_options(args), overwrite=args.overwrite, progress=progress)
     t3 = time.perf_counter()
     print(f"language: extract {t1 - t0:.1f} s ({len(rep.timesteps_done)} new), train-ae {t2 - t1:.1f} s "
-          f"(held-out cosine {ae.get('heldout_cosine')}), distill {t3 - t2:.1f} s; latents: {result.latents}")
+          f"({heldout_text(ae)}), distill {t3 - t2:.1f} s; latents: {result.latents}")
     return 0
 
 

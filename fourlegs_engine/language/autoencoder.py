@@ -214,6 +214,9 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
               "heldout_samples": int(x_held.shape[0]),
               "train_cosine": reconstruction_cosine(model, x_train[:config.heldout_samples]),
               "heldout_cosine": reconstruction_cosine(model, x_held) if x_held.shape[0] else None,
+              "heldout_note": "" if x_held.shape[0] else (
+                  "no camera to hold out (one training camera)" if holdout is None else
+                  f"held-out camera {holdout} has no evidence (no camera but those trained on has any)"),
               "sample_seconds": sample_seconds, "seconds": time.perf_counter() - start,
               "encoder": ENCODER_FILE, "decoder": DECODER_FILE}
     with atomic_path(root / ENCODER_FILE) as tmp:
@@ -250,12 +253,30 @@ def _training_data(scene: Any, store: Any, config: AETrainOptions, steps: list[i
     held-out camera, and its index (None with a single camera)."""
     num_cams = scene.cameras.num_cameras(store.config.get("split", "train"))
     holdout = config.holdout_camera % num_cams if num_cams > 1 else None
+    if holdout is not None and config.holdout_camera == -1:
+        holdout = _last_camera_with_evidence(scene, store, steps, num_cams)
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, 0xAE]))
     train_views = [(t, c) for t in steps for c in range(num_cams) if c != holdout]
     held_views = [(t, holdout) for t in steps] if holdout is not None else []
     x_train = _sample_pixel_features(scene, store, train_views, config.samples, rng)
     x_held = _sample_pixel_features(scene, store, held_views, config.heldout_samples, rng)
     return x_train, x_held, holdout
+
+
+HOLDOUT_PROBES = 8  # timesteps looked at to find a camera with evidence to hold out
+
+
+def _last_camera_with_evidence(scene: Any, store: Any, steps: list[int], num_cams: int) -> int:
+    """The default held-out camera: the last one, or when it has no evidence (annotation masks of other
+    cameras only) the last camera with evidence at a few spread timesteps; the last one when none has any."""
+    from .extract import load_step_features, view_has_evidence
+
+    probes = steps[::max(1, -(-len(steps) // HOLDOUT_PROBES))] if steps else []
+    loaded = [load_step_features(scene, store, t) for t in probes]
+    for camera in range(num_cams - 1, -1, -1):
+        if any(view_has_evidence(feats, offsets[camera]) for feats, _, offsets in loaded):
+            return camera
+    return num_cams - 1
 
 
 def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: torch.Tensor, config: AETrainOptions,

@@ -258,7 +258,8 @@ class QueryEngine:
         return viewpoint.best_view_confirmed(cams, relevancy_of, t, self.options.view_confirm)
 
     def action_centre(self, query: str, t: int, camera: Camera) -> CentreResult:
-        """2D centre of mass of the relevancy map, lifted to 3D with the rendered depth; plus the bbox."""
+        """Centre of mass of the best relevant component of the relevancy map, lifted to 3D with the rendered
+        depth; plus that component's box (the centre lies inside it)."""
         self.stats["action_centre"] += 1
         return self.maps.action_centre(self.relevancy_map(query, camera, t), camera, t)
 

@@ -111,17 +111,27 @@ def _open(args: argparse.Namespace, inputs: QueryInputs):
 
 @contextmanager
 def stage_bar(desc: str) -> Iterator[Callable[[float, str], None]]:
-    """A tqdm bar (percent, current stage) on stderr for a ``progress(fraction, stage)`` callback."""
+    """A tqdm bar (percent, current stage) for a ``progress(fraction, stage)`` callback: on a terminal's
+    stderr, once the work has taken half a second, and erased when done (a log or an error keeps its one
+    line)."""
+    import sys
+
     from tqdm import tqdm
 
+    terminal = bool(getattr(sys.stderr, "isatty", lambda: False)())
     bar = tqdm(total=100, desc=desc, bar_format="{desc}: {percentage:3.0f}%|{bar:20}| {elapsed} {postfix}",
-               leave=False)
+               leave=False, delay=0.5, disable=not terminal, file=sys.stderr)
+
+    shown = {"stage": "", "done": 0}
 
     def report(fraction: float, stage: str) -> None:
         done = int(round(100 * min(max(fraction, 0.0), 1.0)))
-        if stage and stage != bar.postfix:
+        if stage and stage != shown["stage"]:
+            shown["stage"] = stage
             bar.set_postfix_str(stage, refresh=False)
-        bar.update(max(0, done - bar.n))
+        if done > shown["done"]:
+            bar.update(done - shown["done"])
+            shown["done"] = done
 
     try:
         yield report

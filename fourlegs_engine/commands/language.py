@@ -110,7 +110,12 @@ def _ae_arguments(p: argparse.ArgumentParser, epochs: int = 4) -> None:
     g.add_argument("--samples", type=int, default=32768, help="pixel features sampled for training (default 32768)")
     g.add_argument("--ae-batch-size", type=int, default=1024, help="training batch size (default 1024)")
     g.add_argument("--lr", type=float, default=7e-4, help="Adam learning rate (default 7e-4)")
-    g.add_argument("--holdout-camera", type=int, default=-1, help="training camera held out (default the last)")
+    g.add_argument("--holdout-camera", type=int, default=-1,
+                   help="training camera held out (default the last one with evidence)")
+    g.add_argument("--ae-balance", choices=("auto", "directions", "none"), default="auto",
+                   help="training sample: an equal share per cluster of feature directions, so a small object's "
+                        "label is learnt (directions), or uniform over pixels (none); auto: directions for "
+                        "annotation masks, else none")
     g.add_argument("--seed", type=int, default=0)
 
 
@@ -180,7 +185,7 @@ def _encoder(args: argparse.Namespace, scene: Any):
 def _ae_options(args: argparse.Namespace):
     from ..language.autoencoder import AETrainOptions
     return AETrainOptions(epochs=args.epochs, samples=args.samples, batch_size=args.ae_batch_size, lr=args.lr,
-                         holdout_camera=args.holdout_camera, seed=args.seed)
+                         holdout_camera=args.holdout_camera, seed=args.seed, balance=args.ae_balance)
 
 
 def _distill_options(args: argparse.Namespace):

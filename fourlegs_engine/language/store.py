@@ -26,7 +26,7 @@ _STEP_FILE = re.compile(r"^t(\d{6})\.npy$")
 ROWS_SUFFIX = ".rows.npy"
 _ROWS_FILE = re.compile(r"^t(\d{6})\.rows\.npy$")
 #: a timestep whose share of all-zero rows is at least this is stored without them
-SPARSE_ZERO_SHARE = 0.5
+SPARSE_ZERO_SHARE = 0.25
 
 
 def step_file_names(directory: Path, t: int) -> list[str]:

@@ -410,6 +410,19 @@ def test_unannotated_views_cost_no_storage_and_the_held_out_camera_has_masks(tmp
     assert f"held-out camera {held} cosine {report['heldout_cosine']:.4f}" in out and "None" not in out
     assert "query index (codebook K=4096) ready" in out  # the default query path's index, built with the field
     assert (full.root / "language" / "codebook_4096.npz").is_file()
+    from fourlegs_bench.ae_directions import round_trip_relevancy
+
+    from fourlegs_engine.language.autoencoder import DECODER_FILE, ENCODER_FILE, load_decoder, load_encoder
+
+    rows = round_trip_relevancy(full.root)  # what the autoencoder makes of the phrase's own feature
+    assert [(r["phrase"], r["coverage"]) for r in rows] == [("a person", 0.34), ("a person", 1.0)]
+    feature = phrase_embedding("a person")  # full coverage: the phrase's own embedding
+    with torch.no_grad():
+        back = load_decoder(full.root / DECODER_FILE)(load_encoder(full.root / ENCODER_FILE)(
+            torch.tensor(feature[None], dtype=torch.float32)))[0].double().numpy()
+    assert rows[1]["cosine"] == pytest.approx(float(back @ feature / np.linalg.norm(back)), abs=1e-5)
+    assert all(r["before"]["a person"] > 0.9 and 0 <= r["after"]["a person"] <= 1 and r["balance"] == "directions"
+               for r in rows)
 
 
 def test_balanced_sample_gives_a_rare_direction_an_equal_share():

@@ -285,10 +285,15 @@ def _timesteps_of_frames(values: list[str], scene) -> list[int]:
     ``a:b:step``, or ``a,b,c``), each checked against T."""
     from ..language.store import parse_timesteps
 
+    from ..errors import InputError
+
     out: list[int] = []
     for f in values:
-        if f != "peak":
-            out += parse_timesteps(f, scene.num_timesteps, field="--frames")
+        if f == "peak":
+            continue
+        if not any(c in f for c in ":,") and not f.strip().lstrip("-").isdigit():
+            raise InputError(f"{f!r} is neither a timestep nor 'peak'", field="--frames")
+        out += parse_timesteps(f, scene.num_timesteps, field="--frames")
     return out
 
 

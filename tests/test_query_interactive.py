@@ -159,3 +159,27 @@ def test_default_path_answers_as_the_exact_path_on_the_real_capture(tmp_path):
     for q, want in zip(queries, exact):
         got = fast.temporal(q)
         assert (got.segments, got.peak) == (want.segments, want.peak), q
+
+
+def test_query_progress_bar_only_on_a_terminal(monkeypatch):
+    import io
+    import sys
+    import time
+
+    from fourlegs_engine.commands.query import stage_bar
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    for terminal, shown in ((Terminal(), True), (io.StringIO(), False)):
+        monkeypatch.setattr(sys, "stderr", terminal)
+        with stage_bar("query") as report:
+            report(0.0, "scoring timesteps")
+            time.sleep(0.6)  # the bar appears once the work has taken half a second
+            report(0.5, "scoring timesteps")
+            time.sleep(0.2)  # tqdm redraws at most every 0.1 s
+            report(0.75, "rendering the views")
+        text = terminal.getvalue()
+        assert ("75%" in text and "rendering the views" in text) == shown, text
+        assert shown or text == ""

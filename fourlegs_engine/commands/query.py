@@ -119,7 +119,7 @@ def stage_bar(desc: str) -> Iterator[Callable[[float, str], None]]:
     from tqdm import tqdm
 
     terminal = bool(getattr(sys.stderr, "isatty", lambda: False)())
-    bar = tqdm(total=100, desc=desc, bar_format="{desc}: {percentage:3.0f}%|{bar:20}| {elapsed} {postfix}",
+    bar = tqdm(total=100, desc=desc, bar_format="{desc}: {percentage:3.0f}%|{bar:20}| {elapsed}{postfix}",
                leave=False, delay=0.5, disable=not terminal, file=sys.stderr)
 
     shown = {"stage": "", "done": 0}

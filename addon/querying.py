@@ -28,11 +28,11 @@ def encoder_config(props: Any = None) -> Any:
 
 
 def default_options() -> Any:
-    """The query options the ``fourlegs highlight`` command (and the headless job) uses by default: fast
-    (1-channel) spatial maps, the rest the engine's defaults."""
+    """The query options of the panel: the engine's defaults (those of ``fourlegs query`` and ``fourlegs
+    highlight``: the codebook path with exact re-scoring, fast maps, the best view confirmed)."""
     from fourlegs_engine import api
 
-    return api.QueryOptions(spatial="fast")
+    return api.QueryOptions()
 
 
 def open_query_engine(scene: Any, options: Optional[Any] = None, encoder: Optional[Any] = None,

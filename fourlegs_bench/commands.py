@@ -172,6 +172,18 @@ def _add_query(bench_subparsers: Any) -> None:
     s.add_argument("--json", metavar="PATH", help="write the results as JSON")
     s.add_argument("--overwrite", action="store_true")
     s.set_defaults(func=_bench_query_speed)
+    i = bench_subparsers.add_parser(
+        "query-interactive", help="the default query path on one scene: index build, first and later answer, "
+                                  "and the exact path's segments, peak and best view beside them",
+        description="Time the one-time index build (the codebook stored with the field), each query's first and "
+                    "later answer on the default path in one engine (wall and CPU seconds), then the exact path's "
+                    "answers, and report whether segments, peak and best view agree.")
+    i.add_argument("scene", help="bundle directory with a language field")
+    i.add_argument("queries", nargs="+", help="query texts")
+    i.add_argument("--rebuild-index", action="store_true", help="delete the stored codebook first (times the build)")
+    i.add_argument("--no-exact", action="store_true", help="skip the exact path's comparison")
+    i.add_argument("--json", metavar="PATH", help="write the report as JSON")
+    i.set_defaults(func=_bench_query_interactive)
 
 
 def _add_distill(bench_subparsers: Any) -> None:
@@ -300,6 +312,13 @@ def _bench_accuracy_time(args: argparse.Namespace) -> int:
 def _bench_query_speed(args: argparse.Namespace) -> int:
     from .query_speed import run_query_speed_cli
     return run_query_speed_cli(args)
+
+
+def _bench_query_interactive(args: argparse.Namespace) -> int:
+    from .query_interactive import run_query_interactive
+    run_query_interactive(args.scene, args.queries, exact=not args.no_exact, rebuild_index=args.rebuild_index,
+                          out=args.json)
+    return 0
 
 
 def _bench_distill(args: argparse.Namespace) -> int:

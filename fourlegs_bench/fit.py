@@ -90,9 +90,10 @@ def parse_runs(text: str) -> list[tuple[str, dict[str, Any]]]:
 class _Timer:
     """Progress callback recording wall and CPU seconds of every finished timestep."""
 
-    def __init__(self):
+    def __init__(self, name: str = "", total: int = 0):
         self.wall0, self.cpu0 = time.perf_counter(), time.process_time()
         self.per_timestep: dict[int, dict[str, float]] = {}
+        self.name, self.total = name, total
 
     def __call__(self, ev) -> None:
         if ev.kind != "timestep" or ev.resumed:
@@ -101,6 +102,9 @@ class _Timer:
         self.per_timestep[ev.timestep] = {"wall_s": wall - self.wall0, "cpu_s": cpu - self.cpu0,
                                           "train_psnr": ev.train_psnr}
         self.wall0, self.cpu0 = wall, cpu
+        rec = self.per_timestep[ev.timestep]
+        print(f"[bench fit] {self.name}: timestep {ev.timestep} fitted ({len(self.per_timestep)}/{self.total}) in "
+              f"{rec['wall_s']:.1f} s ({rec['cpu_s']:.1f} CPU s), training PSNR {ev.train_psnr:.2f} dB", flush=True)
 
 
 def bench_fit(args: argparse.Namespace) -> int:
@@ -127,7 +131,7 @@ def bench_fit(args: argparse.Namespace) -> int:
         opts = replace(FitOptions(resolution_scale=args.resolution_scale), timesteps=(steps.start, steps.stop), **knobs)
         scene_dir = out / "scenes" / name
         timing_path = out / "scenes" / f"{name}.timing.json"
-        timer = _Timer()
+        timer = _Timer(name, len(steps))
         if not is_bundle(scene_dir):
             print(f"[bench fit] {name}: fitting timesteps {steps.start}:{steps.stop} with {knobs or 'defaults'}",
                   flush=True)

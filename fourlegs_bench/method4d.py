@@ -42,7 +42,7 @@ class FourLegsMethod:
         if field is None:
             scene, field, _ = scene_with_field(scene, context.video_encoder, progress=context.progress)
         prebuilt = {k: engine_options.pop(k) for k in ("codebook", "codebook_dir") if k in engine_options}
-        self.engine = QueryEngine(scene, field, context.text_encoder, QueryOptions(**engine_options), **prebuilt)
+        self.engine = QueryEngine(scene, field, context.text_encoder, QueryOptions.exact(codebook_refine=0.0).replace(**engine_options), **prebuilt)
         self.queries = list(context.queries)
         self._temporal = None
         self._maps: dict[int, np.ndarray] = {}

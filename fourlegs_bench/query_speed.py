@@ -183,7 +183,7 @@ def run_query_speed(*, gaussians: int, timesteps: int, codebook_sizes: list[int]
             report["rows"].append({"path": name, "levels": levels, "build_s": build, **row})
             _print_row(report["rows"][-1])
     steps = T if exact_timesteps <= 0 else min(T, int(exact_timesteps))
-    eng = QueryEngine(scene, field, text, QueryOptions(path="exact"))
+    eng = QueryEngine(scene, field, text, QueryOptions.exact())
     eng.embed_query(QUERY)
     eng.reference_embeddings()
     t0 = time.perf_counter()
@@ -220,7 +220,7 @@ def _spatial_timings(size: str, text, repeats: int, workdir: Path) -> list[dict]
     t = scene.num_timesteps // 2
     rows = []
     for path, fast in (("fast", True), ("exact", False)):
-        eng = QueryEngine(scene, field, text, QueryOptions(spatial="fast" if fast else "exact"))
+        eng = QueryEngine(scene, field, text, QueryOptions.exact(spatial="fast" if fast else "exact"))
         eng.relevancy_map(QUERY, cam, t)  # warm-up: text embeddings, background relevancy
         sec, times, maps = _time(lambda: eng.relevancy_map(QUERY, cam, t), max(1, min(repeats, 3)))
         rows.append({"path": path, "seconds": sec, "times_s": times, "width": cam.width, "height": cam.height,

@@ -60,7 +60,7 @@ def write_tiled_latents(path: Path, source_latents: Any, T: int, N: int) -> np.n
 def exact_tiled_answers(scene: Any, field: Any, encoder: Any, queries: Sequence[str], T: int, N: int,
                         dilation: int = 1) -> dict[str, Any]:
     """The exact path's answer on the tiled field, per query, from the scene's exact scores."""
-    eng = QueryEngine(scene, field, encoder, QueryOptions(path="exact", dilation=dilation))
+    eng = QueryEngine(scene, field, encoder, QueryOptions.exact(dilation=dilation))
     eng.temporal_many(list(queries))  # decodes each latent once and keeps every query's scores
     T0, N0 = scene.num_timesteps, scene.num_gaussians
     src = source_timesteps(T0, T)

@@ -40,7 +40,14 @@ def register_bench(bench_sub: Any) -> None:
     p.add_argument("--phrase", default="a person", help="the masks' phrase (default 'a person')")
     p.add_argument("--sizes", default="4,8,16,23", help="training-camera subset sizes (default 4,8,16,23)")
     p.add_argument("--held-out", type=int, default=4, help="training cameras kept for scoring (default 4)")
-    p.add_argument("--timesteps", type=int, default=3, help="first timesteps of the scene used (default 3)")
+    p.add_argument("--timesteps", type=int, default=3, help="timesteps of the scene used (default 3)")
+    p.add_argument("--first-timestep", type=int, default=0,
+                   help="the first of them (default 0; e.g. 56 for the ball's flight in the basketball capture)")
+    p.add_argument("--evidence", choices=("train", "train+held-out", "both"), default="train",
+                   help="lift from the training subset's masks, also from the held-out cameras' own masks (more "
+                        "evidence: their score must not drop), or both rows (default train)")
+    p.add_argument("--ae-balance", default="auto", choices=("auto", "directions", "none"),
+                   help="the autoencoder's training sample (AETrainOptions.balance; comma lists not taken)")
     p.add_argument("--modes", default="lift,lift+refine,optimize", help="distillation modes (default all three)")
     p.add_argument("--iterations", type=int, default=20, help="refine/optimize iterations per timestep (default 20)")
     p.add_argument("--view-scale", type=float, default=0.5, help="distillation views at this scale (default 0.5)")
@@ -51,8 +58,23 @@ def register_bench(bench_sub: Any) -> None:
     p.set_defaults(func=run)
 
 
-def subset_bundle(source: Path, target: Path, train: list[Any], held_out: list[Any], timesteps: int) -> Any:
-    """Write the first ``timesteps`` of ``source`` with ``train`` as training and ``held_out`` as test cameras."""
+def shifted_masks(masks: Path, first: int, count: int, target: Path) -> Path:
+    """``masks`` ({camera}/{t:06d}.png) seen from timestep ``first`` on: links named from 0 in ``target``."""
+    if first == 0:
+        return masks
+    for cam in sorted(p for p in masks.iterdir() if p.is_dir()):
+        (target / cam.name).mkdir(parents=True, exist_ok=True)
+        for t in range(count):
+            src, dst = cam / f"{first + t:06d}.png", target / cam.name / f"{t:06d}.png"
+            if src.is_file() and not dst.exists():
+                dst.symlink_to(src.resolve())
+    return target
+
+
+def subset_bundle(source: Path, target: Path, train: list[Any], held_out: list[Any], timesteps: int,
+                  first: int = 0) -> Any:
+    """Write ``timesteps`` of ``source`` from ``first`` on with ``train`` as training and ``held_out`` as test
+    cameras."""
     from fourlegs_engine.scene.bundle import load_bundle, write_bundle
     from fourlegs_engine.scene.camera import CameraRig
     from fourlegs_engine.scene.gaussians import GaussianSequence
@@ -60,14 +82,16 @@ def subset_bundle(source: Path, target: Path, train: list[Any], held_out: list[A
 
     scene = load_bundle(source)
     g = scene.gaussians
-    T = min(int(timesteps), g.num_timesteps)
+    a = min(max(0, int(first)), g.num_timesteps - 1)
+    T = min(int(timesteps), g.num_timesteps - a)
+    span = slice(a, a + T)
 
-    seq = GaussianSequence(means=np.asarray(g.means[:T]), rotations=np.asarray(g.rotations[:T]),
-                           log_scales=np.asarray(g.log_scales[:T]) if np.ndim(g.log_scales) == 3 else np.asarray(g.log_scales),
+    seq = GaussianSequence(means=np.asarray(g.means[span]), rotations=np.asarray(g.rotations[span]),
+                           log_scales=np.asarray(g.log_scales[span]) if np.ndim(g.log_scales) == 3 else np.asarray(g.log_scales),
                            opacity_logits=np.asarray(g.opacity_logits),
-                           colors=None if g.colors is None else (np.asarray(g.colors[:T]) if np.ndim(g.colors) == 3
+                           colors=None if g.colors is None else (np.asarray(g.colors[span]) if np.ndim(g.colors) == 3
                                                                  else np.asarray(g.colors)),
-                           sh=None if g.sh is None else (np.asarray(g.sh[:T]) if np.ndim(g.sh) == 4 else np.asarray(g.sh)),
+                           sh=None if g.sh is None else (np.asarray(g.sh[span]) if np.ndim(g.sh) == 4 else np.asarray(g.sh)),
                            foreground=None if g.foreground is None else np.asarray(g.foreground))
     sub = Scene(gaussians=seq, cameras=CameraRig.static(train, held_out, T), name=scene.name, fps=scene.fps)
     return load_bundle(write_bundle(sub, target, overwrite=True))
@@ -82,7 +106,7 @@ def score(scene: Any, phrase: str, masks: Path, held_out: list[Any], scale: floa
     from fourlegs_engine.language.annotations import read_mask
     from fourlegs_engine.pipeline import QueryOptions, open_query_engine
 
-    engine = open_query_engine(scene, options=QueryOptions(spatial="fast"))
+    engine = open_query_engine(scene, options=QueryOptions.exact(spatial="fast"))
     vious, vaps = [], []
     for t in range(scene.num_timesteps):
         ious, aps = [], []
@@ -126,15 +150,19 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"largest subset {max(sizes)} > {len(pool)} cameras left after holding out "
                          f"{len(held_out)}", field="--sizes")
     rows: list[dict[str, Any]] = []
-    for size in sizes:
+    masks = shifted_masks(masks, args.first_timestep, args.timesteps, work / f"masks_from_{args.first_timestep}")
+    evidences = ("train", "train+held-out") if args.evidence == "both" else (args.evidence,)
+    for size, evidence in ((s_, e) for s_ in sizes for e in evidences):
         train = [pool[i] for i in np.linspace(0, len(pool) - 1, size).round().astype(int)]
-        scene = subset_bundle(source, work / f"cams{size}", train, held_out, args.timesteps)
+        lifted_from = train + (held_out if evidence == "train+held-out" else [])
+        scene = subset_bundle(source, work / f"cams{size}_{evidence}", lifted_from, held_out, args.timesteps,
+                              args.first_timestep)
         encoder = AnnotationMaskEncoder({args.phrase: str(masks)})
         s = time.perf_counter()
         extract_features(scene, encoder, overwrite=True)
         extract_s = time.perf_counter() - s
         s = time.perf_counter()
-        train_autoencoder(scene, AETrainOptions(epochs=args.ae_epochs), overwrite=True)
+        ae = train_autoencoder(scene, AETrainOptions(epochs=args.ae_epochs, balance=args.ae_balance), overwrite=True)
         ae_s = time.perf_counter() - s
         for mode in modes:
             s = time.perf_counter()
@@ -143,16 +171,18 @@ def run(args: argparse.Namespace) -> int:
             distill_s = time.perf_counter() - s
             scene = load_bundle(scene.root)
             vious, vaps = score(scene, args.phrase, masks, held_out, args.score_scale)
-            row = {"cameras": size, "mode": mode, "iterations": 0 if mode == "lift" else args.iterations,
+            row = {"cameras": size, "evidence": evidence, "ae_balance": ae.get("balance", "none"),
+                   "mode": mode, "iterations": 0 if mode == "lift" else args.iterations,
                    "viou_per_t": vious, "vap_per_t": vaps, "viou": float(np.mean(vious)), "vap": float(np.mean(vaps)),
                    "extract_s": extract_s, "train_ae_s": ae_s, "distill_s": distill_s,
                    "distill_s_per_t": distill_s / scene.num_timesteps}
             rows.append(row)
-            print(f"{size:3d} cameras {mode:12s} vIoU {row['viou']:.3f} vAP {row['vap']:.3f} "
+            print(f"{size:3d} cameras ({evidence}) {mode:12s} vIoU {row['viou']:.3f} vAP {row['vap']:.3f} "
                   f"distill {distill_s:.1f} s", file=sys.stderr)
     command = "fourlegs bench real-lift " + " ".join(shlex.quote(a) for a in sys.argv[3:])
     result = {"command": command, "scene": str(source), "masks": str(masks), "phrase": args.phrase,
               "held_out": [c.name for c in held_out], "timesteps": args.timesteps,
+              "first_timestep": args.first_timestep,
               "view_scale": args.view_scale, "score_scale": args.score_scale, "rows": rows}
     (out / "real_lift.json").write_text(json.dumps(result, indent=1))
     (out / "real_lift.md").write_text(markdown(result))
@@ -162,12 +192,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def markdown(result: dict[str, Any]) -> str:
+    first = result.get("first_timestep", 0)
     lines = [f"Held-out cameras {', '.join(result['held_out'])}; phrase {result['phrase']!r}; "
-             f"{result['timesteps']} timesteps.", "",
-             "| cameras | mode | iterations | vIoU mean | vAP mean | vIoU per t | vAP per t | extract s | "
-             "train-ae s | distill s/timestep |", "|---|---|---|---|---|---|---|---|---|---|"]
+             f"{result['timesteps']} timesteps from t={first}.", "",
+             "| cameras | evidence | AE sample | mode | iterations | vIoU mean | vAP mean | vIoU per t | vAP per t | "
+             "extract s | train-ae s | distill s/timestep |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in result["rows"]:
-        lines.append(f"| {r['cameras']} | {r['mode']} | {r['iterations']} | {r['viou']:.3f} | {r['vap']:.3f} | "
+        lines.append(f"| {r['cameras']} | {r.get('evidence', 'train')} | {r.get('ae_balance', 'none')} | "
+                     f"{r['mode']} | {r['iterations']} | {r['viou']:.3f} | {r['vap']:.3f} | "
                      f"{' '.join(f'{v:.2f}' for v in r['viou_per_t'])} | {' '.join(f'{v:.2f}' for v in r['vap_per_t'])} | "
                      f"{r['extract_s']:.1f} | {r['train_ae_s']:.1f} | {r['distill_s_per_t']:.1f} |")
     return "\n".join(lines) + "\n"
@@ -179,10 +211,12 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
-    for mode in dict.fromkeys(r["mode"] for r in rows):
-        sel = [r for r in rows if r["mode"] == mode]
+    for mode, evidence in dict.fromkeys((r["mode"], r.get("evidence", "train")) for r in rows):
+        sel = [r for r in rows if r["mode"] == mode and r.get("evidence", "train") == evidence]
+        label = mode if evidence == "train" else f"{mode}, {evidence}"
         for ax, key in zip(axes, ("viou", "vap")):
-            ax.plot([r["cameras"] for r in sel], [r[key] for r in sel], "o-", label=mode)
+            ax.plot([r["cameras"] for r in sel], [r[key] for r in sel], "o-" if evidence == "train" else "s--",
+                    label=label)
     for ax, name in zip(axes, ("vIoU", "vAP")):
         ax.set_xlabel("training cameras lifted from")
         ax.set_ylabel(f"{name} on held-out cameras")

@@ -28,6 +28,7 @@ from . import pipeline
 from .errors import InputError, OutputExistsError
 from .fileio import OUTPUTS_MARKER, claim_outputs, write_json_atomic
 from .options_json import options_from_dict, options_to_dict
+from .query.options import QueryOptions
 from .validate import check_text
 
 __all__ = ["DEFAULT_QUERY_PATH", "DEFAULT_SPATIAL", "DEMO_RESOLUTION", "HighlightJob", "HighlightJobOptions",
@@ -39,11 +40,10 @@ OUTPUT_NAMES = {"video": "highlight.mp4", "blend": "highlight.blend", "plan": "p
 #: output formats: an H.264 video, or a PNG / EXR image sequence in ``frames/``
 VIDEO_FORMATS = ("MP4", "PNG", "EXR")
 
-#: the main job's query paths: fast (1-channel) spatial maps score like the exact ones for a fraction of
-#: the time; the temporal path stays exact (a codebook pays off only over many queries of one scene);
+#: the main job's query paths are the query engine's defaults (codebook with exact re-scoring, fast maps);
 #: docs/benchmarks.md has the figures
-DEFAULT_QUERY_PATH = "exact"
-DEFAULT_SPATIAL = "fast"
+DEFAULT_QUERY_PATH: str = QueryOptions.path
+DEFAULT_SPATIAL: str = QueryOptions.spatial
 #: output size of the synthetic demo scene unless one is given (the presets' sizes are for real captures)
 DEMO_RESOLUTION = (640, 360)
 

@@ -378,3 +378,66 @@ def test_masks_added_later_make_the_features_stale(tmp_path):
         extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "masks"}))
     extract_features(scene, AnnotationMaskEncoder({"a person": tmp_path / "masks"}), overwrite=True)
     assert np.any(feature_store(scene).load(0)[-1])
+
+
+def test_unannotated_views_cost_no_storage_and_the_held_out_camera_has_masks(tmp_path, capsys):
+    """Masks of two of three training cameras: the third camera's rows are not stored (a row index instead)
+    and read back as zeros; the autoencoder holds out the last camera that has masks, trains on a sample
+    balanced over feature directions, and `language` names the held-out camera and its cosine."""
+    import json
+    import shutil
+
+    full = load_bundle(micro_bundle(tmp_path / "full", T=2))
+    person_masks(full, tmp_path / "masks")
+    cams = full.cameras.cameras(0, "train")
+    shutil.rmtree(tmp_path / "masks" / cams[-1].name)  # the default held-out camera has no masks
+    assert main(["language", str(full.root), "--no-progress", "--encoder", "masks", "--masks",
+                 f"a person={tmp_path / 'masks'}", "--epochs", "1", "--samples", "1024"]) == 0
+    out = capsys.readouterr().out
+    store = feature_store(full)
+    for t in range(2):
+        dense = store.load(t)
+        stored = np.load(store.step_path(t), allow_pickle=False)
+        rows = np.load(store.rows_path(t), allow_pickle=False)
+        kept = np.flatnonzero(np.any(dense != 0, axis=1))
+        assert rows[0] == dense.shape[0] and np.array_equal(rows[1:], kept)
+        assert stored.shape[0] == kept.size < dense.shape[0]   # the unannotated camera's rows cost nothing
+        np.testing.assert_array_equal(stored, dense[kept])
+    report = json.loads((full.root / "language" / "autoencoder.json").read_text())
+    held = len(cams) - 2
+    assert report["heldout_camera"] == held and report["heldout_cosine"] is not None
+    assert report["balance"] == "directions" and report["config"]["balance"] == "directions"
+    assert f"held-out camera {held} cosine {report['heldout_cosine']:.4f}" in out and "None" not in out
+    assert "query index (codebook K=4096) ready" in out  # the default query path's index, built with the field
+    assert (full.root / "language" / "codebook_4096.npz").is_file()
+    from fourlegs_bench.ae_directions import round_trip_relevancy
+
+    from fourlegs_engine.language.autoencoder import DECODER_FILE, ENCODER_FILE, load_decoder, load_encoder
+
+    rows = round_trip_relevancy(full.root)  # what the autoencoder makes of the phrase's own feature
+    assert [(r["phrase"], r["coverage"]) for r in rows] == [("a person", 0.34), ("a person", 1.0)]
+    feature = phrase_embedding("a person")  # full coverage: the phrase's own embedding
+    with torch.no_grad():
+        back = load_decoder(full.root / DECODER_FILE)(load_encoder(full.root / ENCODER_FILE)(
+            torch.tensor(feature[None], dtype=torch.float32)))[0].double().numpy()
+    assert rows[1]["cosine"] == pytest.approx(float(back @ feature / np.linalg.norm(back)), abs=1e-5)
+    assert all(r["before"]["a person"] > 0.9 and 0 <= r["after"]["a person"] <= 1 and r["balance"] == "directions"
+               for r in rows)
+
+
+def test_balanced_sample_gives_a_rare_direction_an_equal_share():
+    from fourlegs_engine.language.autoencoder import balance_directions
+
+    rng = np.random.default_rng(0)
+    common = np.tile(np.eye(6)[0], (990, 1)) + rng.normal(scale=0.05, size=(990, 6))
+    rare = np.tile(np.eye(6)[3], (10, 1)) + rng.normal(scale=0.05, size=(10, 6))
+    pool = torch.from_numpy(np.concatenate([common, rare]).astype(np.float32))
+    out = balance_directions(pool, 400, 2, np.random.default_rng(1))
+    assert out.shape == (400, 6)
+    is_rare = out[:, 3] > 0.5
+    assert int(is_rare.sum()) == 200                   # 1 % of the pool, half of the sample
+    assert {tuple(r) for r in out[is_rare].numpy().round(6)} <= {tuple(r) for r in pool[990:].numpy().round(6)}
+    assert AETrainOptions().resolved_balance("masks") == "directions"
+    assert AETrainOptions().resolved_balance("viclip") == "none" and "balance" not in AETrainOptions().to_dict()
+    with pytest.raises(InputError, match="unknown balance"):
+        AETrainOptions(balance="rare").resolved_balance("masks")

@@ -15,13 +15,13 @@ def _engine_for(scene):
     from fourlegs_engine.language.autoencoder import FeatureDecoder
     from fourlegs_engine.language.field import LanguageField
     from fourlegs_engine.demo.simulated import SimulatedTextEncoder
-    from fourlegs_engine.query.engine import QueryEngine
+    from fourlegs_engine.query.engine import QueryEngine, QueryOptions
 
     torch.manual_seed(0)
     T, N = scene.num_timesteps, scene.num_gaussians
     latents = np.random.default_rng(0).normal(size=(T, N, 8)).astype(np.float16)
     field = LanguageField(latents, FeatureDecoder((8, 16, 768)), encoder_name="simulated")
-    return QueryEngine(scene, field, SimulatedTextEncoder())
+    return QueryEngine(scene, field, SimulatedTextEncoder(), QueryOptions.exact())
 
 
 def test_run_query_stores_results_and_colours_by_relevancy(bl, monkeypatch):

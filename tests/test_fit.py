@@ -222,7 +222,12 @@ def test_cli_fit_writes_a_bundle_that_info_reads(capture_dir, tmp_path, capsys):
     assert scene.num_timesteps == 2 and scene.metadata["first_timestep"] == 1
     assert [c.name for c in scene.cameras.cameras(0, "train")] == ["1", "2", "3", "5", "6", "7"]
     assert scene.cameras.cameras(0, "train")[0].width == fh.WIDTH  # full-resolution cameras in the bundle
-    capsys.readouterr()
+    from fourlegs_engine.fit.evaluate import evaluate_test_views
+
+    metrics = evaluate_test_views(out, capture_dir, resolution_scale=0.5)
+    closing = capsys.readouterr().out.strip().splitlines()[-1]  # the held-out cameras' PSNR closes the run
+    assert closing.startswith(f"test cameras {', '.join(metrics.cameras)}: PSNR {metrics.mean_psnr:.2f} dB, "
+                              f"SSIM {metrics.mean_ssim:.3f} (mean over 2 timesteps"), closing
     assert main(["info", str(out)]) == 0
     assert "foreground" in capsys.readouterr().out
     assert main(["fit", str(capture_dir), "-o", str(out), "--timesteps", "1:3"]) == 2

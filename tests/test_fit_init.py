@@ -199,3 +199,18 @@ def test_bench_table_of_a_first_timestep_only_run_shows_the_init_columns(tmp_pat
     assert "| – (–) |" in row
     _pareto_plot([record], tmp_path / "pareto.png")
     assert (tmp_path / "pareto.png").stat().st_size > 0
+
+
+def test_bench_fit_reports_each_fitted_timestep_as_it_finishes(capsys):
+    from fourlegs_bench.fit import _Timer
+    from fourlegs_engine.fit import FitEvent
+
+    timer = _Timer("g1200", 3)
+    timer(FitEvent("iteration", 0, 1, 10, 0.5, 20.0))
+    timer(FitEvent("timestep", 0, train_psnr=21.5, resumed=True))  # resumed: not timed, not reported
+    assert capsys.readouterr().out == "" and timer.per_timestep == {}
+    timer(FitEvent("timestep", 1, train_psnr=27.25))
+    line = capsys.readouterr().out.strip()
+    rec = timer.per_timestep[1]
+    assert line == (f"[bench fit] g1200: timestep 1 fitted (1/3) in {rec['wall_s']:.1f} s ({rec['cpu_s']:.1f} CPU s), "
+                    "training PSNR 27.25 dB")

@@ -71,7 +71,7 @@ def engine():
         lat[t, ball, WORDS["ball"]] = 1.0
     lat[SEGMENT[1], ball] = 0.0
     lat[SEGMENT[1], ball, WORDS["ball"]] = 1.0
-    return QueryEngine(scene, HandField(lat), WordEncoder(), QueryOptions(path="exact", spatial="fast"))
+    return QueryEngine(scene, HandField(lat), WordEncoder(), QueryOptions.exact(spatial="fast"))
 
 
 def test_real_engine_broadcast_plan(engine):

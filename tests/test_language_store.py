@@ -61,3 +61,42 @@ def test_config_hash_is_order_independent_and_rejects_nan():
     assert config_hash({"a": 1, "b": [1, 2]}) == config_hash({"b": [1, 2], "a": 1})
     with pytest.raises(ValueError):
         config_hash({"a": float("nan")})
+
+
+@given(st.lists(st.booleans(), min_size=1, max_size=40), st.integers(0, 2 ** 31 - 1))
+def test_steps_with_mostly_zero_rows_are_stored_without_them_and_read_back_exactly(zero_rows, seed):
+    import tempfile
+    from pathlib import Path
+
+    rng = np.random.default_rng(seed)
+    array = rng.normal(size=(len(zero_rows), 3, 2)).astype(np.float16)
+    array[np.asarray(zero_rows)] = 0
+    with tempfile.TemporaryDirectory() as tmp:
+        store = StepStore(Path(tmp) / "s", "features", {"a": 1}, 2).open()
+        store.save(1, array)
+        sparse = sum(zero_rows) >= 0.25 * len(zero_rows)
+        assert store.rows_path(1).is_file() == sparse
+        assert store.step_file_names(1) == (["t000001.rows.npy"] if sparse else []) + ["t000001.npy"]
+        stored = np.load(store.step_path(1), allow_pickle=False)
+        assert stored.shape[0] == (len(zero_rows) - sum(zero_rows) if sparse else len(zero_rows))
+        back = store.load(1)
+        assert back.dtype == array.dtype and back.shape == array.shape
+        np.testing.assert_array_equal(back, array)
+        assert store.done() == [1] and store.check(array.shape)["bad"] == []
+        store.save(1, np.ones_like(array))  # rewritten whole: the row index goes
+        assert not store.rows_path(1).exists() and np.all(store.load(1) == 1)
+        store.clear()
+        assert list((Path(tmp) / "s").iterdir()) == []
+
+
+def test_a_row_index_that_does_not_match_its_rows_is_one_clear_error(tmp_path):
+    store = StepStore(tmp_path / "s", "features", {"a": 1}, 1).open()
+    array = np.zeros((6, 4), np.float16)
+    array[2] = 1
+    store.save(0, array)
+    np.save(store.rows_path(0), np.array([6, 2, 3], np.int64))
+    with pytest.raises(InputError, match="row index does not match"):
+        store.load(0)
+    np.save(store.rows_path(0), np.array([6, 9], np.int64))
+    with pytest.raises(InputError, match="increasing and below 6"):
+        store.load(0)

@@ -9,7 +9,7 @@ import torch
 
 from fourlegs_engine.commands.main import main
 from fourlegs_engine import pipeline
-from fourlegs_engine.query.engine import QueryEngine
+from fourlegs_engine.query.engine import QueryEngine, QueryOptions
 from fourlegs_engine.query.exr import read_exr, write_exr
 from fourlegs_engine.query.multiscene import rank_scenes
 from fourlegs_engine.query.plots import plot_temporal
@@ -111,8 +111,8 @@ def test_multiscene_ranks_the_scene_with_the_action_first():
     with_ball = two_cluster_scene(T=20, active=range(5, 9), seed=0)
     without = two_cluster_scene(T=20, active=(), seed=0)
     enc = with_ball[2]
-    engines = {"without": QueryEngine(without[0], without[1], enc),
-               "with": QueryEngine(with_ball[0], with_ball[1], enc)}
+    engines = {"without": QueryEngine(without[0], without[1], enc, QueryOptions.exact()),
+               "with": QueryEngine(with_ball[0], with_ball[1], enc, QueryOptions.exact())}
     res = rank_scenes(engines, "a ball flying", stride=2)
     assert res.best == "with" and res.ranking[0][0] == "with" and res.ranking[1][1] == 0.0
     assert res.localization.temporal.found and engines["without"].stats["temporal"] == 1
@@ -135,7 +135,7 @@ def test_query_with_several_scenes_ranks_them_and_localizes_in_the_best(bundle, 
     def expected(stride):  # max_t s_t on every stride-th timestep, computed here scene by scene
         out = {}
         for path in paths:
-            engine = QueryEngine(load_bundle(path), LanguageField.open(path), enc, QueryOptions())
+            engine = QueryEngine(load_bundle(path), LanguageField.open(path), enc, QueryOptions.exact())
             out[str(path)] = scene_relevance(engine, "a ball flying", stride)
         return out
 

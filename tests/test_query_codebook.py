@@ -282,7 +282,7 @@ def test_opening_an_engine_reports_its_steps_and_a_cancel_stops_the_codebook_bui
 
     path = language_bundle(tmp_path / "bundle", T=6, N=200)
     scene = api.open_scene(path)
-    options = api.QueryOptions(path="codebook", codebook_size=4)
+    options = api.QueryOptions(path="codebook", codebook_size=4, codebook_refine=0.0)
     seen = []
 
     def cancel_at_assignment(fraction, stage):

@@ -30,7 +30,7 @@ def oracle_relevancy(field, enc, text):
 
 def test_exact_temporal_matches_float64_oracle(setup):
     scene, field, enc, _ = setup
-    eng = QueryEngine(scene, field, enc, QueryOptions(dilation=0, chunk=17))
+    eng = QueryEngine(scene, field, enc, QueryOptions.exact(dilation=0, chunk=17))
     res = eng.temporal(Q)
     ref = localize_relevancy(oracle_relevancy(field, enc, Q), dilation=0)
     np.testing.assert_allclose(res.scores, ref.scores, atol=1e-12)
@@ -40,7 +40,7 @@ def test_exact_temporal_matches_float64_oracle(setup):
                                atol=2e-3)
     # the per-Gaussian scores of the temporal pass are reused, not decoded again, and equal a fresh decode
     assert eng.stats["decoded_latents"] == scene.num_timesteps * scene.num_gaussians
-    fresh = QueryEngine(scene, field, enc, QueryOptions(chunk=17))
+    fresh = QueryEngine(scene, field, enc, QueryOptions.exact(chunk=17))
     for t in range(scene.num_timesteps):
         np.testing.assert_array_equal(eng.gaussian_relevancy(Q, t).numpy(), fresh.gaussian_relevancy(Q, t).numpy())
     assert fresh.stats["decoded_latents"] == scene.num_timesteps * scene.num_gaussians
@@ -48,21 +48,21 @@ def test_exact_temporal_matches_float64_oracle(setup):
 
 def test_codebook_path_equals_exact_and_never_decodes_latents(setup, tmp_path):
     scene, field, enc, _ = setup
-    exact = QueryEngine(scene, field, enc).temporal(Q)
-    eng = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=256), codebook_dir=tmp_path)
+    exact = QueryEngine(scene, field, enc, QueryOptions.exact()).temporal(Q)
+    eng = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=256, codebook_refine=0.0), codebook_dir=tmp_path)
     res = eng.temporal(Q)
     np.testing.assert_allclose(res.scores, exact.scores, atol=1e-12)
     assert res.segment == exact.segment == (0, 3)  # dilation 1 reaches both ends
     assert eng.stats["decoded_latents"] == 0 and eng.stats["decoded_codes"] == 256
     assert (tmp_path / "codebook_256.npz").is_file() and (tmp_path / "codes_256.npy").is_file()
-    again = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=256), codebook_dir=tmp_path)
+    again = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=256, codebook_refine=0.0), codebook_dir=tmp_path)
     again.temporal(Q)
     assert np.array_equal(np.asarray(again.codebook.codes), np.asarray(eng.codebook.codes))
 
 
 def test_forget_query_redoes_the_query_s_own_work_only(setup):
     scene, field, enc, _ = setup
-    eng = QueryEngine(scene, field, enc)
+    eng = QueryEngine(scene, field, enc, QueryOptions.exact())
     first = eng.temporal(Q)
     eng.gaussian_relevancy(Q, 1)
     eng.gaussian_relevancy("object", 1)
@@ -81,7 +81,7 @@ def test_forget_query_redoes_the_query_s_own_work_only(setup):
 
 def test_temporal_stride_and_many_queries(setup):
     scene, field, enc, _ = setup
-    eng = QueryEngine(scene, field, enc, QueryOptions(dilation=0))
+    eng = QueryEngine(scene, field, enc, QueryOptions.exact(dilation=0))
     many = eng.temporal_many([Q, "a person jumping", "object"])
     assert eng.stats["decoded_latents"] == scene.num_timesteps * scene.num_gaussians
     np.testing.assert_allclose(many[0].scores, eng.temporal(Q).scores)
@@ -92,7 +92,7 @@ def test_temporal_stride_and_many_queries(setup):
 
 def test_not_found_is_finite(setup):
     scene, field, enc, _ = setup
-    res = QueryEngine(scene, field, enc).temporal("texture")
+    res = QueryEngine(scene, field, enc, QueryOptions.exact()).temporal("texture")
     assert not res.found and res.segment is None and np.all(res.scores == 0)
     assert res.to_dict()["peak"] is None
 
@@ -100,7 +100,7 @@ def test_not_found_is_finite(setup):
 def test_spatial_maps_centre_view_and_stats(setup):
     scene, field, enc, _ = setup
     for spatial in ("exact", "fast"):
-        eng = QueryEngine(scene, field, enc, QueryOptions(spatial=spatial))
+        eng = QueryEngine(scene, field, enc, QueryOptions.exact(spatial=spatial))
         wide = scene.cameras.find("wide")
         maps = eng.relevancy_map(Q, wide, 1)
         rel = maps["relevancy"]
@@ -117,7 +117,7 @@ def test_spatial_maps_centre_view_and_stats(setup):
         assert eng.stats["render_features" if spatial == "exact" else "render_relevancy"] == 4  # map, centre, 2 views
         assert eng.stats["render_relevancy" if spatial == "exact" else "render_features"] == 0
     # at a timestep where nothing is relevant the fast and exact maps both stay low
-    low = QueryEngine(scene, field, enc, QueryOptions(spatial="exact")).relevancy_map(Q, wide, 0)["relevancy"]
+    low = QueryEngine(scene, field, enc, QueryOptions.exact(spatial="exact")).relevancy_map(Q, wide, 0)["relevancy"]
     assert low.max() <= 0.5  # background decodes to the zero vector: exactly 0.5, not relevant
 
 
@@ -125,7 +125,7 @@ def test_exact_map_decodes_the_empty_pixels_once_and_equals_decoding_every_pixel
     import torch
 
     scene, field, enc, _ = setup
-    eng = QueryEngine(scene, field, enc, QueryOptions(spatial="exact"))
+    eng = QueryEngine(scene, field, enc, QueryOptions.exact(spatial="exact"))
     wide = scene.cameras.find("wide")
     got = eng.relevancy_map(Q, wide, 1, outputs=("relevancy", "alpha"))
     H, W = got["alpha"].shape
@@ -140,19 +140,19 @@ def test_exact_map_decodes_the_empty_pixels_once_and_equals_decoding_every_pixel
 def test_fast_and_exact_maps_agree_on_the_relevant_region(setup):
     scene, field, enc, _ = setup
     cam = scene.cameras.find("close")
-    ex = QueryEngine(scene, field, enc).relevancy_map(Q, cam, 2)
-    fa = QueryEngine(scene, field, enc, QueryOptions(spatial="fast")).relevancy_map(Q, cam, 2)
+    ex = QueryEngine(scene, field, enc, QueryOptions.exact()).relevancy_map(Q, cam, 2)
+    fa = QueryEngine(scene, field, enc, QueryOptions.exact(spatial="fast")).relevancy_map(Q, cam, 2)
     np.testing.assert_allclose(ex["alpha"], fa["alpha"], atol=1e-6)
     solid = ex["alpha"] > 0.95
     assert solid.any()
     assert np.mean(np.abs(ex["relevancy"] - fa["relevancy"])[solid]) < 0.1
-    half = QueryEngine(scene, field, enc, QueryOptions(resolution_scale=0.5)).relevancy_map(Q, cam, 2)
+    half = QueryEngine(scene, field, enc, QueryOptions.exact(resolution_scale=0.5)).relevancy_map(Q, cam, 2)
     assert half["relevancy"].shape == (16, 24)
 
 
 def test_localize_computes_only_what_is_needed(setup):
     scene, field, enc, _ = setup
-    eng = QueryEngine(scene, field, enc, QueryOptions(spatial="fast"))
+    eng = QueryEngine(scene, field, enc, QueryOptions.exact(spatial="fast"))
     loc = eng.localize(Q, {"temporal"})
     assert loc.temporal.found and loc.best_view is None and loc.action_centre is None
     assert eng.stats["relevancy_map"] == 0 and eng.stats["best_view"] == 0
@@ -172,33 +172,33 @@ def test_localize_computes_only_what_is_needed(setup):
 
 def test_empty_scene_and_single_timestep():
     scene, field, enc, _ = two_cluster_scene(T=1, active=(0,))
-    res = QueryEngine(scene, field, enc).temporal(Q)
+    res = QueryEngine(scene, field, enc, QueryOptions.exact()).temporal(Q)
     assert res.found and res.segment == (0, 0) and res.scores.tolist() == [1.0]
     empty, efield, enc, _ = two_cluster_scene(T=3, n_per=0)
-    eng = QueryEngine(empty, efield, enc, QueryOptions(spatial="fast"))
+    eng = QueryEngine(empty, efield, enc, QueryOptions.exact(spatial="fast"))
     res = eng.temporal(Q)
     assert not res.found and "no Gaussians" in res.message and np.all(res.scores == 0)
     m = eng.relevancy_map(Q, empty.cameras.find("wide"), 0)
     assert np.all(np.isfinite(m["relevancy"])) and np.all(m["alpha"] == 0)
     loc = eng.localize(Q, {"temporal", "best_view", "action_centre"})
     assert loc.best_view is None and loc.messages
-    cb = QueryEngine(empty, efield, enc, QueryOptions(path="codebook", codebook_size=16), codebook_dir=None)
+    cb = QueryEngine(empty, efield, enc, QueryOptions(path="codebook", codebook_size=16, codebook_refine=0.0), codebook_dir=None)
     assert not cb.temporal(Q).found
 
 
 def test_negative_phrases_suppress_an_absent_query(setup):
     scene, field, enc, dirs = setup
     enc.table["a dog"] = 0.6 * dirs[4] + 0.8 * dirs[7]  # close to the ball, but not it
-    plain = QueryEngine(scene, field, enc).gaussian_relevancy("a dog", 1)
+    plain = QueryEngine(scene, field, enc, QueryOptions.exact()).gaussian_relevancy("a dog", 1)
     enc.table["a ball"] = dirs[4]
-    neg = QueryEngine(scene, field, enc, QueryOptions(negatives=["a ball"])).gaussian_relevancy("a dog", 1)
+    neg = QueryEngine(scene, field, enc, QueryOptions.exact(negatives=["a ball"])).gaussian_relevancy("a dog", 1)
     assert plain.max() > 0.5 and neg.max() < 0.5
 
 
 @pytest.mark.parametrize("stride", [1, 2])
 def test_codebook_refine_full_margin_decides_as_the_exact_path(setup, tmp_path, stride):
     scene, field, enc, _ = setup
-    exact = QueryEngine(scene, field, enc, QueryOptions(temporal_stride=stride)).temporal(Q)
+    exact = QueryEngine(scene, field, enc, QueryOptions.exact(temporal_stride=stride)).temporal(Q)
     coarse = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=2, temporal_stride=stride, codebook_refine=1.0, codebook_samples=10 ** 9), codebook_dir=tmp_path)
     res = coarse.temporal(Q)
     np.testing.assert_array_equal(res.positive, exact.positive)
@@ -228,7 +228,7 @@ def test_codebook_refine_samples_at_the_scored_timesteps_only(setup, tmp_path):
     assert np.isin(flat // N, ts).all() and (codes_a == 0).all() and (codes_b == 1).all()
     codes = np.asarray(eng.codebook.codes).reshape(-1)
     np.testing.assert_array_equal(np.sort(codes[flat]), np.sort(np.concatenate([codes_a, codes_b])))
-    exact = QueryEngine(scene, field, enc)
+    exact = QueryEngine(scene, field, enc, QueryOptions.exact())
     full = {(int(t), int(g)): exact.gaussian_relevancy(Q, int(t)).double().numpy()[g]
             for t, g in zip(*np.divmod(flat, N))}
     assert sorted(np.round(np.concatenate([scores_a, scores_b]), 6)) == sorted(np.round(list(full.values()), 6))
@@ -243,7 +243,7 @@ def test_codebook_refine_samples_at_the_scored_timesteps_only(setup, tmp_path):
 
 def test_codebook_refine_margin_zero_decodes_nothing_and_bad_margin_is_refused(setup, tmp_path):
     scene, field, enc, _ = setup
-    eng = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=2), codebook_dir=tmp_path)
+    eng = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=2, codebook_refine=0.0), codebook_dir=tmp_path)
     eng.temporal(Q)
     assert eng.stats["rescored_latents"] == 0 and eng.stats["decoded_latents"] == 0
     for bad in (-0.1, 2.0, float("nan")):
@@ -260,7 +260,7 @@ def test_codebook_refine_on_a_memmapped_field_reads_the_same_rows(setup, tmp_pat
     mapped = LinearField(mm, field.weight.numpy())
     eng = QueryEngine(scene, mapped, enc, QueryOptions(path="codebook", codebook_size=3, codebook_refine=1.0, codebook_samples=10 ** 9), codebook_dir=tmp_path)
     assert eng.scorer.rows().path == str(tmp_path / "latents.npy")  # read from the file, not the mapping
-    exact = QueryEngine(scene, mapped, enc).temporal(Q)
+    exact = QueryEngine(scene, mapped, enc, QueryOptions.exact()).temporal(Q)
     res = eng.temporal(Q)
     np.testing.assert_array_equal(res.positive, exact.positive)
     assert res.r_avg == pytest.approx(exact.r_avg, abs=1e-6)
@@ -308,10 +308,10 @@ def test_localize_reports_progress_per_timestep_and_stops_when_the_callback_rais
     from fourlegs_engine.errors import Cancelled
 
     scene, field, enc, _ = setup
-    eng = QueryEngine(scene, field, enc, QueryOptions(spatial="fast"))
+    eng = QueryEngine(scene, field, enc, QueryOptions.exact(spatial="fast"))
     seen = []
     loc = eng.localize(Q, {"temporal", "best_view", "action_centre"}, progress=lambda f, s: seen.append((f, s)))
-    plain = QueryEngine(scene, field, enc, QueryOptions(spatial="fast")).localize(Q, {"temporal", "best_view",
+    plain = QueryEngine(scene, field, enc, QueryOptions.exact(spatial="fast")).localize(Q, {"temporal", "best_view",
                                                                                      "action_centre"})
     assert loc.temporal.segment == plain.temporal.segment and loc.best_view == plain.best_view
     fractions = [f for f, _ in seen]
@@ -363,7 +363,7 @@ def test_temporal_on_concurrent_streams_equals_one_stream(setup, chunk):
     queries = [Q, "object"]
     answers, engines, encodings = {}, {}, {}
     for threads in (1, 2):
-        eng = QueryEngine(scene, field, enc, QueryOptions(chunk=chunk))
+        eng = QueryEngine(scene, field, enc, QueryOptions.exact(chunk=chunk))
         calls = enc.calls
         with torch_threads(threads):
             answers[threads] = eng.temporal_many(queries)

@@ -113,8 +113,8 @@ def test_engine_with_and_without_head_agree(spatial):
     T, N, d = field.latents.shape
     dec = trained_like_decoder(dims=(d, 12, 10, 16), seed=7)  # D=16: the helper encoder's dimension
     lat = np.asarray(field.latents, dtype=np.float32)
-    with_head = QueryEngine(scene, DecoderField(lat, dec), enc, QueryOptions(spatial=spatial))
-    plain = QueryEngine(scene, DecoderField(lat, dec, use_head=False), enc, QueryOptions(spatial=spatial))
+    with_head = QueryEngine(scene, DecoderField(lat, dec), enc, QueryOptions.exact(spatial=spatial))
+    plain = QueryEngine(scene, DecoderField(lat, dec, use_head=False), enc, QueryOptions.exact(spatial=spatial))
     assert with_head.head is not None and plain.head is None
     q = "a ball flying"
     a, b = with_head.temporal(q), plain.temporal(q)
@@ -206,7 +206,7 @@ def test_codebook_refine_with_norm_bounds_answers_as_the_exact_path(tmp_path):
               for name, t, rows in (("a ball flying", 2, slice(0, N // 2)), ("object", 0, slice(N // 2, N)))}
     table = dict(at, **{c: rng.normal(size=128) for c in CANON[1:]})
     enc = TableTextEncoder(table, 128)
-    exact = QueryEngine(scene, DecoderField(lat, dec), enc)
+    exact = QueryEngine(scene, DecoderField(lat, dec), enc, QueryOptions.exact())
     refined = QueryEngine(scene, DecoderField(lat, dec), enc, QueryOptions(path="codebook", codebook_size=6, codebook_refine=1.0, codebook_samples=10 ** 9), codebook_dir=tmp_path)
     want = exact.temporal("a ball flying")
     assert want.found and want.segment == (1, 4)  # timesteps 2, 3 dilated by 1

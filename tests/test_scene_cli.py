@@ -82,3 +82,30 @@ def test_bad_input_is_one_line_without_traceback(tmp_path):
     assert proc.stderr == (f"fourlegs: error: {tmp_path / 'cloud.ply'}: vertex: is a point cloud, not Gaussian "
                            "splats: the vertices have no opacity, scale_0, scale_1, scale_2, rot_0, rot_1, rot_2, "
                            "rot_3 properties\n")
+
+
+def test_info_reports_what_the_bundle_takes_on_disk_by_part(tmp_path, capsys):
+    import os
+    import shutil
+
+    from fourlegs_engine.scene.disk_usage import bundle_disk_usage
+
+    scene = random_scene(T=2, N=40)
+    path = write_bundle(scene, tmp_path / "b")
+    (path / "features").mkdir()
+    (path / "features" / "t000000.npy").write_bytes(os.urandom(300_000))
+    (path / "query").mkdir()
+    (path / "query" / "big.bin").write_bytes(os.urandom(100_000))
+    os.link(path / "query" / "big.bin", path / "query" / "same.bin")  # one file, two names
+    usage = bundle_disk_usage(path)
+    assert usage["features"] >= 300_000 and 100_000 <= usage["query"] < 200_000
+    geometry = sum(os.lstat(p).st_blocks * 512 for p in path.iterdir() if p.is_file())
+    assert usage["geometry"] == geometry
+    assert usage["total"] == usage["geometry"] + usage["features"] + usage["query"]
+    assert main(["info", str(path), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["disk_bytes"] == usage
+    assert main(["info", str(path)]) == 0
+    line = [l for l in capsys.readouterr().out.splitlines() if l.startswith("on disk")][0]
+    assert f"{usage['total'] / 2**20:.1f} MiB (features" in line and "query" in line and "geometry" in line
+    shutil.rmtree(path / "features")
+    assert "features" not in bundle_disk_usage(path)

@@ -54,11 +54,14 @@ def extract_config_task(job: ExtractJob, chunk: tuple[int, ...], payload: Any) -
 
 def _extract_chunk(job: ExtractJob, chunk: tuple[int, ...], payload: Any) -> dict[str, Any]:
     from ..language.extract import FEATURES_DIR, extract_features
+    from ..language.store import step_file_names
     scene = task_scene(job.bundle, job.run_id)
     rep = extract_features(scene, _extract_encoder(job, scene), job.config, timesteps=list(chunk), progress=False)
     files = None
     if not job.bundle.shared:
-        files = take_files(Path(scene.root), [f"{FEATURES_DIR}/t{t:06d}.npy" for t in rep.timesteps_done])
+        root = Path(scene.root)
+        files = take_files(root, [f"{FEATURES_DIR}/{name}" for t in rep.timesteps_done
+                                  for name in step_file_names(root / FEATURES_DIR, t)])
     return {"done": rep.timesteps_done, "render_seconds": rep.render_seconds,
             "encode_seconds": rep.encode_seconds, "crops": rep.crops_per_timestep, "files": files}
 
@@ -137,11 +140,14 @@ class DistillJob:
 def _distill_chunk(job: DistillJob, chunk: tuple[int, ...], payload: dict[str, bytes] | None) -> dict[str, Any]:
     from ..language.distill import distill_scene
     from ..language.latents_file import STEPS_DIR
+    from ..language.store import step_file_names
     scene = task_scene(job.bundle, job.run_id, payload)
     result = distill_scene(scene, config=job.config, timesteps=list(chunk), merge=False, progress=False)
     files = None
     if not job.bundle.shared:
-        files = take_files(Path(scene.root), [f"{STEPS_DIR}/t{t.t:06d}.npy" for t in result.timings])
+        root = Path(scene.root)
+        files = take_files(root, [f"{STEPS_DIR}/{name}" for t in result.timings
+                                  for name in step_file_names(root / STEPS_DIR, t.t)])
         for rel in (payload or {}):  # this chunk's teacher features are not needed on the node any more
             Path(scene.root, rel).unlink(missing_ok=True)
     return {"timings": result.timings, "files": files}
@@ -158,7 +164,7 @@ def distill_on_ray(scene: "Scene", config: "DistillOptions", *, timesteps: Any =
     from ..language.autoencoder import AE_REPORT, ENCODER_FILE
     from ..language.distill import distill_scene
     from ..language.extract import FEATURES_DIR
-    from ..language.store import MANIFEST, StepStore, select_timesteps
+    from ..language.store import MANIFEST, StepStore, select_timesteps, step_file_names
     options = (options or RayOptions()).check()
     config.check()
     ray = connect(options)
@@ -177,8 +183,8 @@ def distill_on_ray(scene: "Scene", config: "DistillOptions", *, timesteps: Any =
     chunks = plan_chunks(todo, options.chunk or 1)
     payloads = None
     if not ref.shared:
-        payloads = [{f"{FEATURES_DIR}/t{t:06d}.npy": (root / FEATURES_DIR / f"t{t:06d}.npy").read_bytes()
-                     for t in chunk} for chunk in chunks]
+        payloads = [{f"{FEATURES_DIR}/{name}": (root / FEATURES_DIR / name).read_bytes()
+                     for t in chunk for name in step_file_names(root / FEATURES_DIR, t)} for chunk in chunks]
     timings: list[Any] = []
 
     def collect(chunk: tuple[int, ...], value: dict[str, Any]) -> None:

@@ -58,6 +58,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--overwrite", action="store_true", help="replace SCENE / restart a partial fit with other options")
+    p.add_argument("--no-test-psnr", action="store_true",
+                   help="skip the closing PSNR/SSIM of the capture's test cameras (held out of the fit)")
     add_ray_arguments(p)
     p.set_defaults(func=run_fit)
 
@@ -114,6 +116,23 @@ def run_fit(args: argparse.Namespace) -> int:
         written = map_on_ray(task, jobs, options=ray_options, stage="fit", num_gpus=gpus)
     else:
         written = [fit_one(job, options=options, overwrite=args.overwrite, progress=True) for job in jobs]
-    for path in written:
+    for (dataset, _), path in zip(jobs, written):
         print(f"wrote {path}")
+        if not args.no_test_psnr:
+            print(test_view_line(path, dataset, options.resolution_scale), flush=True)
     return 0
+
+
+def test_view_line(scene: str, dataset: str, resolution_scale: float) -> str:
+    """One line: the fitted scene's mean PSNR and SSIM on the capture's test cameras (held out of the fit)."""
+    import numpy as np
+
+    from ..fit.evaluate import evaluate_test_views
+
+    metrics = evaluate_test_views(scene, dataset, resolution_scale=resolution_scale)
+    if not metrics.psnr.size:
+        return "test cameras: none in the capture (no held-out PSNR)"
+    worst = np.unravel_index(int(np.argmin(metrics.psnr)), metrics.psnr.shape)
+    return (f"test cameras {', '.join(metrics.cameras)}: PSNR {metrics.mean_psnr:.2f} dB, SSIM {metrics.mean_ssim:.3f} "
+            f"(mean over {metrics.psnr.shape[0]} timesteps; lowest {metrics.psnr[worst]:.2f} dB, camera "
+            f"{metrics.cameras[worst[1]]} at t={metrics.timesteps[worst[0]]})")

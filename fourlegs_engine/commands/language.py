@@ -110,7 +110,12 @@ def _ae_arguments(p: argparse.ArgumentParser, epochs: int = 4) -> None:
     g.add_argument("--samples", type=int, default=32768, help="pixel features sampled for training (default 32768)")
     g.add_argument("--ae-batch-size", type=int, default=1024, help="training batch size (default 1024)")
     g.add_argument("--lr", type=float, default=7e-4, help="Adam learning rate (default 7e-4)")
-    g.add_argument("--holdout-camera", type=int, default=-1, help="training camera held out (default the last)")
+    g.add_argument("--holdout-camera", type=int, default=-1,
+                   help="training camera held out (default the last one with evidence)")
+    g.add_argument("--ae-balance", choices=("auto", "directions", "none"), default="auto",
+                   help="training sample: an equal share per cluster of feature directions, so a small object's "
+                        "label is learnt (directions), or uniform over pixels (none); auto: directions for "
+                        "annotation masks, else none")
     g.add_argument("--seed", type=int, default=0)
 
 
@@ -180,7 +185,7 @@ def _encoder(args: argparse.Namespace, scene: Any):
 def _ae_options(args: argparse.Namespace):
     from ..language.autoencoder import AETrainOptions
     return AETrainOptions(epochs=args.epochs, samples=args.samples, batch_size=args.ae_batch_size, lr=args.lr,
-                         holdout_camera=args.holdout_camera, seed=args.seed)
+                         holdout_camera=args.holdout_camera, seed=args.seed, balance=args.ae_balance)
 
 
 def _distill_options(args: argparse.Namespace):
@@ -244,11 +249,30 @@ def run_train_ae(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report, indent=2))
     else:
-        held = report.get("heldout_cosine")
-        print(f"train-ae: {'already trained' if report.get('skipped') else 'trained'}; reconstruction cosine "
-              f"held-out view {held if held is None else round(held, 4)}, training views "
-              f"{report.get('train_cosine', float('nan')):.4f}")
+        print(f"train-ae: {'already trained' if report.get('skipped') else 'trained'}; reconstruction cosine: "
+              f"{heldout_text(report)}, training views {report.get('train_cosine', float('nan')):.4f}")
     return 0
+
+
+def build_query_index(scene: "Scene") -> str:
+    """The default query path's index (the codebook) built once beside the new field, so that the first
+    query answers as fast as the later ones; returns a line saying what it did."""
+    from ..language.field import LanguageField
+    from ..query.codebook import ensure_codebook
+    from ..query.options import QueryOptions
+
+    k = QueryOptions().codebook_size
+    start = time.perf_counter()
+    ensure_codebook(LanguageField.open(scene.root).latents, k, Path(scene.root) / "language")
+    return f"query index (codebook K={k}) ready in {time.perf_counter() - start:.1f} s"
+
+
+def heldout_text(report: dict) -> str:
+    """The autoencoder report's held-out reconstruction cosine in words (which camera, or why none)."""
+    cosine, camera = report.get("heldout_cosine"), report.get("heldout_camera")
+    if cosine is not None:
+        return f"held-out camera {camera} cosine {cosine:.4f}"
+    return f"no held-out cosine: {report.get('heldout_note') or 'the held-out camera has no evidence'}"
 
 
 def run_distill(args: argparse.Namespace) -> int:
@@ -303,8 +327,9 @@ def run_language(args: argparse.Namespace) -> int:
     else:
         result = distill_scene(scene, config=_distill_options(args), overwrite=args.overwrite, progress=progress)
     t3 = time.perf_counter()
+    index = build_query_index(scene) if result.latents else "query index: built on the first query"
     print(f"language: extract {t1 - t0:.1f} s ({len(rep.timesteps_done)} new), train-ae {t2 - t1:.1f} s "
-          f"(held-out cosine {ae.get('heldout_cosine')}), distill {t3 - t2:.1f} s; latents: {result.latents}")
+          f"({heldout_text(ae)}), distill {t3 - t2:.1f} s; latents: {result.latents}; {index}")
     return 0
 
 

@@ -3,13 +3,14 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Optional
+from pathlib import Path
+from typing import Any, Callable, Iterator, Optional
 
 def register(subparsers: Any) -> None:
     from .options import add_demo_argument, bounded
-    from ..query.options import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_TIMESTEP_ARGUMENT
+    from ..query.options import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_TIMESTEP_ARGUMENT, QueryOptions
 
     p = subparsers.add_parser(
         "query", help="when and where a text query happens in a scene (segment, peak, maps)",
@@ -27,20 +28,30 @@ def register(subparsers: Any) -> None:
     p.add_argument("--views", nargs="+", metavar="CAM",
                    help="camera names for the EXR maps (default: the best view)")
     p.add_argument("--frames", nargs="+", metavar="T",
-                   help="timesteps for the EXR maps: integers or 'peak' (default: peak)")
-    p.add_argument("--path", choices=("exact", "codebook"), default="exact",
-                   help="per-Gaussian relevancy: exact decode or codebook lookup (default exact)")
-    p.add_argument("--codebook-size", type=bounded(int, 1, MAX_CODEBOOK_SIZE), default=4096, help="K of --path codebook (default 4096)")
-    p.add_argument("--codebook-refine", type=float, default=0.0, metavar="MARGIN",
+                   help="timesteps for the EXR maps: integers, python slices (0:150 = every timestep of 150, "
+                        "0:150:10 every 10th), a,b,c lists, or 'peak' (default: peak)")
+    p.add_argument("--path", choices=("exact", "codebook"), default=QueryOptions.path,
+                   help="per-Gaussian relevancy: the codebook (built once per field, stored beside it) with "
+                        "exact re-scoring where a decision depends on it, or every latent decoded (default "
+                        "%(default)s)")
+    p.add_argument("--codebook-size", type=bounded(int, 1, MAX_CODEBOOK_SIZE), default=QueryOptions.codebook_size,
+                   help="K of --path codebook (default %(default)s)")
+    p.add_argument("--codebook-refine", type=float, default=QueryOptions.codebook_refine, metavar="MARGIN",
                    help="--path codebook: make the temporal decisions exact where they depend on it: R_avg "
                         "corrected by a sample of exact scores, and the Gaussians of codes within MARGIN of "
-                        "R_avg decoded at the timesteps whose s_t > 1/T decision they can change; 0.0075 at "
-                        "K=65536 matched the exact path on the bench scene (default 0: lookup only)")
+                        "R_avg decoded at the timesteps whose s_t > 1/T decision they can change; the maps "
+                        "score the Gaussians near or above 0.5 exactly (default %(default)s; 0: lookup only)")
     p.add_argument("--codebook-samples", type=int, default=None, metavar="N",
                    help="--codebook-refine: exact scores sampled for R_avg (grown 4x at a time, up to 16x, while "
                         "R_avg's 3-sigma interval leaves a decision open; default: the engine's, 4096)")
-    p.add_argument("--spatial", choices=("exact", "fast"), default="exact",
-                   help="maps: 128-channel render + per-pixel decode, or 1-channel relevancy render")
+    p.add_argument("--spatial", choices=("exact", "fast"), default=QueryOptions.spatial,
+                   help="maps: 128-channel render + per-pixel decode, or 1-channel relevancy render "
+                        "(default %(default)s)")
+    p.add_argument("--view-scale", type=bounded(float, 0, 1, low_open=True), default=QueryOptions.view_scale,
+                   help="best view: every camera scored at this fraction of the map resolution, then the "
+                        "--view-confirm best re-scored at full (default %(default)s; 1: all at full)")
+    p.add_argument("--view-confirm", type=bounded(int, 1, MAX_TIMESTEP_ARGUMENT), default=QueryOptions.view_confirm,
+                   help="best view: cameras re-scored at the map resolution (default %(default)s)")
     p.add_argument("--scale", type=bounded(float, 0, MAX_RESOLUTION_SCALE, low_open=True), default=1.0,
                    help=f"resolution scale of the maps, in (0, {MAX_RESOLUTION_SCALE:g}] (default 1)")
     p.add_argument("--stride", type=bounded(int, 1, MAX_TIMESTEP_ARGUMENT), default=1,
@@ -89,10 +100,43 @@ def _open(args: argparse.Namespace, inputs: QueryInputs):
     scene = ensure_language_field(scene, encoder, progress=True)
     options = QueryOptions(path=args.path, codebook_size=args.codebook_size, codebook_refine=args.codebook_refine,
                            negatives=tuple(args.negatives), temporal_stride=args.stride, spatial=args.spatial,
-                           resolution_scale=args.scale, dilation=args.dilation)
+                           resolution_scale=args.scale, dilation=args.dilation, view_scale=args.view_scale,
+                           view_confirm=args.view_confirm)
     if args.codebook_samples is not None:
         options = options.replace(codebook_samples=args.codebook_samples)
-    return scene, open_query_engine(scene, encoder, options=options)
+    with stage_bar("opening the field") as report:
+        engine = open_query_engine(scene, encoder, options=options, progress=report)
+    return scene, engine
+
+
+@contextmanager
+def stage_bar(desc: str) -> Iterator[Callable[[float, str], None]]:
+    """A tqdm bar (percent, current stage) for a ``progress(fraction, stage)`` callback: on a terminal's
+    stderr, once the work has taken half a second, and erased when done (a log or an error keeps its one
+    line)."""
+    import sys
+
+    from tqdm import tqdm
+
+    terminal = bool(getattr(sys.stderr, "isatty", lambda: False)())
+    bar = tqdm(total=100, desc=desc, bar_format="{desc}: {percentage:3.0f}%|{bar:20}| {elapsed}{postfix}",
+               leave=False, delay=0.5, disable=not terminal, file=sys.stderr)
+
+    shown = {"stage": "", "done": 0}
+
+    def report(fraction: float, stage: str) -> None:
+        done = int(round(100 * min(max(fraction, 0.0), 1.0)))
+        if stage and stage != shown["stage"]:
+            shown["stage"] = stage
+            bar.set_postfix_str(stage, refresh=False)
+        if done > shown["done"]:
+            bar.update(done - shown["done"])
+            shown["done"] = done
+
+    try:
+        yield report
+    finally:
+        bar.close()
 
 
 @dataclass(frozen=True)
@@ -198,7 +242,8 @@ def _run_one(args: argparse.Namespace, inputs: QueryInputs) -> int:
     _timesteps_of_frames(args.frames or [], scene)  # before the query: a bad --frames costs nothing
     need = {"temporal"} if args.no_spatial else {"temporal", "best_view", "action_centre"}
     start = time.perf_counter()
-    loc = engine.localize(inputs.text, need)
+    with stage_bar("query") as report:
+        loc = engine.localize(inputs.text, need, progress=report)
     loc.timings["total"] = time.perf_counter() - start
     tmp = loc.temporal
     print(f'"{inputs.text}" in {scene.name} (T={scene.num_timesteps}, N={scene.num_gaussians}, path={args.path})')
@@ -236,20 +281,19 @@ def _run_one(args: argparse.Namespace, inputs: QueryInputs) -> int:
 
 
 def _timesteps_of_frames(values: list[str], scene) -> list[int]:
-    """The integer timesteps among ``--frames`` values ('peak' skipped), each checked against T."""
+    """The timesteps ``--frames`` values name ('peak' skipped; an integer, or a python slice ``a:b`` /
+    ``a:b:step``, or ``a,b,c``), each checked against T."""
+    from ..language.store import parse_timesteps
+
     from ..errors import InputError
 
-    out = []
+    out: list[int] = []
     for f in values:
         if f == "peak":
             continue
-        try:
-            t = int(f)
-        except ValueError:
-            raise InputError(f"{f!r} is neither a timestep nor 'peak'", field="--frames") from None
-        if not 0 <= t < scene.num_timesteps:
-            raise InputError(f"timestep {t} is out of range 0..{scene.num_timesteps - 1}", field="--frames")
-        out.append(t)
+        if not any(c in f for c in ":,") and not f.strip().lstrip("-").isdigit():
+            raise InputError(f"{f!r} is neither a timestep nor 'peak'", field="--frames")
+        out += parse_timesteps(f, scene.num_timesteps, field="--frames")
     return out
 
 

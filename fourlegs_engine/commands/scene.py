@@ -29,7 +29,11 @@ def run_info(args: argparse.Namespace) -> int:
     if bool(args.demo) == bool(args.path):
         raise InputError("give either a scene PATH or --demo (exactly one)", field="info")
     path = demo_bundle_path() if args.demo else args.path
-    summary = load_scene(path).summary()
+    scene = load_scene(path)
+    summary = scene.summary()
+    if scene.root is not None:
+        from ..scene.disk_usage import bundle_disk_usage
+        summary["disk_bytes"] = bundle_disk_usage(scene.root)
     try:
         print(json.dumps(summary, indent=2) if args.json else format_summary(summary), flush=True)
     except BrokenPipeError:  # e.g. `fourlegs info --demo | head -3`: the reader left, not an error
@@ -71,5 +75,9 @@ def format_summary(s: dict[str, Any]) -> str:
         ("memory", _mib(s["memory_bytes"])),
         ("language field", lang),
     ]
+    disk = s.get("disk_bytes")
+    if disk:
+        parts = sorted(((k, v) for k, v in disk.items() if k != "total" and v), key=lambda kv: -kv[1])
+        rows.append(("on disk", f"{_mib(disk['total'])} (" + ", ".join(f"{k} {_mib(v)}" for k, v in parts) + ")"))
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)

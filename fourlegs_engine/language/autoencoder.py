@@ -14,6 +14,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..errors import InputError
+
 NORM_EPS = 1e-8
 COSINE_WEIGHT = 0.01
 
@@ -110,6 +112,13 @@ class AETrainOptions:
     (seeded) over every timestep and every training camera except ``holdout_camera``, each pixel's
     feature interpolated from the stored crop features. ``heldout_samples`` pixels of the held-out
     camera measure reconstruction cosine on a view the autoencoder never saw.
+
+    ``balance``: "directions" draws twice the sample, groups it into :data:`BALANCE_CLUSTERS` k-means
+    clusters of feature directions and takes an equal share from each, so that a rare direction (a small
+    object's label: under 1 % of the pixels) is trained on as much as the background; a uniform sample
+    leaves it to the decoder to map onto a frequent direction (a ball decoded as a person). "auto" is
+    "directions" for the annotation-mask encoder and "none" (uniform) for the others; it enters the config
+    hash only when it balances.
     """
 
     epochs: int = 4
@@ -121,11 +130,22 @@ class AETrainOptions:
     hidden: tuple[int, ...] = (512, 256)
     holdout_camera: int = -1
     seed: int = 0
+    balance: str = "auto"
 
     def to_dict(self) -> dict[str, Any]:
+        """The settings that enter the config hash (``balance`` is added by the training when it balances)."""
         d = asdict(self)
         d["hidden"] = list(self.hidden)
+        d.pop("balance")
         return d
+
+    def resolved_balance(self, encoder_name: str) -> str:
+        """"directions" or "none" for features of ``encoder_name`` (see the class docstring)."""
+        if self.balance not in ("auto", "directions", "none"):
+            raise InputError(f"unknown balance {self.balance!r} (auto, directions, none)", field="balance")
+        if self.balance == "auto":
+            return "directions" if encoder_name == "masks" else "none"
+        return self.balance
 
 
 def _sample_pixel_features(scene: Any, store: Any, views: list[tuple[int, int]], total: int,
@@ -184,7 +204,8 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
         from .store import format_ranges
         raise InputError(f"features of timesteps {format_ranges(missing)} are missing; finish "
                          "`fourlegs extract` first", file=store.root)
-    cfg = {"features": store.hash, **config.to_dict()}
+    balance = config.resolved_balance(str(store.config.get("encoder", "")))
+    cfg = {"features": store.hash, **config.to_dict(), **({"balance": balance} if balance != "none" else {})}
     if timesteps is not None:
         cfg["timesteps"] = steps
     chash = config_hash(cfg)
@@ -196,7 +217,7 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
         return report
 
     start = time.perf_counter()
-    x_train, x_held, holdout = _training_data(scene, store, config, steps)
+    x_train, x_held, holdout = _training_data(scene, store, config, steps, balance)
     sample_seconds = time.perf_counter() - start
     torch.manual_seed(config.seed)
     model = FeatureAutoencoder(int(store.config["dim"]), config.latent_dim, config.hidden)
@@ -214,7 +235,10 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
               "heldout_samples": int(x_held.shape[0]),
               "train_cosine": reconstruction_cosine(model, x_train[:config.heldout_samples]),
               "heldout_cosine": reconstruction_cosine(model, x_held) if x_held.shape[0] else None,
-              "sample_seconds": sample_seconds, "seconds": time.perf_counter() - start,
+              "heldout_note": "" if x_held.shape[0] else (
+                  "no camera to hold out (one training camera)" if holdout is None else
+                  f"held-out camera {holdout} has no evidence (no camera but those trained on has any)"),
+              "sample_seconds": sample_seconds, "balance": balance, "seconds": time.perf_counter() - start,
               "encoder": ENCODER_FILE, "decoder": DECODER_FILE}
     with atomic_path(root / ENCODER_FILE) as tmp:
         torch.save(model.encoder.state_dict(), tmp)
@@ -244,18 +268,63 @@ def _refuse_or_drop_other_configurations(root: Path, chash: str, overwrite: bool
             path.unlink()
 
 
-def _training_data(scene: Any, store: Any, config: AETrainOptions, steps: list[int]
+def _training_data(scene: Any, store: Any, config: AETrainOptions, steps: list[int], balance: str = "none"
                    ) -> tuple[torch.Tensor, torch.Tensor, int | None]:
     """(samples, D) training features of every view but the held-out camera's, (heldout_samples, D) of the
     held-out camera, and its index (None with a single camera)."""
     num_cams = scene.cameras.num_cameras(store.config.get("split", "train"))
     holdout = config.holdout_camera % num_cams if num_cams > 1 else None
+    if holdout is not None and config.holdout_camera == -1:
+        holdout = _last_camera_with_evidence(scene, store, steps, num_cams)
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, 0xAE]))
     train_views = [(t, c) for t in steps for c in range(num_cams) if c != holdout]
     held_views = [(t, holdout) for t in steps] if holdout is not None else []
-    x_train = _sample_pixel_features(scene, store, train_views, config.samples, rng)
+    if balance == "directions":
+        pool = _sample_pixel_features(scene, store, train_views, BALANCE_POOL * config.samples, rng)
+        x_train = balance_directions(pool, config.samples, BALANCE_CLUSTERS, rng)
+    else:
+        x_train = _sample_pixel_features(scene, store, train_views, config.samples, rng)
     x_held = _sample_pixel_features(scene, store, held_views, config.heldout_samples, rng)
     return x_train, x_held, holdout
+
+
+BALANCE_POOL = 2  # balanced training: candidates drawn per training sample
+BALANCE_CLUSTERS = 32  # balanced training: k-means clusters of feature directions sharing the sample
+
+
+def balance_directions(pool: torch.Tensor, total: int, clusters: int, rng: np.random.Generator) -> torch.Tensor:
+    """(total, D) rows of ``pool`` (M, D) with an equal share from each of ``clusters`` k-means clusters of
+    their directions (scipy's k-means++); a cluster smaller than its share is drawn with replacement.
+    Rows in random order."""
+    from scipy.cluster.vq import kmeans2
+
+    n = pool.shape[0]
+    if n == 0 or total <= 0:
+        return pool[:0]
+    unit = torch.nn.functional.normalize(pool.double(), dim=1).numpy()
+    k = max(1, min(int(clusters), n))
+    _, labels = kmeans2(unit, k, iter=10, minit="++", seed=rng)
+    groups = [np.flatnonzero(labels == c) for c in np.unique(labels)]
+    shares = np.full(len(groups), total // len(groups))
+    shares[:total % len(groups)] += 1
+    rows = np.concatenate([rng.choice(g, size=int(m), replace=g.size < m) for g, m in zip(groups, shares)])
+    return pool[torch.from_numpy(rng.permutation(rows))]
+
+
+HOLDOUT_PROBES = 8  # timesteps looked at to find a camera with evidence to hold out
+
+
+def _last_camera_with_evidence(scene: Any, store: Any, steps: list[int], num_cams: int) -> int:
+    """The default held-out camera: the last one, or when it has no evidence (annotation masks of other
+    cameras only) the last camera with evidence at a few spread timesteps, provided another camera has
+    some to train on; else the last one."""
+    from .extract import load_step_features, view_has_evidence
+
+    probes = steps[::max(1, -(-len(steps) // HOLDOUT_PROBES))] if steps else []
+    loaded = [load_step_features(scene, store, t) for t in probes]
+    with_evidence = [c for c in range(num_cams)
+                     if any(view_has_evidence(feats, offsets[c]) for feats, _, offsets in loaded)]
+    return with_evidence[-1] if len(with_evidence) >= 2 else num_cams - 1
 
 
 def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: torch.Tensor, config: AETrainOptions,

@@ -23,6 +23,25 @@ from ..fileio import load_npy, read_json, save_npy_atomic, write_json_atomic
 
 MANIFEST = "manifest.json"
 _STEP_FILE = re.compile(r"^t(\d{6})\.npy$")
+ROWS_SUFFIX = ".rows.npy"
+_ROWS_FILE = re.compile(r"^t(\d{6})\.rows\.npy$")
+#: a timestep whose share of all-zero rows is at least this is stored without them
+SPARSE_ZERO_SHARE = 0.25
+
+
+def step_file_names(directory: Path, t: int) -> list[str]:
+    """The names of timestep ``t``'s files in a store's ``directory``, the row index first (when the step
+    was stored without its zero rows): writing them in this order leaves the timestep unfinished until
+    its array is in place."""
+    rows = Path(directory) / f"t{int(t):06d}{ROWS_SUFFIX}"
+    return ([rows.name] if rows.is_file() else []) + [f"t{int(t):06d}.npy"]
+
+
+def _nonzero_rows(array: np.ndarray) -> np.ndarray | None:
+    """(K,) int64 indices of the rows of a 2-D or higher array that hold a non-zero value (None for 0-D/1-D)."""
+    if array.ndim < 2 or array.shape[0] == 0:
+        return None
+    return np.flatnonzero(np.any(array.reshape(array.shape[0], -1) != 0, axis=1)).astype(np.int64)
 
 
 def config_hash(config: dict[str, Any]) -> str:
@@ -31,9 +50,9 @@ def config_hash(config: dict[str, Any]) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 
-def parse_timesteps(spec: str | None, num_timesteps: int) -> list[int]:
+def parse_timesteps(spec: str | None, num_timesteps: int, field: str = "--timesteps") -> list[int]:
     """``None``/``""`` -> all; ``"a:b"`` -> a..b-1 (python slice, negatives allowed); ``"a,b,c"`` -> list;
-    ``"a:b:s"`` -> with step s."""
+    ``"a:b:s"`` -> with step s. ``field`` names the option in an InputError."""
     if not spec:
         return list(range(num_timesteps))
     spec = spec.strip()
@@ -46,12 +65,12 @@ def parse_timesteps(spec: str | None, num_timesteps: int) -> list[int]:
         else:
             steps = sorted({int(p) for p in spec.split(",") if p.strip()})
     except ValueError:
-        raise InputError(f"cannot parse {spec!r}; use a:b, a:b:step or a,b,c", field="--timesteps") from None
+        raise InputError(f"cannot parse {spec!r}; use a:b, a:b:step or a,b,c", field=field) from None
     bad = [t for t in steps if not 0 <= t < num_timesteps]
     if bad:
-        raise InputError(f"timestep {bad[0]} is out of range 0..{num_timesteps - 1}", field="--timesteps")
+        raise InputError(f"timestep {bad[0]} is out of range 0..{num_timesteps - 1}", field=field)
     if not steps:
-        raise InputError(f"{spec!r} selects no timestep of 0..{num_timesteps - 1}", field="--timesteps")
+        raise InputError(f"{spec!r} selects no timestep of 0..{num_timesteps - 1}", field=field)
     return steps
 
 
@@ -94,6 +113,14 @@ class StepStore:
     def step_path(self, t: int) -> Path:
         return self.root / f"t{int(t):06d}.npy"
 
+    def rows_path(self, t: int) -> Path:
+        """Where a timestep stored without its all-zero rows keeps [number of rows, kept row indices...]."""
+        return self.root / f"t{int(t):06d}{ROWS_SUFFIX}"
+
+    def step_file_names(self, t: int) -> list[str]:
+        """The names (in the store's directory) of timestep ``t``'s files (see :func:`step_file_names`)."""
+        return step_file_names(self.root, t)
+
     # -------------------------------------------------------------------------- opening
     def open(self, *, overwrite: bool = False) -> "StepStore":
         """Create the store or check that the existing one has this configuration.
@@ -129,7 +156,8 @@ class StepStore:
         if not self.root.is_dir():
             return
         for p in self.root.iterdir():
-            if _STEP_FILE.match(p.name) or p.name == MANIFEST or p.name.endswith(".part.npy"):
+            if _STEP_FILE.match(p.name) or _ROWS_FILE.match(p.name) or p.name == MANIFEST \
+                    or p.name.endswith(".part.npy"):
                 p.unlink()
 
     # ---------------------------------------------------------------------- per timestep
@@ -137,10 +165,36 @@ class StepStore:
         return self.step_path(t).is_file()
 
     def save(self, t: int, array: np.ndarray) -> None:
-        save_npy_atomic(self.step_path(t), array)
+        """Store timestep ``t``; an array whose rows are mostly all-zero (views without evidence) is stored
+        as its other rows plus their indices, so those views cost no disk."""
+        array = np.asarray(array)
+        path, rows_path = self.step_path(t), self.rows_path(t)
+        path.unlink(missing_ok=True)  # unfinished while its files change
+        kept = _nonzero_rows(array)
+        if kept is not None and kept.size <= (1.0 - SPARSE_ZERO_SHARE) * array.shape[0]:
+            save_npy_atomic(rows_path, np.concatenate([[array.shape[0]], kept]).astype(np.int64))
+            save_npy_atomic(path, np.ascontiguousarray(array[kept]))
+        else:
+            rows_path.unlink(missing_ok=True)
+            save_npy_atomic(path, array)
 
     def load(self, t: int, *, mmap: bool = True) -> np.ndarray:
-        return load_npy(self.step_path(t), mmap=mmap, field=f"{self.stage} timestep {t}")
+        """Timestep ``t``'s array (memory-mapped when stored whole; rebuilt with its zero rows otherwise)."""
+        field = f"{self.stage} timestep {t}"
+        stored = load_npy(self.step_path(t), mmap=mmap, field=field)
+        rows_path = self.rows_path(t)
+        if not rows_path.is_file():
+            return stored
+        rows = load_npy(rows_path, mmap=False, field=field)
+        if rows.ndim != 1 or rows.dtype.kind not in "iu" or rows.size != stored.shape[0] + 1 or rows.size == 0:
+            raise InputError(f"row index does not match the stored rows ({rows.size} entries for "
+                             f"{stored.shape[0]} rows)", file=rows_path, field=field)
+        total, kept = int(rows[0]), rows[1:]
+        if kept.size and (kept.min() < 0 or kept.max() >= total or np.any(np.diff(kept) <= 0)):
+            raise InputError(f"row indices must be increasing and below {total}", file=rows_path, field=field)
+        dense = np.zeros((total,) + tuple(stored.shape[1:]), dtype=stored.dtype)
+        dense[kept] = stored
+        return dense
 
     def done(self) -> list[int]:
         if not self.root.is_dir():

@@ -20,8 +20,8 @@ from ..scene.scene import Scene
 from .codebook import Codebook, ensure_codebook
 from .lerf import l2_normalize, relevancy_of_unit_features
 from .scoring import LatentScorer
-from .temporal import (RELEVANT, counts_from_code_histogram, counts_from_codes_refined, tied_segment_rows,
-                       timestep_weights)
+from .temporal import (MEMBERSHIP_BAND, RELEVANT, counts_from_code_histogram, counts_from_codes_refined,
+                       tied_segment_rows, timestep_weights)
 
 #: per query: counts (S,) int64 of relevant Gaussians per scored timestep, R_avg, number of relevant pairs
 TemporalCounts = tuple[np.ndarray, float, int]
@@ -77,9 +77,20 @@ class CodebookPath:
         return self._code_scores[query]
 
     def gaussian_relevancy(self, query: str, t: int) -> torch.Tensor:
-        """(N,) relevancy of every Gaussian at ``t``: its code's."""
+        """(N,) relevancy of every Gaussian at ``t``: its code's; with a refine margin > 0, the Gaussians
+        whose code is within ``MEMBERSHIP_BAND`` of 0.5 or above it (those a map's relevant part is made of)
+        are scored exactly."""
         codes = torch.from_numpy(np.asarray(self.codebook.codes[t], dtype=np.int64))
-        return self.code_scores(query)[codes]
+        scores = self.code_scores(query)[codes]
+        if self.refine > 0:
+            candidates = torch.nonzero(scores > RELEVANT - MEMBERSHIP_BAND).flatten().numpy()
+            if candidates.size:
+                flat = int(t) * self.scene.num_gaussians + candidates.astype(np.int64)
+                exact = self.scorer.score_any(query, flat)
+                scores = scores.clone()
+                scores[torch.from_numpy(candidates)] = torch.from_numpy(exact).to(scores.dtype)
+                self.stats["rescored_latents"] += int(candidates.size)
+        return scores
 
     def forget(self, query: str) -> None:
         """Drop the code relevancies cached for ``query``."""

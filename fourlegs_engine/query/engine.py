@@ -238,20 +238,28 @@ class QueryEngine:
         return self.scene.cameras.cameras(t, split or self.camera_split)
 
     def best_view(self, query: str, t: int, cameras: Optional[Sequence[Camera]] = None) -> ViewResult:
-        """The camera with the highest mean relevancy at timestep ``t`` (paper §6.1)."""
+        """The camera with the highest mean relevancy at timestep ``t`` (paper §6.1): every camera scored at
+        ``view_scale`` of the map resolution, the ``view_confirm`` best re-scored at the map resolution."""
         self.stats["best_view"] += 1
         cams = list(cameras) if cameras is not None else self.cameras_at(t)
+        coarse = self.options.view_scale < 1.0 and len(cams) > self.options.view_confirm
+        steps = len(cams) + (self.options.view_confirm if coarse else 0)
         seen = [0]
 
-        def relevancy_of(cam: Camera) -> np.ndarray:
-            self._report(seen[0] / max(1, len(cams)), "rendering the views")
+        def relevancy_of(cam: Camera, reduced: bool) -> np.ndarray:
+            self._report(seen[0] / max(1, steps), "scoring the views at reduced size" if reduced else "rendering the views")
             seen[0] += 1
-            return self.relevancy_map(query, cam, t, outputs=("relevancy",))["relevancy"]
+            scale = self.maps.resolution_scale * (self.options.view_scale if reduced else 1.0)
+            self.stats["view_maps_reduced" if reduced else "view_maps"] += 1
+            return self.relevancy_map(query, cam, t, outputs=("relevancy",), scale=scale)["relevancy"]
 
-        return viewpoint.best_view(cams, relevancy_of, t)
+        if not coarse:
+            return viewpoint.best_view(cams, lambda cam: relevancy_of(cam, False), t)
+        return viewpoint.best_view_confirmed(cams, relevancy_of, t, self.options.view_confirm)
 
     def action_centre(self, query: str, t: int, camera: Camera) -> CentreResult:
-        """2D centre of mass of the relevancy map, lifted to 3D with the rendered depth; plus the bbox."""
+        """Centre of mass of the best relevant component of the relevancy map, lifted to 3D with the rendered
+        depth; plus that component's box (the centre lies inside it)."""
         self.stats["action_centre"] += 1
         return self.maps.action_centre(self.relevancy_map(query, camera, t), camera, t)
 
@@ -342,6 +350,8 @@ def _check_options(options: QueryOptions) -> None:
     if options.spatial not in ("exact", "fast"):
         raise InputError(f"unknown spatial path {options.spatial!r} (exact, fast)", field="spatial")
     check_number(options.resolution_scale, "resolution_scale", low=0, high=MAX_RESOLUTION_SCALE, low_open=True)
+    check_number(options.view_scale, "view_scale", low=0, high=1, low_open=True)
+    check_number(options.view_confirm, "view_confirm", low=1, high=MAX_TIMESTEP_ARGUMENT, integer=True)
     check_number(options.temporal_stride, "temporal_stride", low=1, high=MAX_TIMESTEP_ARGUMENT, integer=True)
     check_number(options.dilation, "dilation", low=0, high=MAX_TIMESTEP_ARGUMENT, integer=True)
     check_number(options.codebook_size, "codebook_size", low=1, high=MAX_CODEBOOK_SIZE, integer=True)

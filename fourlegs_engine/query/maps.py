@@ -114,12 +114,13 @@ class SpatialMaps:
         return rel
 
     def action_centre(self, maps: dict[str, np.ndarray], camera: Camera, t: int) -> CentreResult:
-        """2D centre of mass of a relevancy map (``maps`` at :meth:`camera`'s resolution of ``camera``),
-        lifted to 3D with the rendered depth; plus the best component's box, in ``camera``'s pixels."""
+        """2D centre of mass of the best relevant component of a relevancy map (``maps`` at :meth:`camera`'s
+        resolution of ``camera``; see :func:`.spatial.action_focus`), lifted to 3D with the rendered depth;
+        plus that component's box, in ``camera``'s pixels (the centre lies inside it)."""
         cam = self.camera(camera, None)
-        centre = spatial.centre_of_mass(maps["relevancy"])
-        point, depth = spatial.lift_centre(cam, centre, maps["depth"], maps["alpha"], maps["relevancy"])
-        box = spatial.best_component_bbox(maps["relevancy"])
+        focus, box = spatial.action_focus(maps["relevancy"])
+        centre = spatial.centre_of_mass(focus)
+        point, depth = spatial.lift_centre(cam, centre, maps["depth"], maps["alpha"], focus)
         message = "" if point is not None else "no rendered surface under the relevant pixels; no 3D centre"
         scale = cam.width / camera.width
         return CentreResult(centre_px=None if centre is None else centre / scale, centre_3d=point, depth=depth,

@@ -6,6 +6,12 @@ from typing import Any, Optional, Sequence
 
 #: K of the codebook path
 DEFAULT_CODEBOOK_SIZE = 4096
+#: the default path's exact re-scoring margin around R_avg (codes of K=4096)
+DEFAULT_CODEBOOK_REFINE = 0.05
+#: the best-view search scores every camera at this fraction of the map resolution ...
+DEFAULT_VIEW_SCALE = 0.25
+#: ... then re-scores this many of the best at the map resolution
+DEFAULT_VIEW_CONFIRM = 3
 #: exact scores sampled per query to correct the codebook's R_avg (``codebook_refine`` > 0)
 R_AVG_SAMPLES = 4096
 #: the multiplier of LERF's pairwise softmax relevancy
@@ -18,6 +24,10 @@ MAX_TIMESTEP_ARGUMENT = 1 << 20  # strides and dilation radii beyond any scene's
 @dataclass(frozen=True)
 class QueryOptions:
     """How :class:`~fourlegs_engine.query.engine.QueryEngine` answers a query.
+
+    The defaults are the interactive path: the codebook (built once per field and stored beside it) with
+    exact re-scoring where a temporal decision depends on it, fast 1-channel maps, and the best view
+    scored at reduced resolution then confirmed. :meth:`exact` is the paper's path everywhere.
 
     Attributes:
         path: "exact" or "codebook" (per-Gaussian relevancy and temporal localization).
@@ -33,6 +43,10 @@ class QueryOptions:
         temporal_stride: score every k-th timestep.
         spatial: "exact" (128-channel render, per-pixel decode) or "fast" (1-channel relevancy render).
         resolution_scale: render spatial maps at this fraction of each camera's resolution.
+        view_scale: the best-view search scores every camera's map at this fraction of the map resolution
+            (1: every camera at the map resolution) ...
+        view_confirm: ... and re-scores the ``view_confirm`` best of them at the map resolution; the best
+            of those is the best view.
         dilation: radius of the temporal dilation.
         chunk: latents decoded per batch on the exact path.
         latent_dtype: read latents as this numpy dtype before decoding (e.g. "float16" to measure
@@ -42,14 +56,16 @@ class QueryOptions:
         relevancy_scale: the temperature of the pairwise softmax relevancy.
     """
 
-    path: str = "exact"
+    path: str = "codebook"
     codebook_size: int = DEFAULT_CODEBOOK_SIZE
-    codebook_refine: float = 0.0
+    codebook_refine: float = DEFAULT_CODEBOOK_REFINE
     codebook_samples: int = R_AVG_SAMPLES
     negatives: Sequence[str] = ()
     temporal_stride: int = 1
-    spatial: str = "exact"
+    spatial: str = "fast"
     resolution_scale: float = 1.0
+    view_scale: float = DEFAULT_VIEW_SCALE
+    view_confirm: int = DEFAULT_VIEW_CONFIRM
     dilation: int = 1
     chunk: int = 32768
     latent_dtype: Optional[str] = None
@@ -57,6 +73,11 @@ class QueryOptions:
     render_options: Any = None
     render_backend: str = "auto"
     relevancy_scale: float = RELEVANCY_SCALE
+
+    @classmethod
+    def exact(cls, **changes: Any) -> "QueryOptions":
+        """The paper's path everywhere: every latent decoded, 128-channel maps, every view at full size."""
+        return cls(**{"path": "exact", "spatial": "exact", "view_scale": 1.0, **changes})
 
     def replace(self, **changes: Any) -> "QueryOptions":
         """A copy with ``changes`` applied."""

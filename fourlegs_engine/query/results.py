@@ -51,16 +51,18 @@ class TemporalResult:
 
 @dataclass
 class ViewResult:
-    """The best viewpoint: ``best`` camera name, its index, and every camera's mean relevancy."""
+    """The best viewpoint: ``best`` camera name, its index, every camera's mean relevancy, and the cameras
+    whose score is the full-resolution one when the others were scored at reduced resolution."""
 
     best: Optional[str]
     index: Optional[int]
     scores: dict[str, float]
     t: int
+    confirmed: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return {"best": self.best, "index": self.index, "t": int(self.t),
-                "scores": {k: float(v) for k, v in self.scores.items()}}
+                "scores": {k: float(v) for k, v in self.scores.items()}, "confirmed": list(self.confirmed)}
 
 
 @dataclass

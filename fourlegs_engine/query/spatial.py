@@ -6,7 +6,8 @@ depth of the pixel". The map's non-relevant part (R <= 0.5, the query is not mor
 canonical phrase) carries no evidence, so the centre of mass weighs pixels by R where R > 0.5 (and by R
 everywhere if no pixel is relevant). The bounding-box variant (supplementary B.2) takes the box of the
 connected component (scipy.ndimage.label on R > 0.5) with the highest score (its peak relevancy; ties
-to the larger summed relevancy).
+to the larger summed relevancy). The action centre is the centre of mass of that component (see
+:func:`action_focus`), so the centre pixel lies inside the reported box.
 """
 from __future__ import annotations
 
@@ -70,8 +71,9 @@ def lift_centre(camera: Camera, centre_px, depth_map, alpha_map, relevancy_map) 
     return point, float(z)
 
 
-def best_component_bbox(relevancy_map, threshold: float = RELEVANT) -> Optional[tuple[int, int, int, int]]:
-    """Box (x0, y0, x1, y1), inclusive pixels, of the best connected component of R > threshold."""
+def best_component(relevancy_map, threshold: float = RELEVANT) -> Optional[np.ndarray]:
+    """(H,W) bool mask of the best connected component of R > threshold (highest peak relevancy, ties to the
+    larger summed relevancy), or None when no pixel is above the threshold."""
     r = _as_map(relevancy_map)
     labels, n = ndimage.label(r > threshold)
     if n == 0:
@@ -79,9 +81,31 @@ def best_component_bbox(relevancy_map, threshold: float = RELEVANT) -> Optional[
     idx = np.arange(1, n + 1)
     peak = ndimage.maximum(r, labels, idx)
     total = ndimage.sum(r, labels, idx)
-    best = int(idx[np.lexsort((total, peak))[-1]])
-    sl = ndimage.find_objects(labels)[best - 1]
-    return int(sl[1].start), int(sl[0].start), int(sl[1].stop - 1), int(sl[0].stop - 1)
+    return labels == int(idx[np.lexsort((total, peak))[-1]])
+
+
+def best_component_bbox(relevancy_map, threshold: float = RELEVANT) -> Optional[tuple[int, int, int, int]]:
+    """Box (x0, y0, x1, y1), inclusive pixels, of the best connected component of R > threshold."""
+    component = best_component(relevancy_map, threshold)
+    return None if component is None else mask_bbox(component)
+
+
+def action_focus(relevancy_map) -> tuple[np.ndarray, Optional[tuple[int, int, int, int]]]:
+    """The part of the map the action centre is taken from, and its box.
+
+    A map often holds several separate relevant blobs (the ball in the air and a smear on the floor); the
+    centre of mass of all of them can lie on none, outside every blob's box. The action is the best
+    connected component (its box is the bounding-box output), so the centre is taken from that
+    component alone: it lies inside the box. Without relevant pixels the whole map is the focus (no box).
+
+    Returns:
+        (H,W) float64 relevancy zeroed outside the best component (or the whole map), its box or None.
+    """
+    r = _as_map(relevancy_map)
+    component = best_component(r)
+    if component is None:
+        return r, None
+    return np.where(component, r, 0.0), mask_bbox(component)
 
 
 def mask_bbox(mask) -> Optional[tuple[int, int, int, int]]:

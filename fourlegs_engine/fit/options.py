@@ -19,7 +19,12 @@ class FitOptions:
         timesteps: (a, b) half-open range of timesteps to fit (None: all).
         cameras: training camera ids to use (None: every training camera).
         first_iterations: optimization steps of the first (static) timestep (the paper's code: 10,000).
-        iterations: steps of every later timestep (the paper's code: 2,000).
+        iterations: steps of every later timestep (the paper's code: 2,000); with ``max_iterations`` the
+            base count of the residual-driven schedule.
+        max_iterations: 0: every later timestep gets ``iterations``; more: each later timestep gets
+            ``iterations`` scaled by its forecast's residual on the moving pixels against the median of
+            the earlier timesteps', between ``min_iterations`` and this cap (:mod:`.effort`).
+        min_iterations: the floor of that schedule.
         max_gaussians: densification never grows the model past this.
         init: how the initial Gaussians are made: "hull" (visual hull + background proxy), "features"
             (triangulated feature matches, needs OpenCV) or "hull+features" (:mod:`.init`).
@@ -47,6 +52,8 @@ class FitOptions:
     cameras: tuple[str, ...] | None = None
     first_iterations: int = 150
     iterations: int = 30
+    max_iterations: int = 0
+    min_iterations: int = 10
     max_gaussians: int = 60_000
     init: str = "hull"
     init_foreground: int = 30_000
@@ -76,7 +83,10 @@ class FitOptions:
             raise InputError(f"must be in (0, 4], got {self.resolution_scale}", field="resolution_scale")
         if int(self.clean_plate_samples) < 0:
             raise InputError(f"must be 0 or more, got {self.clean_plate_samples}", field="clean_plate_samples")
-        for name in ("first_iterations", "iterations", "max_gaussians", "init_foreground", "init_background",
+        if int(self.max_iterations) and not int(self.min_iterations) <= int(self.iterations) <= int(self.max_iterations):
+            raise InputError(f"needs min_iterations <= iterations <= max_iterations, got {self.min_iterations}, "
+                             f"{self.iterations}, {self.max_iterations}", field="max_iterations")
+        for name in ("first_iterations", "iterations", "min_iterations", "max_iterations", "max_gaussians", "init_foreground", "init_background",
                      "knn", "background_stride"):
             if int(getattr(self, name)) < (0 if name.endswith("iterations") else 1):
                 raise InputError(f"must be a positive integer, got {getattr(self, name)}", field=name)
@@ -97,6 +107,9 @@ class FitOptions:
         d = asdict(self)
         d.pop("device")
         # knobs at their "off" value are left out, so fits started before these knobs existed still resume
+        if d["max_iterations"] == 0:
+            d.pop("max_iterations")
+            d.pop("min_iterations")
         if d["init"] == "hull":
             d.pop("init")
         if d["clean_plate_samples"] == 0:
@@ -105,6 +118,21 @@ class FitOptions:
         d["timesteps"] = list(d["timesteps"]) if d["timesteps"] is not None else None
         d["cameras"] = list(d["cameras"]) if d["cameras"] is not None else None
         return d
+
+
+#: named knob sets (overrides of the :class:`FitOptions` defaults); docs/benchmarks_fit.md measures them
+FIT_PRESETS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "accurate": {"resolution_scale": 1.0, "first_iterations": 3000, "iterations": 150, "max_iterations": 450,
+                 "min_iterations": 50, "max_gaussians": 200_000, "init_background": 60_000},
+}
+
+
+def preset_options(name: str, **overrides: Any) -> FitOptions:
+    """The :class:`FitOptions` of preset ``name`` with ``overrides`` on top."""
+    if name not in FIT_PRESETS:
+        raise InputError(f"must be one of {', '.join(FIT_PRESETS)}, got {name!r}", field="preset")
+    return FitOptions(**{**FIT_PRESETS[name], **overrides})
 
 
 @dataclass

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from fourlegs_engine.fit.options import FIT_PRESETS
+from fourlegs_engine.fit.presets import FIT_PRESETS
 
 DEFAULT_DATASET = "../shared/data/panoptic-basketball"
 #: name -> knob overrides of FitOptions

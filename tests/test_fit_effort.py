@@ -17,7 +17,8 @@ from fourlegs_engine.errors import InputError
 from fourlegs_engine.fit import FitOptions, fit_capture
 from fourlegs_engine.fit.effort import MOVING_THRESHOLD, iterations_for, moving_pixels, moving_residual
 from fourlegs_engine.fit.evaluate import TestMetrics as Metrics, evaluate_test_views, region_error
-from fourlegs_engine.fit.options import FIT_PRESETS, preset_options
+from fourlegs_engine.fit.options import preset_options
+from fourlegs_engine.fit.presets import FIT_PRESETS
 from fourlegs_engine.scene.bundle import load_bundle
 
 ADAPTIVE = FitOptions(resolution_scale=1.0, first_iterations=60, iterations=8, min_iterations=3, max_iterations=20,

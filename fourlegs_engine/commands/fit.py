@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from ..errors import InputError
+from ..fit.presets import FIT_PRESETS
 from .options import add_ray_arguments, ray_options_from_args, uses_ray
 
 
@@ -42,7 +43,7 @@ def register(subparsers: Any) -> None:
                    help="scene bundle directory to write (several datasets: the folder of their bundles)")
     p.add_argument("--timesteps", type=str, default=None, help="half-open range a:b (default: all)")
     p.add_argument("--cameras", type=str, default=None, help="training camera ids, comma separated (default: all)")
-    p.add_argument("--preset", choices=("default", "accurate"), default="default",
+    p.add_argument("--preset", choices=tuple(FIT_PRESETS), default="default",
                    help="knob set: default (320x180, about 20 CPU minutes for 150 timesteps) or accurate (640x360, "
                    "hours); the options below override it")
     p.add_argument("--resolution-scale", type=float, default=None,

@@ -8,6 +8,7 @@ import torch
 
 from ..errors import InputError
 from .init import INIT_METHODS
+from .presets import FIT_PRESETS
 
 
 @dataclass(frozen=True)
@@ -118,14 +119,6 @@ class FitOptions:
         d["timesteps"] = list(d["timesteps"]) if d["timesteps"] is not None else None
         d["cameras"] = list(d["cameras"]) if d["cameras"] is not None else None
         return d
-
-
-#: named knob sets (overrides of the :class:`FitOptions` defaults); docs/benchmarks_fit.md measures them
-FIT_PRESETS: dict[str, dict[str, Any]] = {
-    "default": {},
-    "accurate": {"resolution_scale": 1.0, "first_iterations": 3000, "iterations": 150, "max_iterations": 450,
-                 "min_iterations": 50, "max_gaussians": 200_000, "init_background": 60_000},
-}
 
 
 def preset_options(name: str, **overrides: Any) -> FitOptions:

@@ -243,7 +243,8 @@ def _run(capture: Capture, steps: range, cams_idx: list[int], cameras: list[Came
                 previous_frames = previous_frames or TrainingFrames(capture, t - 1, cams_idx, size, device)
                 residual, moved = forecast_residual(model, tracker, frames, previous_frames, cameras, prev, prev2)
                 earlier = [e["residual"] for k, e in effort.items() if int(k) < t]
-                n_iter = iterations_for(residual, earlier, opts.iterations, opts.min_iterations, opts.max_iterations)
+                n_iter = iterations_for(residual, earlier, opts.iterations, min(opts.min_iterations, opts.iterations),
+                                        opts.max_iterations)
                 effort[str(t)] = {"residual": residual, "moving_pixels": moved, "iterations": n_iter}
                 write_json_atomic(effort_path, effort)
             else:

@@ -25,7 +25,7 @@ class FitOptions:
         max_iterations: 0: every later timestep gets ``iterations``; more: each later timestep gets
             ``iterations`` scaled by its forecast's residual on the moving pixels against the median of
             the earlier timesteps', between ``min_iterations`` and this cap (:mod:`.effort`).
-        min_iterations: the floor of that schedule.
+        min_iterations: the floor of that schedule (``iterations`` where that is lower).
         max_gaussians: densification never grows the model past this.
         init: how the initial Gaussians are made: "hull" (visual hull + background proxy), "features"
             (triangulated feature matches, needs OpenCV) or "hull+features" (:mod:`.init`).
@@ -51,10 +51,10 @@ class FitOptions:
     resolution_scale: float = 0.5
     timesteps: tuple[int, int] | None = None
     cameras: tuple[str, ...] | None = None
-    first_iterations: int = 150
-    iterations: int = 30
-    max_iterations: int = 0
-    min_iterations: int = 10
+    first_iterations: int = 600
+    iterations: int = 32
+    max_iterations: int = 96
+    min_iterations: int = 12
     max_gaussians: int = 60_000
     init: str = "hull"
     init_foreground: int = 30_000
@@ -84,9 +84,9 @@ class FitOptions:
             raise InputError(f"must be in (0, 4], got {self.resolution_scale}", field="resolution_scale")
         if int(self.clean_plate_samples) < 0:
             raise InputError(f"must be 0 or more, got {self.clean_plate_samples}", field="clean_plate_samples")
-        if int(self.max_iterations) and not int(self.min_iterations) <= int(self.iterations) <= int(self.max_iterations):
-            raise InputError(f"needs min_iterations <= iterations <= max_iterations, got {self.min_iterations}, "
-                             f"{self.iterations}, {self.max_iterations}", field="max_iterations")
+        if int(self.max_iterations) and not int(self.iterations) <= int(self.max_iterations):
+            raise InputError(f"needs iterations <= max_iterations, got {self.iterations} and {self.max_iterations}",
+                             field="max_iterations")
         for name in ("first_iterations", "iterations", "min_iterations", "max_iterations", "max_gaussians", "init_foreground", "init_background",
                      "knn", "background_stride"):
             if int(getattr(self, name)) < (0 if name.endswith("iterations") else 1):

@@ -53,6 +53,15 @@ def register_bench(bench_sub: Any) -> None:
     p.add_argument("--contact-timesteps", type=int, default=3, help="timesteps shown in the contact sheet")
     p.set_defaults(func=bench_fit)
 
+    q = bench_sub.add_parser(
+        "fit-pareto", help="one Pareto plot and table of the runs of several `bench fit` JSON files",
+        description="Merge the records of several `fourlegs bench fit` runs (their fit_bench.json) into one "
+        "table and one plot of mean test PSNR, whole frame and ball region, against CPU minutes of the sequence.")
+    q.add_argument("json", nargs="+", help="fit_bench.json files")
+    q.add_argument("--out", required=True, help="output directory (fit_pareto.png, fit_pareto.md)")
+    q.add_argument("--sequence-length", type=int, default=150, help="timesteps of the whole sequence (extrapolation)")
+    q.set_defaults(func=bench_fit_pareto)
+
 
 def parse_runs(text: str) -> list[tuple[str, dict[str, Any]]]:
     from fourlegs_engine.errors import InputError
@@ -208,6 +217,45 @@ def ball_record(metrics, k: int) -> dict[str, Any]:
             "ball_psnr_mean": metrics.mean_region_psnr,
             "ball_psnr_first_k": float(np.mean(seen[:kk])) if seen else None,
             "ball_psnr_last_k": float(np.mean(seen[-kk:])) if seen else None}
+
+
+def bench_fit_pareto(args: argparse.Namespace) -> int:
+    from fourlegs_engine.errors import InputError
+    from fourlegs_engine.fileio import read_json
+
+    records = []
+    for path in map(Path, args.json):
+        data = read_json(path)
+        if not isinstance(data, dict) or not isinstance(data.get("records"), list):
+            raise InputError("not a `bench fit` JSON (no records list)", file=path, field="records")
+        for r in data["records"]:
+            missing = [k for k in ("run", "psnr_mean", "timesteps") if k not in r]
+            if missing:
+                raise InputError(f"a record lacks {', '.join(missing)}", file=path, field="records")
+            a, b = r["timesteps"]
+            records.append({**r, "run": f"{r['run']} ({a}:{b})"})
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    _pareto_plot(records, out / "fit_pareto.png")
+    table = pareto_table(records)
+    (out / "fit_pareto.md").write_text(table + "\n")
+    print(table)
+    print(f"[bench fit-pareto] wrote {out / 'fit_pareto.png'}, {out / 'fit_pareto.md'}")
+    return 0
+
+
+def pareto_table(records: list[dict[str, Any]]) -> str:
+    """One row per run, cheapest first: CPU minutes of the sequence and the mean test PSNRs."""
+    rows = ["| run (timesteps) | knobs | CPU min, sequence | mean PSNR, whole frame | mean PSNR, ball region | "
+            "first-k → last-k PSNR | later iterations: mean (min–max) |", "|---|---|---|---|---|---|---|"]
+    for r in sorted(records, key=lambda r: (sequence_cpu_minutes(r) is None, sequence_cpu_minutes(r) or 0.0)):
+        knobs = ", ".join(f"{k}={v}" for k, v in (r.get("knobs") or {}).items()) or "defaults"
+        how = "measured" if r.get("measured_fit_cpu_min") is not None else "extrapolated"
+        rows.append(f"| {r['run']} | {knobs} | {_fmt(sequence_cpu_minutes(r), '.1f')} ({how}) | "
+                    f"{_fmt(r.get('psnr_mean'))} | {_fmt(r.get('ball_psnr_mean'))} | "
+                    f"{_fmt(r.get('psnr_first_k'))} → {_fmt(r.get('psnr_last_k'))} | "
+                    f"{_iterations_summary(r.get('later_iterations') or {})} |")
+    return "\n".join(rows)
 
 
 def measure_initialisation(capture, opts) -> dict[str, Any]:

@@ -216,3 +216,29 @@ def test_bench_ball_record_pools_cameras_and_the_table_shows_it(tmp_path):
     _pareto_plot([record], tmp_path / "pareto.png")
     assert (tmp_path / "pareto.png").stat().st_size > 0
     assert math.isfinite(rec["ball_psnr_mean"])
+
+
+def test_bench_fit_pareto_merges_runs_of_several_files_and_refuses_other_json(tmp_path, capsys):
+    from fourlegs_engine.commands.main import main
+
+    def record(run, cpu_min, psnr, ball, a, b, measured):
+        r = {"run": run, "knobs": {"iterations": 30}, "timesteps": [a, b], "psnr_mean": psnr, "ball_psnr_mean": ball,
+             "psnr_first_k": psnr + 0.3, "psnr_last_k": psnr - 0.3, "first_timestep_cpu_s": 60.0,
+             "later_timestep_cpu_s": 5.0, "later_iterations": {}}
+        r["measured_fit_cpu_min" if measured else "extrapolated_sequence_cpu_min"] = cpu_min
+        return r
+
+    (tmp_path / "a.json").write_text(json.dumps({"records": [record("default", 17.5, 27.1, 24.0, 0, 150, True)]}))
+    (tmp_path / "b.json").write_text(json.dumps({"records": [record("x4", 42.0, 27.7, 25.5, 0, 3, False),
+                                                             record("fast", 6.0, 25.0, None, 0, 3, False)]}))
+    assert main(["bench", "fit-pareto", str(tmp_path / "a.json"), str(tmp_path / "b.json"),
+                 "--out", str(tmp_path / "out")]) == 0
+    table = (tmp_path / "out" / "fit_pareto.md").read_text().splitlines()
+    assert [row.split(" | ")[0] for row in table[2:]] == ["| fast (0:3)", "| default (0:150)", "| x4 (0:3)"]
+    assert "| 17.5 (measured) | 27.10 | 24.00 | 27.40 → 26.80 |" in table[3]
+    assert "| 6.0 (extrapolated) | 25.00 | – |" in table[2]
+    assert (tmp_path / "out" / "fit_pareto.png").stat().st_size > 0
+    (tmp_path / "bad.json").write_text(json.dumps({"runs": []}))
+    assert main(["bench", "fit-pareto", str(tmp_path / "bad.json"), "--out", str(tmp_path / "out2")]) != 0
+    err = capsys.readouterr().err
+    assert "bad.json" in err and "records" in err

@@ -229,13 +229,17 @@ def test_bench_fit_pareto_merges_runs_of_several_files_and_refuses_other_json(tm
         return r
 
     (tmp_path / "a.json").write_text(json.dumps({"records": [record("default", 17.5, 27.1, 24.0, 0, 150, True)]}))
+    short = record("short", 1.5, 26.0, 21.0, 0, 12, True)  # 12 timesteps measured: not the sequence's minutes
+    short["extrapolated_sequence_cpu_min"] = 14.0
     (tmp_path / "b.json").write_text(json.dumps({"records": [record("x4", 42.0, 27.7, 25.5, 0, 3, False),
-                                                             record("fast", 6.0, 25.0, None, 0, 3, False)]}))
+                                                             record("fast", 6.0, 25.0, None, 0, 3, False), short]}))
     assert main(["bench", "fit-pareto", str(tmp_path / "a.json"), str(tmp_path / "b.json"),
                  "--out", str(tmp_path / "out")]) == 0
     table = (tmp_path / "out" / "fit_pareto.md").read_text().splitlines()
-    assert [row.split(" | ")[0] for row in table[2:]] == ["| fast (0:3)", "| default (0:150)", "| x4 (0:3)"]
-    assert "| 17.5 (measured) | 27.10 | 24.00 | 27.40 → 26.80 |" in table[3]
+    assert [row.split(" | ")[0] for row in table[2:]] == ["| fast (0:3)", "| short (0:12)", "| default (0:150)",
+                                                          "| x4 (0:3)"]
+    assert "| 14.0 (extrapolated) |" in table[3]
+    assert "| 17.5 (measured) | 27.10 | 24.00 | 27.40 → 26.80 |" in table[4]
     assert "| 6.0 (extrapolated) | 25.00 | – |" in table[2]
     assert (tmp_path / "out" / "fit_pareto.png").stat().st_size > 0
     (tmp_path / "bad.json").write_text(json.dumps({"runs": []}))

@@ -246,3 +246,15 @@ def test_bench_fit_pareto_merges_runs_of_several_files_and_refuses_other_json(tm
     assert main(["bench", "fit-pareto", str(tmp_path / "bad.json"), "--out", str(tmp_path / "out2")]) != 0
     err = capsys.readouterr().err
     assert "bad.json" in err and "records" in err
+
+
+def test_cli_preset_sets_the_knobs_and_explicit_options_override_it():
+    from fourlegs_engine.commands.fit import options_from_args
+    from fourlegs_engine.commands.main import build_parser
+
+    parse = lambda *extra: options_from_args(build_parser().parse_args(["fit", "ds", "-o", "out", *extra]))  # noqa: E731
+    accurate = parse("--preset", "accurate", "--iterations", "60")
+    assert accurate.resolution_scale == 1.0 and accurate.iterations == 60
+    assert accurate.first_iterations == FIT_PRESETS["accurate"]["first_iterations"]
+    default = parse("--max-iterations", "0")
+    assert default.resolution_scale == 0.5 and default.max_iterations == 0 and default == FitOptions(max_iterations=0)

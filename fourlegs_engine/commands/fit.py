@@ -44,7 +44,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--timesteps", type=str, default=None, help="half-open range a:b (default: all)")
     p.add_argument("--cameras", type=str, default=None, help="training camera ids, comma separated (default: all)")
     p.add_argument("--preset", choices=tuple(FIT_PRESETS), default="default",
-                   help="knob set: default (320x180, about 20 CPU minutes for 150 timesteps) or accurate (640x360, "
+                   help="knob set: default (320x180, about 15 CPU minutes for 150 timesteps) or accurate (640x360, "
                    "hours); the options below override it")
     p.add_argument("--resolution-scale", type=float, default=None,
                    help="image scale for fitting (default: the preset's, 0.5 for default)")

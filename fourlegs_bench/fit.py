@@ -20,14 +20,17 @@ from typing import Any
 
 import numpy as np
 
+from fourlegs_engine.fit.presets import FIT_PRESETS
+
 DEFAULT_DATASET = "../shared/data/panoptic-basketball"
 #: name -> knob overrides of FitOptions
 PRESET_RUNS = {
     "fast": {"first_iterations": 150, "iterations": 10},
     "default": {},
     "long": {"first_iterations": 600, "iterations": 60, "max_gaussians": 120_000, "init_background": 60_000},
+    "accurate": dict(FIT_PRESETS["accurate"]),
 }
-INT_KNOBS = ("first_iterations", "iterations", "max_gaussians", "init_foreground", "init_background",
+INT_KNOBS = ("first_iterations", "iterations", "max_iterations", "min_iterations", "max_gaussians", "init_foreground", "init_background",
              "background_stride", "knn", "seed", "clean_plate_samples")
 STR_KNOBS = ("init",)
 FLOAT_KNOBS = ("resolution_scale", "lr_means", "lr_means_later", "lr_colors", "lr_scales", "lr_opacities",
@@ -49,6 +52,15 @@ def register_bench(bench_sub: Any) -> None:
     p.add_argument("--sequence-length", type=int, default=150, help="timesteps of the whole sequence (extrapolation)")
     p.add_argument("--contact-timesteps", type=int, default=3, help="timesteps shown in the contact sheet")
     p.set_defaults(func=bench_fit)
+
+    q = bench_sub.add_parser(
+        "fit-pareto", help="one Pareto plot and table of the runs of several `bench fit` JSON files",
+        description="Merge the records of several `fourlegs bench fit` runs (their fit_bench.json) into one "
+        "table and one plot of mean test PSNR, whole frame and ball region, against CPU minutes of the sequence.")
+    q.add_argument("json", nargs="+", help="fit_bench.json files")
+    q.add_argument("--out", required=True, help="output directory (fit_pareto.png, fit_pareto.md)")
+    q.add_argument("--sequence-length", type=int, default=150, help="timesteps of the whole sequence (extrapolation)")
+    q.set_defaults(func=bench_fit_pareto)
 
 
 def parse_runs(text: str) -> list[tuple[str, dict[str, Any]]]:
@@ -117,6 +129,8 @@ def bench_fit(args: argparse.Namespace) -> int:
     from fourlegs_engine.fit.evaluate import evaluate_test_views
     from fourlegs_engine.scene.bundle import is_bundle
 
+    from .real_annotations import ball_mask
+
     dataset = Path(args.dataset)
     if not dataset.is_dir():
         raise InputError("capture directory not found (pass --dataset)", file=dataset)
@@ -146,7 +160,7 @@ def bench_fit(args: argparse.Namespace) -> int:
         timing = {int(k): v for k, v in read_json(timing_path).items()} if timing_path.is_file() else {}
         keep = sorted({0, len(steps) // 2, len(steps) - 1}) if args.contact_timesteps >= 3 else [0, len(steps) - 1]
         metrics = evaluate_test_views(scene_dir, capture, resolution_scale=opts.resolution_scale,
-                                      keep_images_at=tuple(keep[:max(1, args.contact_timesteps)]))
+                                      keep_images_at=tuple(keep[:max(1, args.contact_timesteps)]), region=ball_mask)
         meta = read_json(scene_dir / "scene.json")
         first = timing.get(steps.start, {})
         later = [timing[t] for t in steps[1:] if t in timing]
@@ -170,14 +184,21 @@ def bench_fit(args: argparse.Namespace) -> int:
             "psnr_first_timestep": float(per_t[0]), "ssim_first_timestep": float(metrics.ssim[0].mean()),
             "psnr_mean": metrics.mean_psnr, "ssim_mean": metrics.mean_ssim,
             "psnr_first_k": float(per_t[:k].mean()), "psnr_last_k": float(per_t[-k:].mean()), "drift_k": k,
+            **ball_record(metrics, k),
+            "later_iterations": {t: e.get("iterations") for t, e in
+                                 ((meta.get("metadata") or {}).get("fit") or {}).get("later_iterations", {}).items()},
         }
         if first.get("wall_s") is not None and later:
             rec["extrapolated_sequence_wall_min"] = (first["wall_s"] + (args.sequence_length - 1) * later_wall) / 60
             rec["extrapolated_sequence_cpu_min"] = (first["cpu_s"] + (args.sequence_length - 1) * later_cpu) / 60
+        if len(steps) == args.sequence_length and all(t in timing for t in steps):  # the whole sequence, measured
+            rec["measured_fit_cpu_min"] = sum(timing[t]["cpu_s"] for t in steps) / 60
+            rec["measured_fit_wall_min"] = sum(timing[t]["wall_s"] for t in steps) / 60
         records.append(rec)
-        _contact_sheet(metrics, out / f"contact_{name}.png", name)
+        _contact_sheet(metrics, out / f"contact_{name}.png", name, region_fn=ball_mask)
         print(f"[bench fit] {name}: first-timestep PSNR {rec['psnr_first_timestep']:.2f} dB, mean "
-              f"{rec['psnr_mean']:.2f} dB over {len(per_t)} timesteps", flush=True)
+              f"{rec['psnr_mean']:.2f} dB (ball region {_fmt(rec['ball_psnr_mean'])} dB) over {len(per_t)} timesteps",
+              flush=True)
     result = {"command": command, "dataset": str(dataset.resolve()), "records": records}
     write_json_atomic(out / "fit_bench.json", result)
     table = markdown_table(records, args.sequence_length)
@@ -187,6 +208,62 @@ def bench_fit(args: argparse.Namespace) -> int:
     print(f"[bench fit] wrote {out / 'fit_bench.md'}, {out / 'fit_bench.json'}, {out / 'fit_pareto.png'}, "
           f"contact sheets in {out}")
     return 0
+
+
+def ball_record(metrics, k: int) -> dict[str, Any]:
+    """The ball-region figures of one run: PSNR per timestep (None where no test camera sees orange), its
+    mean over every (timestep, camera) that does, and the first-k / last-k means of the timesteps that have one."""
+    per_t = metrics.region_psnr_per_timestep()
+    seen = [v for v in per_t if v is not None]
+    kk = min(k, max(1, len(seen) // 2)) if seen else 0
+    return {"ball_psnr_per_timestep": [None if v is None else round(v, 3) for v in per_t],
+            "ball_pixels_per_timestep": metrics.region_pixels.sum(1).astype(int).tolist(),
+            "ball_psnr_mean": metrics.mean_region_psnr,
+            "ball_psnr_first_k": float(np.mean(seen[:kk])) if seen else None,
+            "ball_psnr_last_k": float(np.mean(seen[-kk:])) if seen else None}
+
+
+def bench_fit_pareto(args: argparse.Namespace) -> int:
+    from fourlegs_engine.errors import InputError
+    from fourlegs_engine.fileio import read_json
+
+    records = []
+    for path in map(Path, args.json):
+        data = read_json(path)
+        if not isinstance(data, dict) or not isinstance(data.get("records"), list):
+            raise InputError("not a `bench fit` JSON (no records list)", file=path, field="records")
+        for r in data["records"]:
+            missing = [k for k in ("run", "psnr_mean", "timesteps") if k not in r]
+            if missing:
+                raise InputError(f"a record lacks {', '.join(missing)}", file=path, field="records")
+            a, b = r["timesteps"]
+            r = {**r, "run": f"{r['run']} ({a}:{b})"}
+            if b - a != args.sequence_length:  # a shorter run's measured minutes are not the sequence's
+                r.pop("measured_fit_cpu_min", None)
+                r.pop("measured_fit_wall_min", None)
+            records.append(r)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    _pareto_plot(records, out / "fit_pareto.png")
+    table = pareto_table(records)
+    (out / "fit_pareto.md").write_text(table + "\n")
+    print(table)
+    print(f"[bench fit-pareto] wrote {out / 'fit_pareto.png'}, {out / 'fit_pareto.md'}")
+    return 0
+
+
+def pareto_table(records: list[dict[str, Any]]) -> str:
+    """One row per run, cheapest first: CPU minutes of the sequence and the mean test PSNRs."""
+    rows = ["| run (timesteps) | knobs | CPU min, sequence | mean PSNR, whole frame | mean PSNR, ball region | "
+            "first-k → last-k PSNR | later iterations: mean (min–max) |", "|---|---|---|---|---|---|---|"]
+    for r in sorted(records, key=lambda r: (sequence_cpu_minutes(r) is None, sequence_cpu_minutes(r) or 0.0)):
+        knobs = ", ".join(f"{k}={v}" for k, v in (r.get("knobs") or {}).items()) or "defaults"
+        how = "measured" if r.get("measured_fit_cpu_min") is not None else "extrapolated"
+        rows.append(f"| {r['run']} | {knobs} | {_fmt(sequence_cpu_minutes(r), '.1f')} ({how}) | "
+                    f"{_fmt(r.get('psnr_mean'))} | {_fmt(r.get('ball_psnr_mean'))} | "
+                    f"{_fmt(r.get('psnr_first_k'))} → {_fmt(r.get('psnr_last_k'))} | "
+                    f"{_iterations_summary(r.get('later_iterations') or {})} |")
+    return "\n".join(rows)
 
 
 def measure_initialisation(capture, opts) -> dict[str, Any]:
@@ -219,8 +296,9 @@ def _fmt(v, spec=".2f") -> str:
 def markdown_table(records: list[dict[str, Any]], sequence_length: int) -> str:
     head = ("| run | knobs | init s (CPU s) | init points (fg) | init train PSNR | Gaussians | res | t0 s (CPU s) | "
             "later s/timestep (CPU s) | t0 PSNR / SSIM | "
-            f"mean PSNR / SSIM | first-k → last-k PSNR | {sequence_length} timesteps, min (CPU min) |")
-    rows = [head, "|" + "---|" * 13]
+            f"mean PSNR / SSIM | first-k → last-k PSNR | {sequence_length} timesteps, min (CPU min) | "
+            "ball-region PSNR: mean, first-k → last-k | later iterations: mean (min–max) |")
+    rows = [head, "|" + "---|" * 15]
     for r in records:
         knobs = ", ".join(f"{k}={v}" for k, v in r["knobs"].items()) or "defaults"
         rows.append(
@@ -233,48 +311,93 @@ def markdown_table(records: list[dict[str, Any]], sequence_length: int) -> str:
             f"{r['psnr_first_timestep']:.2f} / {r['ssim_first_timestep']:.3f} | "
             f"{r['psnr_mean']:.2f} / {r['ssim_mean']:.3f} | "
             f"{r['psnr_first_k']:.2f} → {r['psnr_last_k']:.2f} (k={r['drift_k']}) | "
-            f"{_fmt(r.get('extrapolated_sequence_wall_min'), '.0f')} "
-            f"({_fmt(r.get('extrapolated_sequence_cpu_min'), '.0f')}) |")
+            f"{_fmt(r.get('measured_fit_wall_min', r.get('extrapolated_sequence_wall_min')), '.0f')} "
+            f"({_fmt(r.get('measured_fit_cpu_min', r.get('extrapolated_sequence_cpu_min')), '.1f')}"
+            f"{'' if 'measured_fit_cpu_min' in r else ', extrapolated'}) | "
+            f"{_fmt(r.get('ball_psnr_mean'))}, {_fmt(r.get('ball_psnr_first_k'))} → {_fmt(r.get('ball_psnr_last_k'))} | "
+            f"{_iterations_summary(r.get('later_iterations') or {})} |")
     return "\n".join(rows)
 
 
+def _iterations_summary(later: dict[str, Any]) -> str:
+    counts = [int(v) for v in later.values() if v is not None]
+    if not counts:
+        return "–"
+    return f"{np.mean(counts):.1f} ({min(counts)}–{max(counts)})"
+
+
+def sequence_cpu_minutes(r: dict[str, Any]) -> float | None:
+    """CPU minutes of the whole sequence: measured when every timestep was fitted in this run, else extrapolated
+    from the first and later timesteps (else the first timestep's alone)."""
+    for key in ("measured_fit_cpu_min", "extrapolated_sequence_cpu_min"):
+        if r.get(key) is not None:
+            return float(r[key])
+    return r["first_timestep_cpu_s"] / 60 if r.get("first_timestep_cpu_s") is not None else None
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """The points no other point beats in both cost (x, lower is better) and quality (y, higher is better)."""
+    front, best = [], -np.inf
+    for x, y in sorted(points):
+        if y > best:
+            front.append((x, y))
+            best = y
+    return front
+
+
 def _pareto_plot(records: list[dict[str, Any]], path: Path) -> None:
+    """Two panels against CPU minutes of the sequence: whole-frame and ball-region mean test PSNR."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from fourlegs_engine.fileio import atomic_path
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for r in records:
-        x = r["later_timestep_cpu_s"]
-        if x is None:
-            x = r["first_timestep_cpu_s"] or float("nan")
-        ax.scatter([x], [r["psnr_mean"]], s=40)
-        ax.annotate(r["run"], (x, r["psnr_mean"]), textcoords="offset points", xytext=(5, 5))
-    pts = sorted((r["later_timestep_cpu_s"], r["psnr_mean"]) for r in records if r["later_timestep_cpu_s"] is not None)
-    front, best = [], -np.inf
-    for x, y in pts:
-        if y > best:
-            front.append((x, y))
-            best = y
-    if len(front) > 1:
-        ax.plot(*zip(*front), "k--", lw=1, label="Pareto front")
-        ax.legend()
-    ax.axhline(24.0, color="r", lw=0.8, ls=":")
-    # CPU seconds: repeatable on a shared machine, where wall clock depends on the others' load
-    only_first = all(r["later_timestep_cpu_s"] is None for r in records)
-    ax.set_xlabel("CPU seconds of the first timestep" if only_first else "CPU seconds per later timestep")
-    ax.set_ylabel("mean test-camera PSNR (dB)")
-    ax.set_title("fourlegs fit: accuracy vs time")
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for ax, key, label in ((axes[0], "psnr_mean", "whole frame"), (axes[1], "ball_psnr_mean", "ball region")):
+        pts = []
+        for r in records:
+            x, y = sequence_cpu_minutes(r), r.get(key)
+            if x is None or y is None:
+                continue
+            pts.append((x, y))
+            ax.scatter([x], [y], s=40)
+            ax.annotate(r["run"], (x, y), textcoords="offset points", xytext=(5, 5), fontsize=8)
+        front = pareto_front(pts)
+        if len(front) > 1:
+            ax.plot(*zip(*front), "k--", lw=1, label="Pareto front")
+            ax.legend(loc="lower right")
+        if key == "psnr_mean":
+            ax.axhline(27.0, color="r", lw=0.8, ls=":")
+        ax.axvline(20.0, color="r", lw=0.8, ls=":")
+        # CPU minutes: repeatable on a shared machine, where wall clock depends on the others' load
+        ax.set_xlabel("CPU minutes, whole sequence (measured or extrapolated)")
+        ax.set_ylabel(f"mean test-camera PSNR, {label} (dB)")
+        ax.set_title(f"fourlegs fit: {label}")
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110)
     plt.close(fig)
 
 
-def _contact_sheet(metrics, path: Path, title: str) -> None:
-    """Rows: test cameras; per kept timestep two columns: ground truth | render (PSNR in the label)."""
+def _ball_zoom(target: np.ndarray, render: np.ndarray, region_fn, size: tuple[int, int]) -> np.ndarray | None:
+    """(h, w, 3) panel: the ground truth's ball neighbourhood (left) beside the render's (right), each a
+    crop of a quarter of the frame around the ball's centre in the ground truth, magnified 2x."""
+    w, h = size
+    mask = region_fn((np.clip(target, 0, 1) * 255).round().astype(np.uint8))
+    if not mask.any():
+        return None
+    ys, xs = np.nonzero(mask)
+    cw, ch = w // 4, h // 2
+    x0 = int(np.clip(xs.mean() - cw / 2, 0, w - cw))
+    y0 = int(np.clip(ys.mean() - ch / 2, 0, h - ch))
+    crops = [np.repeat(np.repeat(im[y0:y0 + ch, x0:x0 + cw], 2, 0), 2, 1) for im in (target, render)]
+    return np.concatenate(crops, axis=1)[:h, :w]
+
+
+def _contact_sheet(metrics, path: Path, title: str, region_fn=None) -> None:
+    """Rows: test cameras; per kept timestep three columns: ground truth | render (whole-frame and ball-region
+    PSNR in the label) | the ball's neighbourhood magnified, ground truth beside render (when it is seen)."""
     from PIL import Image, ImageDraw
 
     from fourlegs_engine.fileio import atomic_path
@@ -285,19 +408,32 @@ def _contact_sheet(metrics, path: Path, title: str) -> None:
     if not times or not cams:
         return
     h, w = metrics.renders[(times[0], cams[0])].shape[:2]
+    cols = 3 if region_fn is not None else 2
+    region = metrics.region_psnr() if region_fn is not None else None
     label_h = 14
-    sheet = Image.new("RGB", (2 * w * len(times), (h + label_h) * len(cams) + label_h), (255, 255, 255))
+    sheet = Image.new("RGB", (cols * w * len(times), (h + label_h) * len(cams) + label_h), (255, 255, 255))
     draw = ImageDraw.Draw(sheet)
-    draw.text((4, 1), f"{title}: ground truth | render, test cameras {', '.join(cams)}", fill=(0, 0, 0))
+    draw.text((4, 1), f"{title}: ground truth | render | ball x2 (GT, render), test cameras {', '.join(cams)}",
+              fill=(0, 0, 0))
+    to_image = lambda im: Image.fromarray((np.clip(im, 0, 1) * 255).astype(np.uint8))  # noqa: E731
     for ci, cam in enumerate(cams):
         for ti, t in enumerate(times):
             i = metrics.timesteps.index(t)
             j = metrics.cameras.index(cam)
             y = label_h + ci * (h + label_h)
-            for k, img in enumerate((metrics.targets[(t, cam)], metrics.renders[(t, cam)])):
-                x = (2 * ti + k) * w
-                sheet.paste(Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8)), (x, y + label_h))
-                text = f"cam {cam} t={t} " + ("GT" if k == 0 else f"render {metrics.psnr[i, j]:.1f} dB")
+            target, render = metrics.targets[(t, cam)], metrics.renders[(t, cam)]
+            for k, img in enumerate((target, render)):
+                x = (cols * ti + k) * w
+                sheet.paste(to_image(img), (x, y + label_h))
+                ball = f", ball {region[i][j]:.1f}" if region is not None and region[i][j] is not None else ""
+                text = f"cam {cam} t={t} " + ("GT" if k == 0 else f"render {metrics.psnr[i, j]:.1f} dB{ball}")
                 draw.text((x + 3, y + 1), text, fill=(0, 0, 0))
+            if region_fn is not None:
+                zoom = _ball_zoom(target, render, region_fn, (w, h))
+                x = (cols * ti + 2) * w
+                if zoom is not None:
+                    sheet.paste(to_image(zoom), (x, y + label_h))
+                draw.text((x + 3, y + 1), "ball x2: GT | render" if zoom is not None else "no ball in view",
+                          fill=(0, 0, 0))
     with atomic_path(path) as tmp:
         sheet.save(tmp)

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from ..errors import InputError
+from ..fit.presets import FIT_PRESETS
 from .options import add_ray_arguments, ray_options_from_args, uses_ray
 
 
@@ -42,9 +43,18 @@ def register(subparsers: Any) -> None:
                    help="scene bundle directory to write (several datasets: the folder of their bundles)")
     p.add_argument("--timesteps", type=str, default=None, help="half-open range a:b (default: all)")
     p.add_argument("--cameras", type=str, default=None, help="training camera ids, comma separated (default: all)")
-    p.add_argument("--resolution-scale", type=float, default=0.5, help="image scale for fitting (default 0.5)")
+    p.add_argument("--preset", choices=tuple(FIT_PRESETS), default="default",
+                   help="knob set: default (320x180, about 15 CPU minutes for 150 timesteps) or accurate (640x360, "
+                   "hours); the options below override it")
+    p.add_argument("--resolution-scale", type=float, default=None,
+                   help="image scale for fitting (default: the preset's, 0.5 for default)")
     p.add_argument("--first-iterations", type=int, default=None, help="steps of the first (static) timestep")
-    p.add_argument("--iterations", type=int, default=None, help="steps of every later timestep")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="steps of every later timestep (with --max-iterations: the base of the residual-driven schedule)")
+    p.add_argument("--max-iterations", type=int, default=None,
+                   help="cap of the residual-driven schedule: later timesteps get more steps where the forecast "
+                   "misses the moving pixels (0: every later timestep gets --iterations)")
+    p.add_argument("--min-iterations", type=int, default=None, help="floor of the residual-driven schedule")
     p.add_argument("--max-gaussians", type=int, default=None, help="cap on the number of Gaussians")
     p.add_argument("--init", choices=("hull", "features", "hull+features"), default=None,
                    help="initial Gaussians: visual hull + background proxy (hull), triangulated SIFT matches "
@@ -66,19 +76,20 @@ def register(subparsers: Any) -> None:
 
 def options_from_args(args: argparse.Namespace):
     """:class:`~fourlegs_engine.fit.FitOptions` from parsed arguments (unset knobs keep their defaults)."""
-    from ..fit.options import FitOptions
+    from ..fit.options import preset_options
 
-    kw: dict[str, Any] = {"resolution_scale": args.resolution_scale, "seed": args.seed, "device": args.device,
-                          "densify": not args.no_densify}
+    kw: dict[str, Any] = {"seed": args.seed, "device": args.device, "densify": not args.no_densify}
+    if args.resolution_scale is not None:
+        kw["resolution_scale"] = args.resolution_scale
     if args.timesteps is not None:
         kw["timesteps"] = parse_timesteps(args.timesteps)
     if args.cameras is not None:
         kw["cameras"] = parse_cameras(args.cameras)
-    for name in ("first_iterations", "iterations", "max_gaussians", "init", "init_foreground", "init_background",
-                 "clean_plate_samples"):
+    for name in ("first_iterations", "iterations", "max_iterations", "min_iterations", "max_gaussians", "init",
+                 "init_foreground", "init_background", "clean_plate_samples"):
         if getattr(args, name) is not None:
             kw[name] = getattr(args, name)
-    return FitOptions(**kw)
+    return preset_options(args.preset, **kw)
 
 
 def scene_outputs(datasets: Sequence[str], output: str) -> list[Path]:

@@ -45,7 +45,8 @@ from ..scene.scene import Scene
 from .clean_plate import clean_plates, sample_timesteps
 from .dataset import Capture
 from .model import TrainingFrames, initial_model, model_from_arrays, to_numpy
-from .optimize import Tracker, fit_first_timestep, fit_later_timestep
+from .effort import iterations_for
+from .optimize import Tracker, fit_first_timestep, fit_later_timestep, forecast_residual
 from .options import FitEvent, FitOptions
 
 WORK_VERSION = 1
@@ -173,6 +174,7 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
                 "first_timestep": a,
                 "color_correction": {"cam_m": static["cam_m"].tolist(), "cam_c": static["cam_c"].tolist()},
                 "fit": {"options": opts.fingerprint(), "train_psnr": history,
+                        "later_iterations": _later_iterations(work, steps, opts),
                         "floor_y": float(static["floor_y"][0]) if static["floor_y"].size else None}}
     from ..scene.bundle import write_bundle
 
@@ -180,6 +182,14 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
                  overwrite=overwrite)
     shutil.rmtree(work, ignore_errors=True)
     return output
+
+
+def _later_iterations(work: Path, steps: range, opts: FitOptions) -> dict[str, dict[str, float]]:
+    """Per later timestep: its optimization steps and, with the residual-driven schedule, the forecast's
+    residual on the moving pixels and their count."""
+    path = work / "effort.json"
+    effort = read_json(path) if path.is_file() else {}
+    return {str(t): effort.get(str(t), {"iterations": opts.iterations}) for t in steps[1:]}
 
 
 def _run(capture: Capture, steps: range, cams_idx: list[int], cameras: list[Camera], size: tuple[int, int],
@@ -217,16 +227,31 @@ def _run(capture: Capture, steps: range, cams_idx: list[int], cameras: list[Came
         return [history[str(a)]]
     tracker = Tracker(model, cameras, opts, floor_y)
     prev2 = prev = (model.means, model.rotations)
+    effort_path = work / "effort.json"
+    effort: dict[str, dict[str, float]] = read_json(effort_path) if effort_path.is_file() else {}
+    previous_frames: TrainingFrames | None = None
     for t in steps[1:]:
         path = work / f"t{t:06d}.npz"
         if path.is_file():
             z = _load_npz(path)
             cur = (torch.from_numpy(z["means"]).to(device), torch.from_numpy(z["rotations"]).to(device))
             report(FitEvent("timestep", t, train_psnr=history.get(str(t), float("nan")), resumed=True))
+            previous_frames = None
         else:
             frames = TrainingFrames(capture, t, cams_idx, size, device)
+            if opts.max_iterations > 0:
+                previous_frames = previous_frames or TrainingFrames(capture, t - 1, cams_idx, size, device)
+                residual, moved = forecast_residual(model, tracker, frames, previous_frames, cameras, prev, prev2)
+                earlier = [e["residual"] for k, e in effort.items() if int(k) < t]
+                n_iter = iterations_for(residual, earlier, opts.iterations, min(opts.min_iterations, opts.iterations),
+                                        opts.max_iterations)
+                effort[str(t)] = {"residual": residual, "moving_pixels": moved, "iterations": n_iter}
+                write_json_atomic(effort_path, effort)
+            else:
+                n_iter = opts.iterations
             m, r, last = fit_later_timestep(model, tracker, frames, cameras, opts, scene_radius, prev, prev2,
-                                    _generator(opts.seed, t), report, t)
+                                    _generator(opts.seed, t), report, t, n_iter)
+            previous_frames = frames
             _save_npz(path, means=to_numpy(m), rotations=to_numpy(r))
             z = _load_npz(path)
             cur = (torch.from_numpy(z["means"]).to(device), torch.from_numpy(z["rotations"]).to(device))

@@ -10,6 +10,7 @@ import torch
 
 from ..scene.camera import Camera
 from ..scene.gaussians import quaternion_to_matrix
+from .effort import moving_residual
 from .losses import Priors, image_loss, psnr
 from .model import GaussianModel, TrainingFrames, correct_colours, render_views
 from .options import FitEvent, FitOptions
@@ -187,34 +188,60 @@ class Tracker:
                 self.backgrounds.append((out["rgb"], out["features"]))
 
 
+def _forecast(fi: torch.Tensor, prev: tuple[torch.Tensor, torch.Tensor], prev2: tuple[torch.Tensor, torch.Tensor]
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Constant-velocity forecast of the foreground centres (F,3) and unit rotations (F,4)."""
+    means = 2 * prev[0][fi] - prev2[0][fi]
+    rots = torch.nn.functional.normalize(2 * prev[1][fi] - prev2[1][fi], dim=-1)
+    return means, rots
+
+
+def _composite(model: GaussianModel, tracker: Tracker, cameras: list[Camera], c: int, means: torch.Tensor,
+               unit_rotations: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Camera ``c``'s colour-corrected rgb (H,W,3) and seg colours (H,W,3): the foreground at ``means``/
+    ``unit_rotations`` blended over the fixed background image."""
+    out = render_views(model, cameras[c], subset=tracker.fg_idx, means=means, rotations=unit_rotations)
+    bg_rgb, bg_seg = tracker.backgrounds[c]
+    trans = 1.0 - out["alpha"]
+    return correct_colours(out["rgb"] + trans * bg_rgb, model, c), out["features"] + trans * bg_seg
+
+
+def forecast_residual(model: GaussianModel, tracker: Tracker, frames: TrainingFrames, previous: TrainingFrames,
+                      cameras: list[Camera], prev: tuple[torch.Tensor, torch.Tensor],
+                      prev2: tuple[torch.Tensor, torch.Tensor]) -> tuple[float, int]:
+    """The forecast's mean absolute error on the pixels that moved since ``previous`` (every training
+    camera) and their count: what :func:`.effort.iterations_for` sizes a later timestep by."""
+    means, rots = _forecast(tracker.fg_idx, prev, prev2)
+    with torch.no_grad():
+        renders = [_composite(model, tracker, cameras, c, means, rots)[0] for c in range(len(cameras))]
+    return moving_residual(renders, frames.images, previous.images)
+
+
 def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingFrames, cameras: list[Camera], opts: FitOptions,
                scene_radius: float, prev: tuple[torch.Tensor, torch.Tensor], prev2: tuple[torch.Tensor, torch.Tensor],
-               generator: torch.Generator, progress: Callable[[FitEvent], None], t: int
+               generator: torch.Generator, progress: Callable[[FitEvent], None], t: int, iterations: int
                ) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """Optimize the foreground centres/rotations of one timestep. Returns full (N,3) means, (N,4)
-    rotations and the last training PSNR."""
+    """Optimize the foreground centres/rotations of one timestep for ``iterations`` steps. Returns full
+    (N,3) means, (N,4) rotations and the last training PSNR."""
     w = opts.weights
     fi = tracker.fg_idx
     prev_m, prev_r = prev[0][fi], prev[1][fi]
-    prev2_m, prev2_r = prev2[0][fi], prev2[1][fi]
-    means = (2 * prev_m - prev2_m).clone().requires_grad_(True)
-    rots = torch.nn.functional.normalize(2 * prev_r - prev2_r, dim=-1).clone().requires_grad_(True)
+    forecast_m, forecast_r = _forecast(fi, prev, prev2)
+    means = forecast_m.clone().requires_grad_(True)
+    rots = forecast_r.clone().requires_grad_(True)
     optimizer = torch.optim.Adam([{"params": [means], "lr": opts.lr_means_later * scene_radius},
                                   {"params": [rots], "lr": opts.lr_rotations_later}], lr=0.0, eps=1e-15)
     order: list[int] = []
     last_psnr = float("nan")
-    for it in range(opts.iterations):
+    for it in range(iterations):
         if not order:
             order = torch.randperm(len(cameras), generator=generator).tolist()
         c = order.pop()
         unit = torch.nn.functional.normalize(rots, dim=-1)
-        out = render_views(model, cameras[c], subset=fi, means=means, rotations=unit)
-        bg_rgb, bg_seg = tracker.backgrounds[c]
-        trans = 1.0 - out["alpha"]
-        rgb = correct_colours(out["rgb"] + trans * bg_rgb, model, c)
+        rgb, seg = _composite(model, tracker, cameras, c, means, unit)
         loss = w["im"] * image_loss(rgb, frames.images[c])
         if frames.masks is not None:
-            loss = loss + w["seg"] * image_loss(out["features"] + trans * bg_seg, frames.masks[c])
+            loss = loss + w["seg"] * image_loss(seg, frames.masks[c])
         if fi.numel() > 1 and tracker.priors.neighbors.shape[1]:
             terms = tracker.priors(means, unit, prev_m, prev_r)
             loss = loss + w["rigid"] * terms["rigid"] + w["rot"] * terms["rot"] + w["iso"] * terms["iso"]
@@ -223,9 +250,9 @@ def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingF
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
-        if it % 10 == 0 or it == opts.iterations - 1:
+        if it % 10 == 0 or it == iterations - 1:
             last_psnr = psnr(rgb.detach(), frames.images[c])
-        progress(FitEvent("iteration", t, it + 1, opts.iterations, float(loss.detach()), last_psnr))
+        progress(FitEvent("iteration", t, it + 1, iterations, float(loss.detach()), last_psnr))
     with torch.no_grad():
         full_m = prev[0].clone()
         full_r = prev[1].clone()

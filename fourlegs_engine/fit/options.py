@@ -8,6 +8,7 @@ import torch
 
 from ..errors import InputError
 from .init import INIT_METHODS
+from .presets import FIT_PRESETS
 
 
 @dataclass(frozen=True)
@@ -19,7 +20,12 @@ class FitOptions:
         timesteps: (a, b) half-open range of timesteps to fit (None: all).
         cameras: training camera ids to use (None: every training camera).
         first_iterations: optimization steps of the first (static) timestep (the paper's code: 10,000).
-        iterations: steps of every later timestep (the paper's code: 2,000).
+        iterations: steps of every later timestep (the paper's code: 2,000); with ``max_iterations`` the
+            base count of the residual-driven schedule.
+        max_iterations: 0: every later timestep gets ``iterations``; more: each later timestep gets
+            ``iterations`` scaled by its forecast's residual on the moving pixels against the median of
+            the earlier timesteps', between ``min_iterations`` and this cap (:mod:`.effort`).
+        min_iterations: the floor of that schedule (``iterations`` where that is lower).
         max_gaussians: densification never grows the model past this.
         init: how the initial Gaussians are made: "hull" (visual hull + background proxy), "features"
             (triangulated feature matches, needs OpenCV) or "hull+features" (:mod:`.init`).
@@ -45,8 +51,10 @@ class FitOptions:
     resolution_scale: float = 0.5
     timesteps: tuple[int, int] | None = None
     cameras: tuple[str, ...] | None = None
-    first_iterations: int = 150
-    iterations: int = 30
+    first_iterations: int = 600
+    iterations: int = 32
+    max_iterations: int = 96
+    min_iterations: int = 12
     max_gaussians: int = 60_000
     init: str = "hull"
     init_foreground: int = 30_000
@@ -76,7 +84,10 @@ class FitOptions:
             raise InputError(f"must be in (0, 4], got {self.resolution_scale}", field="resolution_scale")
         if int(self.clean_plate_samples) < 0:
             raise InputError(f"must be 0 or more, got {self.clean_plate_samples}", field="clean_plate_samples")
-        for name in ("first_iterations", "iterations", "max_gaussians", "init_foreground", "init_background",
+        if int(self.max_iterations) and not int(self.iterations) <= int(self.max_iterations):
+            raise InputError(f"needs iterations <= max_iterations, got {self.iterations} and {self.max_iterations}",
+                             field="max_iterations")
+        for name in ("first_iterations", "iterations", "min_iterations", "max_iterations", "max_gaussians", "init_foreground", "init_background",
                      "knn", "background_stride"):
             if int(getattr(self, name)) < (0 if name.endswith("iterations") else 1):
                 raise InputError(f"must be a positive integer, got {getattr(self, name)}", field=name)
@@ -97,6 +108,9 @@ class FitOptions:
         d = asdict(self)
         d.pop("device")
         # knobs at their "off" value are left out, so fits started before these knobs existed still resume
+        if d["max_iterations"] == 0:
+            d.pop("max_iterations")
+            d.pop("min_iterations")
         if d["init"] == "hull":
             d.pop("init")
         if d["clean_plate_samples"] == 0:
@@ -105,6 +119,13 @@ class FitOptions:
         d["timesteps"] = list(d["timesteps"]) if d["timesteps"] is not None else None
         d["cameras"] = list(d["cameras"]) if d["cameras"] is not None else None
         return d
+
+
+def preset_options(name: str, **overrides: Any) -> FitOptions:
+    """The :class:`FitOptions` of preset ``name`` with ``overrides`` on top."""
+    if name not in FIT_PRESETS:
+        raise InputError(f"must be one of {', '.join(FIT_PRESETS)}, got {name!r}", field="preset")
+    return FitOptions(**{**FIT_PRESETS[name], **overrides})
 
 
 @dataclass

@@ -3,12 +3,16 @@
 ``highlight`` runs ``python -m fourlegs_addon.headless --options-json FILE`` in a child process: the
 engine's process never imports bpy, Blender's state never leaks between runs, and every option reaches
 the child because the job's options dataclass itself is what crosses the process boundary. Ctrl-C reaches the child too (same
-process group); the language stages resume on the next run.
+process group), SIGTERM to the parent stops the child, and a child whose parent dies (even by SIGKILL)
+ends itself (:func:`fourlegs_engine.api.die_with_parent`); the language stages resume on the next run.
 """
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import subprocess
+import threading
 import sys
 import tempfile
 from pathlib import Path
@@ -58,12 +62,24 @@ def run_highlight(args: argparse.Namespace) -> int:
         return run_child(headless_command(options_file))
 
 
+class _Terminated(Exception):
+    """The parent was asked to stop (SIGTERM)."""
+
+
 def run_child(cmd: list[str]) -> int:
-    """Run the headless job and return its exit code; Ctrl-C stops it for real."""
-    proc = subprocess.Popen(cmd)
+    """Run the headless job and return its exit code; Ctrl-C and SIGTERM stop it for real (143 for SIGTERM)."""
+    from fourlegs_engine.api import PARENT_PID_ENV
+
+    proc = subprocess.Popen(cmd, env={**os.environ, PARENT_PID_ENV: str(os.getpid())})
+
+    def on_sigterm(signum, frame):
+        raise _Terminated()
+
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, on_sigterm) if in_main else None
     try:
         return proc.wait()
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, _Terminated) as exc:
         # Blender's own SIGINT handler in the child only flags a break; stop it for real. Every stage
         # writes whole files atomically (features, latents, frames), so the next run resumes.
         proc.terminate()
@@ -72,7 +88,13 @@ def run_child(cmd: list[str]) -> int:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+        if isinstance(exc, _Terminated):
+            print("fourlegs: stopped (SIGTERM); run the same command again to resume", file=sys.stderr)
+            return 143
         raise
+    finally:
+        if in_main:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def run_build_extension(args: argparse.Namespace) -> int:

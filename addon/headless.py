@@ -144,13 +144,16 @@ def run(options: api.HighlightJobOptions) -> dict[str, Any]:
     import bpy
 
     timer = api.StageTimer()
-    job = api.prepare_highlight_job(options, timer)
-    render_info = blender_stage(job.scene, job.plan, job.engine, options.query, job.outputs, options.format, timer,
-                                render_threads=options.render_threads)
-    return api.finish_highlight_job(job, render_info, timer, versions={"blender": bpy.app.version_string})
+    with api.run_lock(options.output):  # one job per output folder; an earlier killed run's temporaries go
+        job = api.prepare_highlight_job(options, timer)
+        render_info = blender_stage(job.scene, job.plan, job.engine, options.query, job.outputs, options.format,
+                                    timer, render_threads=options.render_threads)
+        return api.finish_highlight_job(job, render_info, timer, versions={"blender": bpy.app.version_string})
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    api.die_with_parent()  # started by `fourlegs highlight`: end with it
+
     def job() -> int:
         report = run(job_options(argv))
         print(f"[fourlegs] done in {report['total_seconds']:.1f} s: {report['outputs'].get('video')}", flush=True)

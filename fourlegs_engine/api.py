@@ -26,6 +26,8 @@ _LAZY = {
     "atomic_path": "fileio", "write_json_atomic": "fileio", "OUTPUTS_MARKER": "fileio", "claim_outputs": "fileio",
     "image_file_problem": "fileio", "incomplete_write_error": "fileio",
     "check_text": "validate",
+    "PARENT_PID_ENV": "lifetime", "die_with_parent": "lifetime",
+    "LockedError": "runlock", "run_lock": "runlock",
     "available_presets": "highlights", "load_preset": "highlights", "plan_highlight": "highlights",
     "plan_needs": "highlights",
     "EncoderOptions": "pipeline", "FieldStep": "pipeline", "QueryOptions": "pipeline",
@@ -46,6 +48,8 @@ if TYPE_CHECKING:
                          write_json_atomic)
     from .highlight_job import (HighlightJobOptions, StageTimer, finish_highlight_job, plan_digest,
                                 prepare_highlight_job)
+    from .lifetime import PARENT_PID_ENV, die_with_parent
+    from .runlock import LockedError, run_lock
     from .highlights import available_presets, load_preset, plan_highlight, plan_needs
     from .pipeline import (EncoderOptions, FieldStep, QueryOptions, ensure_language_field, has_language_field,
                            language_field_steps, open_query_engine, open_scene, plan_language_field,

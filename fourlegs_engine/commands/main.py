@@ -65,7 +65,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    return exit_code_of(lambda: args.func(args))
+    from ..runlock import release_all
+
+    try:
+        return exit_code_of(lambda: args.func(args))
+    finally:
+        release_all()
 
 
 if __name__ == "__main__":

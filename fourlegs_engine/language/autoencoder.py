@@ -5,6 +5,8 @@ decoder 128 -> 256 -> 512 -> 768 (same blocks, L2-normalized output). Loss: L1 +
 """
 from __future__ import annotations
 
+import json
+import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -122,6 +124,20 @@ class AETrainOptions:
     holdout_camera: int = -1
     seed: int = 0
 
+    def check(self, feature_dim: int = 768) -> "AETrainOptions":
+        """InputError naming the first value out of range (before anything is read or replaced)."""
+        from ..validate import check_memory, check_number
+        check_number(self.epochs, "--epochs", low=1, high=100_000, integer=True)
+        check_number(self.samples, "--samples", low=2, high=1 << 31, integer=True)
+        check_number(self.heldout_samples, "heldout_samples", low=0, high=1 << 31, integer=True)
+        check_number(self.batch_size, "--ae-batch-size", low=2, high=1 << 24, integer=True)
+        check_number(self.lr, "--lr", low=0, high=1.0, low_open=True)
+        check_number(self.latent_dim, "latent_dim", low=1, high=feature_dim, integer=True)
+        check_number(self.seed, "--seed", low=0, high=2 ** 32 - 1, integer=True)
+        check_number(self.holdout_camera, "--holdout-camera", low=-(1 << 20), high=1 << 20, integer=True)
+        check_memory(4.0 * feature_dim * (self.samples + self.heldout_samples), "the training sample", "--samples")
+        return self
+
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["hidden"] = list(self.hidden)
@@ -168,22 +184,17 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
     epoch buys and costs). Returns that report. ``stop_after_epoch`` stops early (tests of resumption);
     ``timesteps`` restricts the training data to those timesteps (benchmarks on a few timesteps).
     """
-    from ..errors import InputError
-    from ..fileio import atomic_path, read_json, write_json_atomic
+    from ..fileio import atomic_path, write_json_atomic
     from .extract import feature_store
     from .store import config_hash
 
-    config = config or AETrainOptions()
-    if config.epochs < 1 or config.samples < 2 or config.batch_size < 2:
-        raise InputError("need epochs >= 1, samples >= 2 and batch size >= 2", field="train-ae")
+    config = (config or AETrainOptions()).check()
     root = Path(scene.root)
     store = feature_store(scene)
+    config.check(int(store.config["dim"]))
+    _check_holdout_camera(config, scene.cameras.num_cameras(store.config.get("split", "train")))
     steps = list(range(scene.num_timesteps)) if timesteps is None else sorted({int(t) for t in timesteps})
-    missing = store.missing(steps)
-    if missing:
-        from .store import format_ranges
-        raise InputError(f"features of timesteps {format_ranges(missing)} are missing; finish "
-                         "`fourlegs extract` first", file=store.root)
+    _check_features_complete(store, steps)
     cfg = {"features": store.hash, **config.to_dict()}
     if timesteps is not None:
         cfg["timesteps"] = steps
@@ -191,7 +202,7 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
     report_path = root / AE_REPORT
     _refuse_or_drop_other_configurations(root, chash, overwrite)
     if report_path.is_file() and not overwrite:
-        report = read_json(report_path)
+        report = read_ae_report(report_path)
         report["skipped"] = True
         return report
 
@@ -207,6 +218,7 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
     if stopped_after is not None:
         return {"stopped_after_epoch": stopped_after}
     model.eval()
+    _check_trained(model, history)
     report = {"config_hash": chash, "config": cfg, "epochs": config.epochs, "loss_history": history,
               "cosine_history": cosine_history, "cosine_history_set": "heldout" if x_held.shape[0] else "train",
               "epoch_seconds": epoch_seconds,
@@ -216,6 +228,7 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
               "heldout_cosine": reconstruction_cosine(model, x_held) if x_held.shape[0] else None,
               "sample_seconds": sample_seconds, "seconds": time.perf_counter() - start,
               "encoder": ENCODER_FILE, "decoder": DECODER_FILE}
+    json.dumps(report, allow_nan=False)  # the report must be writable before the weights are replaced
     with atomic_path(root / ENCODER_FILE) as tmp:
         torch.save(model.encoder.state_dict(), tmp)
     with atomic_path(root / DECODER_FILE) as tmp:
@@ -225,23 +238,67 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
     return report
 
 
+def _check_features_complete(store: Any, steps: list[int]) -> None:
+    """InputError naming the missing timesteps, or the first damaged feature file (NaN, truncated, ...)."""
+    from ..errors import InputError
+    from .store import format_ranges
+    missing = [t for t in steps if not store.step_path(t).is_file()]
+    if missing:
+        raise InputError(f"features of timesteps {format_ranges(missing)} are missing; finish "
+                         "`fourlegs extract` first", file=store.root)
+    for t in steps:
+        problem = store.problem(t)
+        if problem is not None:
+            raise InputError(f"{problem}; run `fourlegs extract` to compute it again", file=store.step_path(t),
+                             field="features")
+
+
+def _check_holdout_camera(config: AETrainOptions, num_cameras: int) -> None:
+    from ..errors import InputError
+    if not -max(num_cameras, 1) <= config.holdout_camera < max(num_cameras, 1):
+        raise InputError(f"camera {config.holdout_camera} does not exist (the scene has {num_cameras} training "
+                         f"cameras: 0..{num_cameras - 1}, or -1 for the last)", field="--holdout-camera")
+
+
+def _check_trained(model: nn.Module, history: list[float]) -> None:
+    """InputError when training diverged (NaN/Inf loss or weights): nothing is written then."""
+    from ..errors import InputError
+    finite = all(math.isfinite(v) for v in history) and all(
+        bool(torch.isfinite(v).all()) for v in model.state_dict().values() if v.is_floating_point())
+    if not finite:
+        raise InputError("training diverged (NaN or Inf loss or weights); the previous autoencoder is kept: "
+                         "lower --lr", field="--lr")
+
+
 def _refuse_or_drop_other_configurations(root: Path, chash: str, overwrite: bool) -> None:
-    """ConfigMismatchError for a report or checkpoint of another configuration, unless ``overwrite``
-    (then they are removed)."""
+    """ConfigMismatchError for a report or checkpoint of another configuration, unless ``overwrite`` (then
+    the checkpoint is removed; the report stays until the new autoencoder replaces it)."""
     from ..errors import ConfigMismatchError
-    from ..fileio import read_json
 
     for path in (root / AE_REPORT, root / AE_CHECKPOINT):
         if not path.is_file():
             continue
-        old = (read_json(path).get("config_hash") if path.suffix == ".json"
-               else _read_checkpoint(path).get("config_hash"))
+        if overwrite and path.suffix == ".json":
+            continue  # replaced when the new autoencoder is complete
+        old = (read_ae_report(path) if path.suffix == ".json" else _read_checkpoint(path)).get("config_hash")
         if old != chash:
             if not overwrite:
                 raise ConfigMismatchError(
                     f"{path}: an autoencoder of another configuration exists (hash {old}, now {chash}); "
                     "pass --overwrite to retrain, or use the same settings")
-            path.unlink()
+            if path.suffix != ".json":
+                path.unlink()
+
+
+def read_ae_report(path: Path) -> dict[str, Any]:
+    """``autoencoder.json`` as a dict; InputError naming it when it is not a JSON object."""
+    from ..errors import InputError
+    from ..fileio import read_json
+    report = read_json(path)
+    if not isinstance(report, dict) or not isinstance(report.get("config_hash", ""), str):
+        raise InputError("must be a JSON object with a text config_hash; run `fourlegs train-ae --overwrite`",
+                         file=path)
+    return report
 
 
 def _training_data(scene: Any, store: Any, config: AETrainOptions, steps: list[int]
@@ -306,6 +363,7 @@ def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: t
             total += float(loss.detach()) * idx.numel()
             count += idx.numel()
         history.append(total / max(count, 1))
+        _check_trained(model, history)  # a diverged epoch is not checkpointed
         epoch_seconds.append(time.perf_counter() - epoch_start)
         cosine_history.append(reconstruction_cosine(model, x_monitor))
         with atomic_path(ckpt_path) as tmp:

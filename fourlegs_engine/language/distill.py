@@ -53,12 +53,12 @@ import numpy as np
 import torch
 
 from ..errors import ConfigMismatchError, InputError
-from ..fileio import load_npy, read_json
+from ..fileio import load_npy
 from ..render.options import RasterOptions
 from ..scene.scene import Scene
 from ..threads import torch_threads
 from .attention import knn_indices
-from .autoencoder import AE_REPORT, ENCODER_FILE, FeatureEncoder, l2_normalize, load_encoder
+from .autoencoder import AE_REPORT, ENCODER_FILE, FeatureEncoder, l2_normalize, load_encoder, read_ae_report
 from .extract import feature_store, load_step_features, view_has_evidence
 from .latent_solvers import lift_latents, optimize_latents, smooth_lift, teacher_latents, timestep_seed
 from .latents_file import LANGUAGE_DIR, finish_swap, forget_merged, merge_latents, merged_hash
@@ -343,7 +343,7 @@ def distill_scene(scene: Scene, mode: str | None = None, iterations: int | None 
     ae_report_path = root / AE_REPORT
     if not ae_report_path.is_file():
         raise InputError("no trained autoencoder; run `fourlegs train-ae` first", file=ae_report_path)
-    ae_report = read_json(ae_report_path)
+    ae_report = read_ae_report(ae_report_path)
     cfg = {"features": features.hash, "autoencoder": ae_report.get("config_hash"), **config.to_dict()}
     chash = config_hash(cfg)
     default_out = out_dir is None
@@ -369,9 +369,10 @@ def distill_scene(scene: Scene, mode: str | None = None, iterations: int | None 
         result.latents = str(latents_path)
         return result
     store.open(overwrite=overwrite)
-    todo = [t for t in steps if not store.is_done(t)]
-    result.skipped = [t for t in steps if store.is_done(t)]
     encoder = load_encoder(root / ENCODER_FILE)
+    store.shape_of, store.dtype = (lambda t: (scene.num_gaussians, encoder.dims[-1])), "float16"
+    todo = [t for t in steps if not store.is_done(t)]  # a damaged step file is distilled again
+    result.skipped = [t for t in steps if t not in todo]
     bar = None
     if progress and todo:
         from tqdm import tqdm

@@ -161,8 +161,7 @@ class StepStore:
         self.checksum_path(t).unlink(missing_ok=True)
         save_npy_atomic(self.step_path(t), array)
         write_bytes_atomic(self.checksum_path(t), (file_sha256(self.step_path(t)) + "\n").encode())
-        stat = self.step_path(t).stat()
-        self._verified[int(t)] = (stat.st_size, stat.st_mtime_ns)
+        self._verified.pop(int(t), None)
 
     def load(self, t: int, *, mmap: bool = True) -> np.ndarray:
         return load_npy(self.step_path(t), mmap=mmap, field=f"{self.stage} timestep {t}")

@@ -141,10 +141,10 @@ def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str
 
 def run(options: api.HighlightJobOptions) -> dict[str, Any]:
     """The whole job: the engine plans it, Blender renders it, the engine reports it. Returns the report."""
-    import bpy
-
     timer = api.StageTimer()
     with api.run_lock(options.output):  # one job per output folder; an earlier killed run's temporaries go
+        import bpy
+
         job = api.prepare_highlight_job(options, timer)
         render_info = blender_stage(job.scene, job.plan, job.engine, options.query, job.outputs, options.format,
                                     timer, render_threads=options.render_threads)

@@ -32,10 +32,13 @@ import time
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
-from fourlegs_engine import api
-from fourlegs_engine.commands.options import add_highlight_arguments, highlight_job_options
+try:  # Ctrl-C while the engine is imported: a quiet cancel (exit 130), not a traceback
+    from fourlegs_engine import api
+    from fourlegs_engine.commands.options import add_highlight_arguments, highlight_job_options
 
-from .process import blender_log_silenced, heap_kept
+    from .process import blender_log_silenced, heap_kept
+except KeyboardInterrupt:
+    sys.exit(130)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -31,8 +31,8 @@ from .options_json import options_from_dict, options_to_dict
 from .validate import check_text
 
 __all__ = ["DEFAULT_QUERY_PATH", "DEFAULT_SPATIAL", "DEMO_RESOLUTION", "HighlightJob", "HighlightJobOptions",
-           "OUTPUT_NAMES", "StageTimer", "VIDEO_FORMATS", "finish_highlight_job", "job_outputs", "plan_digest",
-           "prepare_highlight_job", "preset_needs_relevancy", "software_versions"]
+           "OUTPUT_NAMES", "StageTimer", "VIDEO_FORMATS", "check_job_size", "finish_highlight_job", "job_outputs",
+           "plan_digest", "prepare_highlight_job", "preset_needs_relevancy", "software_versions"]
 
 OUTPUT_NAMES = {"video": "highlight.mp4", "blend": "highlight.blend", "plan": "plan.json",
                 "report": "report.json", "plot": "scores.png"}
@@ -199,6 +199,7 @@ def prepare_highlight_job(options: HighlightJobOptions,
     with stage("localize + plan"):
         plan = plan_highlight(scene, engine, options.query, preset, resolution=resolution,
                               fps=options.fps).to_dict()
+    check_job_size(plan, out["video"], options.format)
     record_outputs()
     write_json_atomic(out["plan"], plan, overwrite=True)
     loc = plan.get("localization") or {}
@@ -209,6 +210,36 @@ def prepare_highlight_job(options: HighlightJobOptions,
     for msg in plan.get("messages", []):
         print(f"[fourlegs] note: {msg}", flush=True)
     return HighlightJob(options, out, scene, preset, engine, plan)
+
+
+#: bytes per pixel: of a frame while it renders (rasterizer buffers, relevancy, compositor passes), and of a
+#: finished frame on disk (MP4: uncompressed PNG frames until they are encoded; PNG; EXR: half floats)
+RENDER_BYTES_PER_PIXEL = 64
+DISK_BYTES_PER_PIXEL = {"MP4": 3.0, "PNG": 2.0, "EXR": 6.0}
+
+
+def check_job_size(plan: dict[str, Any], video: Path, fmt: str) -> None:
+    """InputError with the estimate when one frame would not fit in memory or the frames not on the disk
+    of ``video``'s folder (checked before the renderer starts, instead of a crash hours later)."""
+    import shutil
+
+    from .validate import check_memory, format_bytes
+
+    width, height = (int(v) for v in plan["resolution"])
+    frames = int(plan["frame_end"]) - int(plan["frame_start"]) + 1
+    check_memory(RENDER_BYTES_PER_PIXEL * width * height, f"rendering one {width}x{height} frame", "resolution")
+    needed = DISK_BYTES_PER_PIXEL.get(fmt, 3.0) * width * height * frames
+    probe = Path(video).parent
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    try:
+        free = shutil.disk_usage(probe).free
+    except OSError:
+        return
+    if needed > free:
+        raise InputError(f"{frames} frames of {width}x{height} need about {format_bytes(needed)} of disk, "
+                         f"{probe} has {format_bytes(free)} free; lower the resolution, frame rate or durations",
+                         field="resolution")
 
 
 def finish_highlight_job(job: HighlightJob, render: dict[str, Any], timer: StageTimer, *,

@@ -166,8 +166,8 @@ def _crop_size(value: str | None) -> int | str | None:
         size = int(value)
     except ValueError:
         raise InputError(f"must be an integer or 'means', got {value!r}", field="--crop-size") from None
-    if size < 1:
-        raise InputError(f"must be positive, got {size}", field="--crop-size")
+    if not 1 <= size <= 4096:
+        raise InputError(f"must be 1..4096 pixels, got {size}", field="--crop-size")
     return size
 
 

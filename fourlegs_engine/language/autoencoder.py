@@ -132,7 +132,7 @@ class AETrainOptions:
         check_number(self.heldout_samples, "heldout_samples", low=0, high=1 << 31, integer=True)
         check_number(self.batch_size, "--ae-batch-size", low=2, high=1 << 24, integer=True)
         check_number(self.lr, "--lr", low=0, high=1.0, low_open=True)
-        check_number(self.latent_dim, "latent_dim", low=1, high=feature_dim, integer=True)
+        check_number(self.latent_dim, "latent_dim", low=1, high=4096, integer=True)
         check_number(self.seed, "--seed", low=0, high=2 ** 32 - 1, integer=True)
         check_number(self.holdout_camera, "--holdout-camera", low=-(1 << 20), high=1 << 20, integer=True)
         check_memory(4.0 * feature_dim * (self.samples + self.heldout_samples), "the training sample", "--samples")
@@ -200,8 +200,8 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
         cfg["timesteps"] = steps
     chash = config_hash(cfg)
     report_path = root / AE_REPORT
-    _refuse_or_drop_other_configurations(root, chash, overwrite)
-    if report_path.is_file() and not overwrite:
+    trained = _refuse_or_drop_other_configurations(root, chash, overwrite)
+    if trained and not overwrite:
         report = read_ae_report(report_path)
         report["skipped"] = True
         return report
@@ -270,24 +270,29 @@ def _check_trained(model: nn.Module, history: list[float]) -> None:
                          "lower --lr", field="--lr")
 
 
-def _refuse_or_drop_other_configurations(root: Path, chash: str, overwrite: bool) -> None:
+def _refuse_or_drop_other_configurations(root: Path, chash: str, overwrite: bool) -> bool:
     """ConfigMismatchError for a report or checkpoint of another configuration, unless ``overwrite`` (then
-    the checkpoint is removed; the report stays until the new autoencoder replaces it)."""
+    the checkpoint is removed; the report stays until the new autoencoder replaces it). A checkpoint of
+    this configuration is an interrupted run (``--overwrite`` or not) that is resumed. Returns whether the
+    report is of this configuration (the autoencoder is trained)."""
     from ..errors import ConfigMismatchError
 
-    for path in (root / AE_REPORT, root / AE_CHECKPOINT):
-        if not path.is_file():
-            continue
-        if overwrite and path.suffix == ".json":
-            continue  # replaced when the new autoencoder is complete
-        old = (read_ae_report(path) if path.suffix == ".json" else _read_checkpoint(path)).get("config_hash")
-        if old != chash:
-            if not overwrite:
-                raise ConfigMismatchError(
-                    f"{path}: an autoencoder of another configuration exists (hash {old}, now {chash}); "
-                    "pass --overwrite to retrain, or use the same settings")
-            if path.suffix != ".json":
-                path.unlink()
+    report, ckpt = root / AE_REPORT, root / AE_CHECKPOINT
+    if ckpt.is_file():
+        old = _read_checkpoint(ckpt).get("config_hash")
+        if old == chash:
+            return False
+        if not overwrite:
+            raise ConfigMismatchError(f"{ckpt}: an autoencoder of another configuration exists (hash {old}, now "
+                                      f"{chash}); pass --overwrite to retrain, or use the same settings")
+        ckpt.unlink()
+    if not report.is_file():
+        return False
+    old = read_ae_report(report).get("config_hash")
+    if old != chash and not overwrite:
+        raise ConfigMismatchError(f"{report}: an autoencoder of another configuration exists (hash {old}, now "
+                                  f"{chash}); pass --overwrite to retrain, or use the same settings")
+    return old == chash
 
 
 def read_ae_report(path: Path) -> dict[str, Any]:

@@ -67,6 +67,8 @@ from .store import StepStore, config_hash, format_ranges, select_timesteps
 from .view_operator import ViewOperator, view_operator
 
 MODES = ("optimize", "lift", "lift+refine")
+#: the smallest fraction of a camera's resolution the training views are rendered at
+MIN_SCALE = 0.01
 SMOOTHING = ("attention", "none", "blur")
 LIFT_SMOOTHING = ("none", "blur")
 DEFAULT_ITERATIONS = {"optimize": 2000, "lift": 0, "lift+refine": 200}
@@ -127,10 +129,18 @@ class DistillOptions:
             raise InputError(f"must be >= 0, got {self.iterations}", field="--iterations")
         if self.mode == "optimize" and self.num_iterations < 1:
             raise InputError("optimize needs at least one iteration", field="--iterations")
-        if not 0 < self.view_scale <= 1:
-            raise InputError(f"must be in (0, 1], got {self.view_scale}", field="--view-scale")
+        if not MIN_SCALE <= self.view_scale <= 1:
+            raise InputError(f"must be in [{MIN_SCALE}, 1], got {self.view_scale}", field="--view-scale")
         if self.neighbours < 1 or self.views_per_iteration < 1 or self.teacher_stride < 1:
             raise InputError("neighbours, views per iteration and teacher stride must be >= 1", field="distill")
+        for name, value, high in (("--neighbours", self.neighbours, 1024), ("--teacher-stride", self.teacher_stride,
+                                  64), ("--views-per-iteration", self.views_per_iteration, 4096),
+                                  ("--iterations", self.iterations or 0, 10_000_000)):
+            if value > high:
+                raise InputError(f"must be at most {high}, got {value}", field=name)
+        for name, value in (("--lr-latents", self.lr_latents), ("--lr-attention", self.lr_attention)):
+            if not (0 < value <= 1 and math.isfinite(value)):
+                raise InputError(f"must be in (0, 1], got {value}", field=name)
         if not (self.smoothness >= 0 and math.isfinite(self.smoothness)):
             raise InputError(f"must be >= 0, got {self.smoothness}", field="--smoothness")
         return self

@@ -76,8 +76,8 @@ class ExtractOptions:
     unchanged_below: float = DEFAULT_UNCHANGED_BELOW
 
     def check(self, num_cameras: int | None = None) -> "ExtractOptions":
-        if not 0 < self.frame_scale <= 1:
-            raise InputError(f"must be in (0, 1], got {self.frame_scale}", field="frame_scale")
+        if not 0.01 <= self.frame_scale <= 1:
+            raise InputError(f"must be in [0.01, 1], got {self.frame_scale}", field="--frame-scale")
         if not 0 < self.crop_stride <= 1:
             raise InputError(f"must be in (0, 1], got {self.crop_stride}", field="--crop-stride")
         if int(self.timestep_stride) < 1:

@@ -105,7 +105,7 @@ def read_bundle_meta(path: str | Path) -> dict[str, Any]:
         raise InputError(f"format is {meta.get('format')!r}, expected {FORMAT_NAME!r}", file=meta_file,
                          field="format")
     version = meta.get("version")
-    if not isinstance(version, int) or version > FORMAT_VERSION or version < 1:
+    if not isinstance(version, int) or isinstance(version, bool) or version > FORMAT_VERSION or version < 1:
         raise InputError(f"unsupported bundle version {version!r} (this build reads 1..{FORMAT_VERSION})",
                          file=meta_file, field="version")
     for key in ("arrays", "cameras", "num_timesteps", "num_gaussians"):

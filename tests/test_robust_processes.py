@@ -228,3 +228,67 @@ def test_without_a_parent_to_watch_nothing_is_watched(monkeypatch):
     monkeypatch.delenv(lifetime.PARENT_PID_ENV, raising=False)
     assert lifetime.die_with_parent() is False
     assert lifetime.parent_alive(os.getppid())
+
+
+# ------------------------------------------- items 5-7 end to end: `fourlegs highlight` and its Blender child
+HIGHLIGHT = ["ball flying in the air", "--preset", "bullet_time_only", "--resolution", "64x36", "--fps", "120"]
+
+
+@pytest.fixture(scope="module")
+def field_scene(tmp_path_factory) -> Path:
+    pytest.importorskip("bpy")
+    path = micro_bundle(tmp_path_factory.mktemp("hl") / "micro", T=4)
+    assert main(["language", str(path), "--no-progress", "--epochs", "2", "--samples", "2048",
+                 "--ae-batch-size", "256"]) == 0
+    return path
+
+
+def _highlight(scene: Path, out: Path, **kw) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "fourlegs_engine.commands.main", "highlight", str(scene),
+                             *HIGHLIGHT, "-o", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True, **kw)
+
+
+def _child_pid(out: Path, parent: subprocess.Popen, seconds: float = 120) -> int:
+    """The Blender child's pid, from the output folder's lock (the child holds it)."""
+    deadline = time.time() + seconds
+    lock = lock_file_of(out)
+    while time.time() < deadline:
+        text = lock.read_text() if lock.is_file() else ""
+        if text.startswith("pid ") and int(text.split()[1].rstrip(":")) != parent.pid:
+            return int(text.split()[1].rstrip(":"))
+        assert parent.poll() is None, parent.stderr.read()
+        time.sleep(0.05)
+    raise AssertionError("the child never took the output lock")
+
+
+@pytest.mark.skipif(not POSIX, reason="signals")
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGTERM])
+def test_killing_highlight_ends_its_blender_child_and_the_rerun_finishes(field_scene, tmp_path, how):
+    out = tmp_path / "out"
+    parent = _highlight(field_scene, out)
+    child = _child_pid(out, parent)
+    deadline = time.time() + 120  # kill it while it renders: some frames done, some not
+    while time.time() < deadline and not any(out.glob(".frames-*/frame_*.png")):
+        time.sleep(0.02)
+    parent.send_signal(how)
+    parent.wait(timeout=60)
+    assert _wait_gone(child), "the Blender child outlived fourlegs highlight"
+    assert not (out / "report.json").exists()
+    rerun = _highlight(field_scene, out)
+    assert rerun.wait(timeout=600) == 0, rerun.stderr.read()
+    assert (out / "highlight.mp4").stat().st_size > 0 and (out / "report.json").is_file()
+    assert [p for p in out.rglob("*") if ".part" in p.name or p.name.startswith(".frames-")] == []
+
+
+@pytest.mark.skipif(not POSIX, reason="signals")
+def test_two_highlights_into_one_folder_one_refused_in_one_line(field_scene, tmp_path):
+    out = tmp_path / "out"
+    first = _highlight(field_scene, out)
+    child = _child_pid(out, first)
+    second = _highlight(field_scene, out)
+    assert second.wait(timeout=300) == 2
+    err = second.stderr.read()
+    assert "Traceback" not in err and f"in use by another fourlegs run (pid {child}" in err, err
+    assert first.wait(timeout=600) == 0, first.stderr.read()
+    assert (out / "highlight.mp4").stat().st_size > 0

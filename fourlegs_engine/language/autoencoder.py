@@ -184,7 +184,7 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
     epoch buys and costs). Returns that report. ``stop_after_epoch`` stops early (tests of resumption);
     ``timesteps`` restricts the training data to those timesteps (benchmarks on a few timesteps).
     """
-    from ..fileio import atomic_path, write_json_atomic
+    from ..fileio import save_torch_atomic, write_json_atomic
     from .extract import feature_store
     from .store import config_hash
 
@@ -229,10 +229,8 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
               "sample_seconds": sample_seconds, "seconds": time.perf_counter() - start,
               "encoder": ENCODER_FILE, "decoder": DECODER_FILE}
     json.dumps(report, allow_nan=False)  # the report must be writable before the weights are replaced
-    with atomic_path(root / ENCODER_FILE) as tmp:
-        torch.save(model.encoder.state_dict(), tmp)
-    with atomic_path(root / DECODER_FILE) as tmp:
-        torch.save(model.decoder.state_dict(), tmp)
+    save_torch_atomic(root / ENCODER_FILE, model.encoder.state_dict())
+    save_torch_atomic(root / DECODER_FILE, model.decoder.state_dict())
     write_json_atomic(report_path, report)
     (root / AE_CHECKPOINT).unlink(missing_ok=True)
     return report
@@ -329,7 +327,7 @@ def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: t
     the training seconds (what they cost), and the epochs done when stopped early by ``stop_after_epoch``
     (else None).
     """
-    from ..fileio import atomic_path
+    from ..fileio import save_torch_atomic
 
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     history: list[float] = []
@@ -338,12 +336,21 @@ def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: t
     first_epoch = 0
     if ckpt_path.is_file():
         ckpt = _read_checkpoint(ckpt_path)
-        model.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["optimizer"])
-        first_epoch = int(ckpt["epoch"])
-        history = [float(v) for v in ckpt["history"]]
-        cosine_history = [float(v) for v in ckpt.get("cosine_history", [])]
-        epoch_seconds = [float(v) for v in ckpt.get("epoch_seconds", [])]
+        try:
+            model.load_state_dict(ckpt["model"])
+            opt.load_state_dict(ckpt["optimizer"])
+            first_epoch = int(ckpt["epoch"])
+            history = [float(v) for v in ckpt["history"]]
+            cosine_history = [float(v) for v in ckpt.get("cosine_history", [])]
+            epoch_seconds = [float(v) for v in ckpt.get("epoch_seconds", [])]
+        except (RuntimeError, ValueError, TypeError, KeyError, AttributeError) as exc:
+            from ..errors import InputError
+            raise InputError(f"damaged checkpoint ({type(exc).__name__}: {str(exc).splitlines()[0][:120]}); delete "
+                             "it or pass --overwrite", file=ckpt_path) from None
+        if not 0 <= first_epoch <= config.epochs:
+            from ..errors import InputError
+            raise InputError(f"epoch {first_epoch} is out of range 0..{config.epochs}; delete it or pass --overwrite",
+                             file=ckpt_path, field="epoch")
     epochs = range(first_epoch, config.epochs)
     if progress:
         from tqdm import tqdm
@@ -371,10 +378,9 @@ def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: t
         _check_trained(model, history)  # a diverged epoch is not checkpointed
         epoch_seconds.append(time.perf_counter() - epoch_start)
         cosine_history.append(reconstruction_cosine(model, x_monitor))
-        with atomic_path(ckpt_path) as tmp:
-            torch.save({"config_hash": chash, "epoch": epoch + 1, "model": model.state_dict(),
-                        "optimizer": opt.state_dict(), "history": history, "cosine_history": cosine_history,
-                        "epoch_seconds": epoch_seconds}, tmp)
+        save_torch_atomic(ckpt_path, {"config_hash": chash, "epoch": epoch + 1, "model": model.state_dict(),
+                                      "optimizer": opt.state_dict(), "history": history,
+                                      "cosine_history": cosine_history, "epoch_seconds": epoch_seconds})
         if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch and epoch + 1 < config.epochs:
             return history, cosine_history, epoch_seconds, epoch + 1
     return history, cosine_history, epoch_seconds, None

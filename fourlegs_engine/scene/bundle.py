@@ -124,6 +124,27 @@ def _integer(meta: dict[str, Any], key: str, low: int, high: int, file: Path) ->
     return value
 
 
+#: scene.json ``language`` fields and the types they must have (others are free)
+_LANGUAGE_TYPES = {"encoder": (str, "text"), "mode": (str, "text"), "config_hash": (str, "text"),
+                   "decoder_fingerprint": (str, "text"), "latent_dim": (int, "a whole number 1..4096"),
+                   "canonical_phrases": (list, "a list of text phrases")}
+
+
+def _check_language_types(language: dict[str, Any], meta_file: Path) -> None:
+    """InputError naming the ``language`` field of scene.json whose value has the wrong type."""
+    for key, (kind, what) in _LANGUAGE_TYPES.items():
+        if key not in language:
+            continue
+        value = language[key]
+        ok = isinstance(value, kind) and not isinstance(value, bool)
+        if ok and key == "latent_dim":
+            ok = 1 <= value <= 4096
+        if ok and key == "canonical_phrases":
+            ok = all(isinstance(p, str) and p for p in value)
+        if not ok:
+            raise InputError(f"must be {what}, got {value!r}"[:200], file=meta_file, field=f"language.{key}")
+
+
 def validate_bundle_meta(meta: dict[str, Any], meta_file: Path) -> None:
     """Check the types and bounds of every ``scene.json`` entry before anything is allocated.
 
@@ -157,6 +178,7 @@ def validate_bundle_meta(meta: dict[str, Any], meta_file: Path) -> None:
     for key, rel in (meta.get("language") or {}).items():
         if key in LANGUAGE_FILE_KEYS and (not isinstance(rel, str) or not is_inside(root, rel)):
             raise InputError(f"{rel!r} is not a file inside the bundle", file=meta_file, field=f"language.{key}")
+    _check_language_types(meta.get("language") or {}, meta_file)
     cameras = meta["cameras"]
     if not isinstance(cameras, dict):
         raise InputError(f"must be an object, got {type(cameras).__name__}", file=meta_file, field="cameras")

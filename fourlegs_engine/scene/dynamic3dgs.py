@@ -84,6 +84,9 @@ class NpzArrays:
                 raise InputError("holds an object/pickled array, which is refused (never unpickled)",
                                  file=self.path, field=key) from None
             raise InputError(f"corrupt array ({exc})", file=self.path, field=key) from None
+        except MemoryError:
+            raise InputError("its header claims an array larger than memory (damaged)", file=self.path,
+                             field=key) from None
         except (zipfile.BadZipFile, struct.error, RuntimeError, NotImplementedError) + NPY_HEADER_ERRORS as exc:
             # RuntimeError: encrypted entry; NotImplementedError: unsupported compression method
             raise InputError(f"corrupt, truncated or unreadable array ({exc})", file=self.path, field=key) from None

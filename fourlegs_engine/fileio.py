@@ -106,6 +106,11 @@ def save_npy_atomic(path: str | Path, array: np.ndarray, *, overwrite: bool = Tr
                 os.fsync(fh.fileno())
 
 
+#: how libraries word a write that failed (torch's zip writer, OpenEXR) in a RuntimeError
+_WRITE_FAILURES = ("unexpected pos", "PytorchStreamWriter", "file write failed", "No space left", "Cannot write",
+                   "Error writing", "Unable to write")
+
+
 @contextlib.contextmanager
 def writing(path: str | Path) -> Iterator[None]:
     """Errors of a library's write (numpy, torch, zipfile) named after ``path``: numpy's ``N requested and M
@@ -122,7 +127,7 @@ def writing(path: str | Path) -> Iterator[None]:
         raise incomplete_write_error(path, str(exc)[:200]) from None
     except RuntimeError as exc:
         text = str(exc)
-        if "unexpected pos" in text or "PytorchStreamWriter" in text or "file write failed" in text:
+        if any(k in text for k in _WRITE_FAILURES):
             raise incomplete_write_error(path, text.splitlines()[0][:200] if text else "write failed") from None
         raise
 

@@ -232,3 +232,32 @@ def test_a_garbage_wheel_is_not_bundled(tmp_path):
         zf.writestr("good-1.0.dist-info/WHEEL", "Wheel-Version: 1.0\n")
         zf.writestr("good-1.0.dist-info/METADATA", "Name: good\n")
     assert wheel_problem(good) is None
+
+
+def test_an_exr_the_full_disk_cut_short_is_one_line_and_not_kept(tmp_path, monkeypatch):
+    import OpenEXR
+
+    from fourlegs_engine.errors import describe_environment_error
+    from fourlegs_engine.query.exr import write_exr
+
+    real = OpenEXR.File
+
+    class CutShort:
+        def __init__(self, *args):
+            self.inner = real(*args)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def write(self, name):
+            Path(name).write_bytes(b"\x76\x2f\x31\x01")  # a header cut short, no error reported
+
+    monkeypatch.setattr(OpenEXR, "File", CutShort)
+    _disk_full(monkeypatch)
+    with pytest.raises(OSError) as exc:
+        write_exr(tmp_path / "cam_t0001.exr", {"relevancy": np.ones((4, 4), np.float32)})
+    assert describe_environment_error(exc.value).startswith(f"no space left on device while writing {tmp_path}")
+    assert list(tmp_path.iterdir()) == []

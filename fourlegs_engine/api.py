@@ -39,14 +39,15 @@ _LAZY = {
     "Camera": "scene", "Scene": "scene", "load_scene": "scene",
     "release_mapped_pages": "scene.gaussians",
     "torch_threads": "threads", "kernel_threads": "threads", "usable_cpu_count": "threads",
-    "HighlightJobOptions": "highlight_job", "StageTimer": "highlight_job", "finish_highlight_job": "highlight_job",
+    "HighlightJobOptions": "highlight_job", "StageTimer": "highlight_job",
+    "STAGE_FILE_ENV": "highlight_job", "finish_highlight_job": "highlight_job",
     "plan_digest": "highlight_job", "prepare_highlight_job": "highlight_job",
 }
 
 if TYPE_CHECKING:
     from .fileio import (OUTPUTS_MARKER, atomic_path, claim_outputs, image_file_problem, incomplete_write_error,
                          write_json_atomic)
-    from .highlight_job import (HighlightJobOptions, StageTimer, finish_highlight_job, plan_digest,
+    from .highlight_job import (STAGE_FILE_ENV, HighlightJobOptions, StageTimer, finish_highlight_job, plan_digest,
                                 prepare_highlight_job)
     from .lifetime import PARENT_PID_ENV, die_with_parent
     from .runlock import LockedError, run_lock

@@ -31,6 +31,7 @@ from .options_json import options_from_dict, options_to_dict
 from .validate import check_text
 
 __all__ = ["DEFAULT_QUERY_PATH", "DEFAULT_SPATIAL", "DEMO_RESOLUTION", "HighlightJob", "HighlightJobOptions",
+           "STAGE_FILE_ENV", "record_stage",
            "OUTPUT_NAMES", "StageTimer", "VIDEO_FORMATS", "check_job_size", "finish_highlight_job", "job_outputs",
            "plan_digest", "prepare_highlight_job", "preset_needs_relevancy", "software_versions"]
 
@@ -128,12 +129,30 @@ class _Stage:
     def __enter__(self) -> None:
         self.t0, self.c0 = time.perf_counter(), time.process_time()
         print(f"[fourlegs] {self.name} ...", flush=True)
+        record_stage(self.name)
 
     def __exit__(self, *exc: Any) -> None:
         self.timer.timings[self.name] = round(time.perf_counter() - self.t0, 3)
         self.timer.cpu_timings[self.name] = round(time.process_time() - self.c0, 3)
         if exc[0] is None:
             print(f"[fourlegs] {self.name}: {self.timer.timings[self.name]:.1f} s", flush=True)
+
+
+#: a file the job writes the name of its current stage into (set by ``fourlegs highlight`` for its child, which
+#: reports a native crash of the child with the stage it was in)
+STAGE_FILE_ENV = "FOURLEGS_STAGE_FILE"
+
+
+def record_stage(name: str) -> None:
+    """Write ``name`` into :data:`STAGE_FILE_ENV`'s file when it is set (a parent reads it after a crash)."""
+    import os
+
+    target = os.environ.get(STAGE_FILE_ENV)
+    if target:
+        try:
+            Path(target).write_text(name, encoding="utf-8")
+        except OSError:
+            pass
 
 
 @dataclass

@@ -292,3 +292,33 @@ def test_two_highlights_into_one_folder_one_refused_in_one_line(field_scene, tmp
     assert "Traceback" not in err and f"in use by another fourlegs run (pid {child}" in err, err
     assert first.wait(timeout=600) == 0, first.stderr.read()
     assert (out / "highlight.mp4").stat().st_size > 0
+
+
+# ------------------------------------------------- item 8: a native crash of the child is one line
+CRASHING_CHILD = """
+import os, signal, sys
+from fourlegs_engine.highlight_job import StageTimer
+with StageTimer()("render"):
+    if sys.argv[1] == "signal":
+        os.kill(os.getpid(), signal.SIGSEGV)
+    os._exit(int(sys.argv[1]))
+"""
+
+
+@pytest.mark.skipif(not POSIX, reason="signals")
+@pytest.mark.parametrize("how, status", [("signal", "SIGSEGV"), ("245", "SIGSEGV"), ("250", "SIGABRT")])
+def test_a_native_crash_of_the_child_is_one_line_with_its_stage(tmp_path, capsys, how, status):
+    from fourlegs_addon.commands import run_child
+
+    code = run_child([sys.executable, "-c", CRASHING_CHILD, how], stage_file=tmp_path / "stage.txt")
+    assert code == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("fourlegs: error: the Blender child crashed"), err
+    assert status in err[0] and "'render' stage" in err[0] and "memory" in err[0]
+
+
+def test_an_ordinary_failure_of_the_child_keeps_its_own_line_and_code(tmp_path, capsys):
+    from fourlegs_addon.commands import run_child
+
+    assert run_child([sys.executable, "-c", "import sys; sys.exit(2)"], stage_file=tmp_path / "s.txt") == 2
+    assert capsys.readouterr().err == ""

@@ -261,3 +261,23 @@ def test_an_exr_the_full_disk_cut_short_is_one_line_and_not_kept(tmp_path, monke
         write_exr(tmp_path / "cam_t0001.exr", {"relevancy": np.ones((4, 4), np.float32)})
     assert describe_environment_error(exc.value).startswith(f"no space left on device while writing {tmp_path}")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("damage", ["empty", "truncated", "codes-strings", "codes-out-of-range"])
+def test_a_damaged_codebook_is_one_line(distilled, tmp_path, capsys, damage):
+    path = Path(shutil.copytree(distilled, tmp_path / "b"))
+    argv = ["query", str(path), *QUERY, "--path", "codebook", "--codebook-size", "8"]
+    assert main(argv) == 0
+    capsys.readouterr()
+    npz = next(path.rglob("codebook_8.npz"))
+    codes = npz.parent / "codes_8.npy"
+    if damage == "empty":
+        npz.write_bytes(b"")
+    elif damage == "truncated":
+        npz.write_bytes(npz.read_bytes()[:100])
+    elif damage == "codes-strings":
+        np.save(codes, np.array(["a", "b"]))
+    else:
+        np.save(codes, np.full(np.load(codes).shape, 99, np.int64))
+    line = _one_line(capsys, argv)
+    assert ("codebook_8.npz" if damage in ("empty", "truncated") else "codes_8.npy") in line, line

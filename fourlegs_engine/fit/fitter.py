@@ -69,8 +69,9 @@ def _load_npz(path: Path) -> dict[str, np.ndarray]:
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
-        raise InputError(f"unreadable checkpoint ({exc}); delete it to refit that timestep", file=path) from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, MemoryError) as exc:
+        raise InputError(f"unreadable checkpoint ({type(exc).__name__}: {exc}); delete it to refit that timestep",
+                         file=path) from None
     missing = [k for k in _NPZ_KEYS.get(path.name, _STEP_KEYS) if k not in arrays]
     bad = [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]
     if missing or bad:

@@ -86,6 +86,7 @@ class RunLock:
         _HELD[self.path] = [handle, self.shared, 1]
         if self.clean and not self.shared:
             remove_stale_parts(self.target)
+            _remove_stale_siblings(self.target)
         return self
 
     def release(self) -> None:
@@ -154,6 +155,22 @@ def remove_stale_parts(root: str | Path, depth: int = STALE_DEPTH) -> list[Path]
         elif depth > 0 and entry.is_dir(follow_symlinks=False):
             removed += remove_stale_parts(path, depth - 1)
     return removed
+
+
+def _remove_stale_siblings(target: Path) -> None:
+    """The target's own temporaries beside it: ``.NAME.*.part`` (a folder written whole, cut short) and the
+    stale temporaries inside its work folders ``.NAME.*`` (e.g. a fit's ``.NAME.fit``)."""
+    target = Path(os.path.abspath(target))
+    try:
+        siblings = [p for p in target.parent.iterdir() if p.name.startswith(f".{target.name}.")]
+    except OSError:
+        return
+    for path in siblings:
+        if STALE_NAME.match(path.name):
+            with contextlib.suppress(OSError):
+                shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
+        elif path.is_dir() and not path.is_symlink():
+            remove_stale_parts(path)
 
 
 def _describe_self() -> str:

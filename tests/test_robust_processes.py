@@ -322,3 +322,16 @@ def test_an_ordinary_failure_of_the_child_keeps_its_own_line_and_code(tmp_path, 
 
     assert run_child([sys.executable, "-c", "import sys; sys.exit(2)"], stage_file=tmp_path / "s.txt") == 2
     assert capsys.readouterr().err == ""
+
+
+def test_a_killed_fit_leaves_nothing_stale_after_the_next_run_takes_the_lock(tmp_path):
+    out = tmp_path / "scene"
+    stale = [tmp_path / ".scene.ab12.part" / "means.npy", tmp_path / ".scene.fit" / ".t000003.x9.part.npz"]
+    kept = [tmp_path / ".scene.fit" / "t000002.npz", tmp_path / ".other.ab12.part" / "x"]
+    for path in stale + kept:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"x")
+    with run_lock(out):
+        pass
+    assert not (tmp_path / ".scene.ab12.part").exists() and not stale[1].exists()
+    assert all(p.exists() for p in kept)

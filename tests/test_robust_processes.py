@@ -150,7 +150,8 @@ def test_the_headless_job_refuses_an_output_folder_in_use(tmp_path, capsys):
 # ---------------------------------------------------------------- item 7: stale temporary files
 def test_temporary_files_of_a_killed_run_are_removed_by_the_next(tmp_path):
     out = tmp_path / "out"
-    stale = [out / ".plan.k2j3.part.json", out / ".highlight.x1y2.part.mp4", out / ".frames-abc" / ".frame_0003.part.png",
+    stale = [out / ".plan.k2j3.part.json", out / ".highlight.x1y2.part.mp4",
+             out / ".frames-abc" / ".frame_0003.part.png",
              out / ".highlight.mp4.a8.part" / "frame_0001.png", out / "deep" / "language" / ".latents.q.part.npy",
              out / ".latents.zz.old" / "old"]
     kept = [out / "plan.json", out / ".frames-abc" / "frame_0002.png", out / "notes.part", out / ".hidden"]

@@ -2,7 +2,7 @@
 
 A run that writes into a scene bundle (the language stages, ``fit``) or an output folder (``highlight``)
 holds an advisory lock on a small file beside it (``.NAME.fourlegs-lock`` in the same parent folder, so
-the lock exists before the folder does). The lock is ``fcntl.flock`` on POSIX and ``msvcrt.locking`` on
+the lock exists before the folder does; the holder removes it when it is done). The lock is ``fcntl.flock`` on POSIX and ``msvcrt.locking`` on
 Windows: the operating system releases it when the holder exits, however it exits (SIGKILL included),
 so a lock is never left behind. The holder writes its pid and command line into the file; a second
 writer is refused with one line naming them (:class:`LockedError`).
@@ -68,15 +68,22 @@ class RunLock:
         if held is not None:
             held[2] += 1
             return self
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            handle = open(self.path, "a+", encoding="utf-8")
-        except OSError:
-            return self  # an unwritable place: the run's own writes will fail with their own line
-        if not _try_lock(handle, self.shared):
-            holder = _read_holder(self.path)
+        for _ in range(100):  # the holder removes the file when it releases: lock the file that is there
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                handle = open(self.path, "a+", encoding="utf-8")
+            except OSError:
+                return self  # an unwritable place: the run's own writes will fail with their own line
+            if not _try_lock(handle, self.shared):
+                holder = _read_holder(self.path)
+                handle.close()
+                raise LockedError(self.target, holder)
+            if _same_file(handle, self.path):
+                break
+            _unlock(handle)
             handle.close()
-            raise LockedError(self.target, holder)
+        else:
+            raise LockedError(self.target, _read_holder(self.path))
         if not self.shared:
             with contextlib.suppress(OSError):
                 handle.seek(0)
@@ -97,9 +104,8 @@ class RunLock:
         if held[2] <= 0:
             del _HELD[self.path]
             with contextlib.suppress(OSError):
-                if not held[1]:
-                    held[0].seek(0)
-                    held[0].truncate()
+                if not held[1]:  # an exclusive holder removes the file (shared holders may still use it)
+                    self.path.unlink()
                 _unlock(held[0])
             held[0].close()
 
@@ -171,6 +177,14 @@ def _remove_stale_siblings(target: Path) -> None:
                 shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
         elif path.is_dir() and not path.is_symlink():
             remove_stale_parts(path)
+
+
+def _same_file(handle, path: Path) -> bool:
+    """Whether ``path`` still names the file ``handle`` locked (not removed by a releasing holder meanwhile)."""
+    try:
+        return os.path.samestat(os.fstat(handle.fileno()), os.stat(path))
+    except OSError:
+        return False
 
 
 def _describe_self() -> str:

@@ -119,7 +119,7 @@ def test_the_lock_is_reentrant_in_one_process_and_released_after_a_command(tmp_p
     target = tmp_path / "out"
     with run_lock(target), run_lock(target):
         assert f"pid {os.getpid()}" in lock_file_of(target).read_text()
-    assert lock_file_of(target).read_text() == ""
+    assert not lock_file_of(target).exists()  # removed by its holder: nothing is left beside the folder
     release_all()
 
 
@@ -336,3 +336,33 @@ def test_a_killed_fit_leaves_nothing_stale_after_the_next_run_takes_the_lock(tmp
         pass
     assert not (tmp_path / ".scene.ab12.part").exists() and not stale[1].exists()
     assert all(p.exists() for p in kept)
+
+
+def test_contending_writers_never_hold_the_lock_together(tmp_path):
+    """The holder removes the lock file on release; a writer that locked the removed file retries."""
+    target, marker = tmp_path / "scene", tmp_path / "inside"
+    code = textwrap.dedent(f"""
+        import os, sys, time
+        from fourlegs_engine.runlock import LockedError, RunLock
+        held = 0
+        while held < 15:
+            lock = RunLock({str(target)!r}, clean=False)
+            try:
+                lock.acquire()
+            except LockedError:
+                time.sleep(0.001)
+                continue
+            try:
+                fd = os.open({str(marker)!r}, os.O_CREAT | os.O_EXCL)  # fails if another holder is inside
+                os.close(fd)
+                time.sleep(0.002)
+                os.unlink({str(marker)!r})
+            finally:
+                lock.release()
+            held += 1
+    """)
+    procs = [subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE, text=True) for _ in range(4)]
+    for proc in procs:
+        _, err = proc.communicate(timeout=300)
+        assert proc.returncode == 0, err
+    assert not lock_file_of(target).exists()

@@ -326,3 +326,38 @@ def test_train_ae_and_distill_refuse_bad_numbers_before_replacing_anything(disti
     err = capsys.readouterr().err
     assert code == 2 and "Traceback" not in err, (argv, err)
     assert {p: p.read_bytes() for p in (path / "language").iterdir() if p.is_file()} == keep
+
+
+FIELD_FILES = ["features/t000000.npy", "features/manifest.json", "language/encoder.pt", "language/decoder.pt",
+               "language/autoencoder.json", "language/latents.npy", "scene.json"]
+FIELD_COMMANDS = [["query", "{p}", "person jumping", "--no-spatial"], ["info", "{p}"], ["extract", "{p}", "--check"],
+                  ["train-ae", "{p}", "--epochs", "1", "--samples", "1024", "--ae-batch-size", "256", "--seed", "4"],
+                  ["distill", "{p}", "--no-progress", "--teacher-stride", "2", "--overwrite"]]
+
+
+@settings(FAST, max_examples=max(EXAMPLES // 2, 1))
+@given(data=st.data())
+def test_every_command_on_a_field_with_one_damaged_file_is_one_line(distilled, tmp_path_factory, capsys, data):
+    """Issue #30: every command, with any file of a distilled field it reads damaged: success or one line."""
+    path = Path(shutil.copytree(distilled, tmp_path_factory.mktemp("field") / "b"))
+    target = path / data.draw(st.sampled_from(FIELD_FILES))
+    if target.suffix == ".json" and data.draw(st.booleans()):
+        text = json.dumps(data.draw(st.one_of(HOSTILE_JSON, st.just({"config_hash": 5}))))
+        target.write_text(text)
+    else:
+        target.write_bytes(_damaged(target.read_bytes(), data))
+    argv = [w.replace("{p}", str(path)) for w in data.draw(st.sampled_from(FIELD_COMMANDS))]
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        try:
+            code = main(argv)
+        except SystemExit as exc:
+            code = exc.code
+    finally:
+        torch.set_num_threads(old)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, (argv, target.name, err)
+    if code not in (0, 1, None) or (code == 1 and argv[0] != "extract"):
+        lines = [line for line in err.replace("\r", "\n").splitlines() if line.strip()]
+        assert lines and "error:" in lines[-1], (argv, target.name, err)

@@ -140,6 +140,12 @@ def _release_writers(exc: BaseException) -> None:
     import sys
     import traceback
 
+    tb = exc.__traceback__
+    while tb is not None:
+        for value in list(tb.tb_frame.f_locals.values()):
+            if isinstance(value, zipfile.ZipFile):
+                value.fp = None  # its file is ours (closed by our ``with``); close() and __del__ become no-ops
+        tb = tb.tb_next
     traceback.clear_frames(exc.__traceback__)
     previous = sys.unraisablehook
     sys.unraisablehook = lambda unraisable: None

@@ -277,6 +277,24 @@ def manifest_for_platforms(text: str, platforms: Sequence[str]) -> str:
     return out
 
 
+def wheel_problem(wheel: Path) -> Optional[str]:
+    """Why ``wheel`` is not a wheel Blender can install (None when it is): a zip whose members read back
+    intact (CRC), holding a ``*.dist-info/WHEEL`` and ``*.dist-info/METADATA``."""
+    try:
+        with zipfile.ZipFile(wheel) as zf:
+            names = zf.namelist()
+            broken = zf.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+        return f"not a zip archive: {exc}"
+    if broken is not None:
+        return f"member {broken} is damaged"
+    for required in ("WHEEL", "METADATA"):
+        if not any(n.count("/") == 1 and n.split("/")[0].endswith(".dist-info") and n.endswith("/" + required)
+                   for n in names):
+            return f"no *.dist-info/{required}"
+    return None
+
+
 def stage(dest: str | Path, wheels: Iterable[str | Path] = (), manifest: Optional[Path] = None,
           platforms: Optional[Sequence[str]] = None) -> Path:
     """Assemble the extension's source directory at ``dest`` (must not exist): the add-on, the engine
@@ -292,6 +310,9 @@ def stage(dest: str | Path, wheels: Iterable[str | Path] = (), manifest: Optiona
     for wheel in sorted({Path(w).resolve() for w in wheels}, key=lambda p: p.name):
         if wheel.suffix != ".whl" or not wheel.is_file():
             raise BuildError(f"{wheel}: not a wheel file")
+        problem = wheel_problem(wheel)
+        if problem is not None:
+            raise BuildError(f"{wheel}: not a usable wheel ({problem})")
         shutil.copy2(wheel, dest / "wheels" / wheel.name)
         names.append(wheel.name)
     text = manifest.read_text(encoding="utf-8")

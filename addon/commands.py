@@ -3,12 +3,16 @@
 ``highlight`` runs ``python -m fourlegs_addon.headless --options-json FILE`` in a child process: the
 engine's process never imports bpy, Blender's state never leaks between runs, and every option reaches
 the child because the job's options dataclass itself is what crosses the process boundary. Ctrl-C reaches the child too (same
-process group); the language stages resume on the next run.
+process group), SIGTERM to the parent stops the child, and a child whose parent dies (even by SIGKILL)
+ends itself (:func:`fourlegs_engine.api.die_with_parent`); the language stages resume on the next run.
 """
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import subprocess
+import threading
 import sys
 import tempfile
 from pathlib import Path
@@ -55,15 +59,58 @@ def run_highlight(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="fourlegs-highlight-") as tmp:
         options_file = Path(tmp) / "options.json"
         options_file.write_text(options.to_json(), encoding="utf-8")
-        return run_child(headless_command(options_file))
+        return run_child(headless_command(options_file), stage_file=Path(tmp) / "stage.txt")
 
 
-def run_child(cmd: list[str]) -> int:
-    """Run the headless job and return its exit code; Ctrl-C stops it for real."""
-    proc = subprocess.Popen(cmd)
+class _Terminated(Exception):
+    """The parent was asked to stop (SIGTERM)."""
+
+
+#: exit statuses of a child that crashed in native code: killed by a signal (negative), or a crash handler's
+#: exit(-signal) (245: SIGSEGV, 250: SIGABRT) or the shell's 128 + signal
+_CRASH_SIGNALS = {245: signal.SIGSEGV, 250: signal.SIGABRT, 134: signal.SIGABRT, 139: signal.SIGSEGV,
+                  247: signal.SIGKILL, 137: signal.SIGKILL}
+
+
+def describe_crash(code: int, stage: str | None) -> str | None:
+    """One line for a child that crashed in native code (None for an ordinary exit status)."""
+    if code < 0:
+        sig = signal.Signals(-code) if -code in signal.Signals._value2member_map_ else None
+    else:
+        sig = _CRASH_SIGNALS.get(code)
+    if sig is None or sig in (signal.SIGTERM, signal.SIGINT):
+        return None
+    where = f" during the {stage!r} stage" if stage else " while starting"
+    return (f"the Blender child crashed ({sig.name}, exit status {code}){where}; the likely cause is running out of "
+            "memory: lower --resolution, --fps or the shots' durations, or close other programs, then run the "
+            "same command again (finished frames are kept)")
+
+
+def run_child(cmd: list[str], *, stage_file: Path | None = None) -> int:
+    """Run the headless job and return its exit code; Ctrl-C and SIGTERM stop it for real (143 for SIGTERM). A
+    native crash of the child is one line naming the stage it was in (read from ``stage_file``), exit 1."""
+    from fourlegs_engine.api import PARENT_PID_ENV, STAGE_FILE_ENV, print_error
+
+    env = {**os.environ, PARENT_PID_ENV: str(os.getpid())}
+    if stage_file is not None:
+        env[STAGE_FILE_ENV] = str(stage_file)
+    proc = subprocess.Popen(cmd, env=env)
+
+    def on_sigterm(signum, frame):
+        raise _Terminated()
+
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, on_sigterm) if in_main else None
     try:
-        return proc.wait()
-    except KeyboardInterrupt:
+        code = proc.wait()
+        stage = (stage_file.read_text(encoding="utf-8").strip()
+                 if stage_file is not None and stage_file.is_file() else None)
+        message = describe_crash(code, stage)
+        if message is not None:
+            print_error(message)
+            return 1
+        return code
+    except (KeyboardInterrupt, _Terminated) as exc:
         # Blender's own SIGINT handler in the child only flags a break; stop it for real. Every stage
         # writes whole files atomically (features, latents, frames), so the next run resumes.
         proc.terminate()
@@ -72,7 +119,13 @@ def run_child(cmd: list[str]) -> int:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+        if isinstance(exc, _Terminated):
+            print("fourlegs: stopped (SIGTERM); run the same command again to resume", file=sys.stderr)
+            return 143
         raise
+    finally:
+        if in_main:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def run_build_extension(args: argparse.Namespace) -> int:

@@ -32,10 +32,13 @@ import time
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
-from fourlegs_engine import api
-from fourlegs_engine.commands.options import add_highlight_arguments, highlight_job_options
+try:  # Ctrl-C while the engine is imported: a quiet cancel (exit 130), not a traceback
+    from fourlegs_engine import api
+    from fourlegs_engine.commands.options import add_highlight_arguments, highlight_job_options
 
-from .process import blender_log_silenced, heap_kept
+    from .process import blender_log_silenced, heap_kept
+except KeyboardInterrupt:
+    sys.exit(130)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -141,16 +144,19 @@ def blender_stage(scene: Any, plan: dict, engine: Any, query: str, out: dict[str
 
 def run(options: api.HighlightJobOptions) -> dict[str, Any]:
     """The whole job: the engine plans it, Blender renders it, the engine reports it. Returns the report."""
-    import bpy
-
     timer = api.StageTimer()
-    job = api.prepare_highlight_job(options, timer)
-    render_info = blender_stage(job.scene, job.plan, job.engine, options.query, job.outputs, options.format, timer,
-                                render_threads=options.render_threads)
-    return api.finish_highlight_job(job, render_info, timer, versions={"blender": bpy.app.version_string})
+    with api.run_lock(options.output):  # one job per output folder; an earlier killed run's temporaries go
+        import bpy
+
+        job = api.prepare_highlight_job(options, timer)
+        render_info = blender_stage(job.scene, job.plan, job.engine, options.query, job.outputs, options.format,
+                                    timer, render_threads=options.render_threads)
+        return api.finish_highlight_job(job, render_info, timer, versions={"blender": bpy.app.version_string})
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    api.die_with_parent()  # started by `fourlegs highlight`: end with it
+
     def job() -> int:
         report = run(job_options(argv))
         print(f"[fourlegs] done in {report['total_seconds']:.1f} s: {report['outputs'].get('video')}", flush=True)

@@ -7,6 +7,7 @@ Importing the package before torch makes OpenMP's idle workers sleep at barriers
 (``OMP_WAIT_POLICY=PASSIVE``, see :mod:`fourlegs_engine.threads`): with spinning workers, one competing
 busy process on a shared machine or laptop slows every parallel torch operation many-fold. An explicit
 ``OMP_WAIT_POLICY`` in the environment is kept; ``FOURLEGS_OPENMP_SPIN=1`` keeps OpenMP's own default.
+It also chooses where numba caches its kernels (:mod:`fourlegs_engine.jit_cache`).
 """
 import os as _os
 
@@ -14,3 +15,7 @@ __version__ = "0.1.0"
 
 if "OMP_WAIT_POLICY" not in _os.environ and _os.environ.get("FOURLEGS_OPENMP_SPIN") != "1":
     _os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+
+from . import jit_cache as _jit_cache  # noqa: E402 (before numba: a read-only install caches elsewhere or not)
+
+_jit_cache.configure()

@@ -26,6 +26,8 @@ _LAZY = {
     "atomic_path": "fileio", "write_json_atomic": "fileio", "OUTPUTS_MARKER": "fileio", "claim_outputs": "fileio",
     "image_file_problem": "fileio", "incomplete_write_error": "fileio",
     "check_text": "validate",
+    "PARENT_PID_ENV": "lifetime", "die_with_parent": "lifetime",
+    "LockedError": "runlock", "run_lock": "runlock",
     "available_presets": "highlights", "load_preset": "highlights", "plan_highlight": "highlights",
     "plan_needs": "highlights",
     "EncoderOptions": "pipeline", "FieldStep": "pipeline", "QueryOptions": "pipeline",
@@ -37,15 +39,18 @@ _LAZY = {
     "Camera": "scene", "Scene": "scene", "load_scene": "scene",
     "release_mapped_pages": "scene.gaussians",
     "torch_threads": "threads", "kernel_threads": "threads", "usable_cpu_count": "threads",
-    "HighlightJobOptions": "highlight_job", "StageTimer": "highlight_job", "finish_highlight_job": "highlight_job",
+    "HighlightJobOptions": "highlight_job", "StageTimer": "highlight_job",
+    "STAGE_FILE_ENV": "highlight_job", "finish_highlight_job": "highlight_job",
     "plan_digest": "highlight_job", "prepare_highlight_job": "highlight_job",
 }
 
 if TYPE_CHECKING:
     from .fileio import (OUTPUTS_MARKER, atomic_path, claim_outputs, image_file_problem, incomplete_write_error,
                          write_json_atomic)
-    from .highlight_job import (HighlightJobOptions, StageTimer, finish_highlight_job, plan_digest,
+    from .highlight_job import (STAGE_FILE_ENV, HighlightJobOptions, StageTimer, finish_highlight_job, plan_digest,
                                 prepare_highlight_job)
+    from .lifetime import PARENT_PID_ENV, die_with_parent
+    from .runlock import LockedError, run_lock
     from .highlights import available_presets, load_preset, plan_highlight, plan_needs
     from .pipeline import (EncoderOptions, FieldStep, QueryOptions, ensure_language_field, has_language_field,
                            language_field_steps, open_query_engine, open_scene, plan_language_field,

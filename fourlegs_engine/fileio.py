@@ -99,10 +99,77 @@ def save_npy_atomic(path: str | Path, array: np.ndarray, *, overwrite: bool = Tr
     if array.dtype.hasobject:
         raise InputError("object arrays cannot be stored (they would need pickle)", file=path)
     with atomic_path(path, overwrite=overwrite) as tmp:
-        with open(tmp, "wb") as fh:
-            np.save(fh, array, allow_pickle=False)
-            fh.flush()
-            os.fsync(fh.fileno())
+        with writing(path):
+            with open(tmp, "wb") as fh:
+                np.save(fh, array, allow_pickle=False)
+                fh.flush()
+                os.fsync(fh.fileno())
+
+
+#: how libraries word a write that failed (torch's zip writer, OpenEXR) in a RuntimeError
+_WRITE_FAILURES = ("unexpected pos", "PytorchStreamWriter", "file write failed", "No space left", "Cannot write",
+                   "Error writing", "Unable to write")
+
+
+@contextlib.contextmanager
+def writing(path: str | Path) -> Iterator[None]:
+    """Errors of a library's write (numpy, torch, zipfile) named after ``path``: numpy's ``N requested and M
+    written`` and torch's ``unexpected pos`` carry no path and no errno; they become :func:`incomplete_write_error`
+    (ENOSPC when the disk is full), an OSError without a path gets ``path``."""
+    try:
+        yield
+    except OSError as exc:
+        _release_writers(exc)
+        if exc.filename is not None:
+            raise
+        if exc.errno is not None:
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
+        raise incomplete_write_error(path, str(exc)[:200]) from None
+    except RuntimeError as exc:
+        text = str(exc)
+        if any(k in text for k in _WRITE_FAILURES):
+            raise incomplete_write_error(path, text.splitlines()[0][:200] if text else "write failed") from None
+        raise
+
+
+def _release_writers(exc: BaseException) -> None:
+    """Close what the failed write left open now, quietly: a ``zipfile.ZipFile`` that numpy's ``savez`` kept
+    in its frame would otherwise try to flush to the full disk again when collected, printing
+    ``Exception ignored in ZipFile.__del__`` after the command's own error line."""
+    import gc
+    import sys
+    import traceback
+
+    tb = exc.__traceback__
+    while tb is not None:
+        for value in list(tb.tb_frame.f_locals.values()):
+            if isinstance(value, zipfile.ZipFile):
+                value.fp = None  # its file is ours (closed by our ``with``); close() and __del__ become no-ops
+        tb = tb.tb_next
+    traceback.clear_frames(exc.__traceback__)
+    previous = sys.unraisablehook
+    sys.unraisablehook = lambda unraisable: None
+    try:
+        gc.collect()
+    finally:
+        sys.unraisablehook = previous
+
+
+def save_npz_atomic(path: str | Path, **arrays: np.ndarray) -> None:
+    """``np.savez`` atomically, a full disk reported naming ``path`` (and nothing printed after it)."""
+    with atomic_path(path) as tmp:
+        with writing(path):
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **arrays)
+
+
+def save_torch_atomic(path: str | Path, obj: Any) -> None:
+    """``torch.save`` of a state dict or checkpoint, atomically, a full disk reported naming ``path``."""
+    import torch
+
+    with atomic_path(path) as tmp:
+        with writing(path):
+            torch.save(obj, tmp)
 
 
 def load_npy(path: str | Path, *, mmap: bool = True, field: str | None = None) -> np.ndarray:
@@ -118,6 +185,8 @@ def load_npy(path: str | Path, *, mmap: bool = True, field: str | None = None) -
             raise InputError("holds an object/pickled array, which is refused (never unpickled)",
                              file=path, field=field) from None
         raise InputError(f"corrupt or truncated .npy file ({msg})", file=path, field=field) from None
+    except MemoryError:
+        raise InputError("its header claims an array larger than memory (damaged)", file=path, field=field) from None
     except NPY_HEADER_ERRORS as exc:
         # a damaged header reaches numpy's literal parser (SyntaxError/TokenError) or its shape checks
         raise InputError(f"corrupt or truncated .npy file ({type(exc).__name__}: {str(exc)[:120]})", file=path,
@@ -132,6 +201,8 @@ def read_json(path: str | Path) -> Any:
         return json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"not valid JSON ({exc})", file=path) from None
+    except RecursionError:
+        raise InputError("nested too deeply to be a file of this program (damaged or hostile)", file=path) from None
 
 
 def unpickling_detail(exc: BaseException) -> str:

@@ -32,8 +32,9 @@ from .query.options import QueryOptions
 from .validate import check_text
 
 __all__ = ["DEFAULT_QUERY_PATH", "DEFAULT_SPATIAL", "DEMO_RESOLUTION", "HighlightJob", "HighlightJobOptions",
-           "OUTPUT_NAMES", "StageTimer", "VIDEO_FORMATS", "finish_highlight_job", "job_outputs", "plan_digest",
-           "prepare_highlight_job", "preset_needs_relevancy", "software_versions"]
+           "STAGE_FILE_ENV", "record_stage",
+           "OUTPUT_NAMES", "StageTimer", "VIDEO_FORMATS", "check_job_size", "finish_highlight_job", "job_outputs",
+           "plan_digest", "prepare_highlight_job", "preset_needs_relevancy", "software_versions"]
 
 OUTPUT_NAMES = {"video": "highlight.mp4", "blend": "highlight.blend", "plan": "plan.json",
                 "report": "report.json", "plot": "scores.png"}
@@ -128,12 +129,30 @@ class _Stage:
     def __enter__(self) -> None:
         self.t0, self.c0 = time.perf_counter(), time.process_time()
         print(f"[fourlegs] {self.name} ...", flush=True)
+        record_stage(self.name)
 
     def __exit__(self, *exc: Any) -> None:
         self.timer.timings[self.name] = round(time.perf_counter() - self.t0, 3)
         self.timer.cpu_timings[self.name] = round(time.process_time() - self.c0, 3)
         if exc[0] is None:
             print(f"[fourlegs] {self.name}: {self.timer.timings[self.name]:.1f} s", flush=True)
+
+
+#: a file the job writes the name of its current stage into (set by ``fourlegs highlight`` for its child, which
+#: reports a native crash of the child with the stage it was in)
+STAGE_FILE_ENV = "FOURLEGS_STAGE_FILE"
+
+
+def record_stage(name: str) -> None:
+    """Write ``name`` into :data:`STAGE_FILE_ENV`'s file when it is set (a parent reads it after a crash)."""
+    import os
+
+    target = os.environ.get(STAGE_FILE_ENV)
+    if target:
+        try:
+            Path(target).write_text(name, encoding="utf-8")
+        except OSError:
+            pass
 
 
 @dataclass
@@ -199,6 +218,7 @@ def prepare_highlight_job(options: HighlightJobOptions,
     with stage("localize + plan"):
         plan = plan_highlight(scene, engine, options.query, preset, resolution=resolution,
                               fps=options.fps).to_dict()
+    check_job_size(plan, out["video"], options.format)
     record_outputs()
     write_json_atomic(out["plan"], plan, overwrite=True)
     loc = plan.get("localization") or {}
@@ -209,6 +229,36 @@ def prepare_highlight_job(options: HighlightJobOptions,
     for msg in plan.get("messages", []):
         print(f"[fourlegs] note: {msg}", flush=True)
     return HighlightJob(options, out, scene, preset, engine, plan)
+
+
+#: bytes per pixel: of a frame while it renders (rasterizer buffers, relevancy, compositor passes), and of a
+#: finished frame on disk (MP4: uncompressed PNG frames until they are encoded; PNG; EXR: half floats)
+RENDER_BYTES_PER_PIXEL = 64
+DISK_BYTES_PER_PIXEL = {"MP4": 3.0, "PNG": 2.0, "EXR": 6.0}
+
+
+def check_job_size(plan: dict[str, Any], video: Path, fmt: str) -> None:
+    """InputError with the estimate when one frame would not fit in memory or the frames not on the disk
+    of ``video``'s folder (checked before the renderer starts, instead of a crash hours later)."""
+    import shutil
+
+    from .validate import check_memory, format_bytes
+
+    width, height = (int(v) for v in plan["resolution"])
+    frames = int(plan["frame_end"]) - int(plan["frame_start"]) + 1
+    check_memory(RENDER_BYTES_PER_PIXEL * width * height, f"rendering one {width}x{height} frame", "resolution")
+    needed = DISK_BYTES_PER_PIXEL.get(fmt, 3.0) * width * height * frames
+    probe = Path(video).parent
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    try:
+        free = shutil.disk_usage(probe).free
+    except OSError:
+        return
+    if needed > free:
+        raise InputError(f"{frames} frames of {width}x{height} need about {format_bytes(needed)} of disk, "
+                         f"{probe} has {format_bytes(free)} free; lower the resolution, frame rate or durations",
+                         field="resolution")
 
 
 def finish_highlight_job(job: HighlightJob, render: dict[str, Any], timer: StageTimer, *,

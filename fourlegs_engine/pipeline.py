@@ -179,6 +179,7 @@ def ensure_language_field(scene: "Scene", encoder: Any = None, *, encoder_config
     from .language.autoencoder import train_autoencoder
     from .language.distill import distill_scene
     from .language.extract import extract_features
+    from .runlock import run_lock
     from .scene.bundle import load_bundle
 
     report = stage or (lambda name: nullcontext())
@@ -186,14 +187,15 @@ def ensure_language_field(scene: "Scene", encoder: Any = None, *, encoder_config
     if progress:
         print(f"{scene.name}: no language field yet; extracting features, training the autoencoder and "
               f"distilling ({mode}) — once per scene", file=sys.stderr)
-    with report("extract features"):
-        extract_features(scene, encoder, _plan_config(scene, encoder, plan), progress=progress)
-    if progress and hasattr(encoder, "evidence_line"):  # annotation masks: which views vote
-        print(encoder.evidence_line(), file=sys.stderr)
-    with report("train autoencoder"):
-        train_autoencoder(scene, progress=progress)
-    with report(f"distil ({mode})"):
-        distill_scene(scene, mode=mode, progress=progress, view_scale=FIELD_VIEW_SCALE)
+    with run_lock(scene.root):  # one writer per scene
+        with report("extract features"):
+            extract_features(scene, encoder, _plan_config(scene, encoder, plan), progress=progress)
+        if progress and hasattr(encoder, "evidence_line"):  # annotation masks: which views vote
+            print(encoder.evidence_line(), file=sys.stderr)
+        with report("train autoencoder"):
+            train_autoencoder(scene, progress=progress)
+        with report(f"distil ({mode})"):
+            distill_scene(scene, mode=mode, progress=progress, view_scale=FIELD_VIEW_SCALE)
     return load_bundle(scene.root)
 
 

@@ -57,3 +57,36 @@ def _range_text(low: float | None, high: float | None, low_open: bool) -> str:
     if low is None:
         return f" <= {high:g}"
     return f" in {'(' if low_open else '['}{low:g}, {high:g}]"
+
+
+def memory_bytes() -> int | None:
+    """The machine's physical memory in bytes (None where it cannot be read)."""
+    import os
+
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+#: the share of physical memory one job may plan to use
+MEMORY_SHARE = 0.8
+
+
+def check_memory(nbytes: float, what: str, field: str) -> None:
+    """InputError with the estimate when a job would need more than :data:`MEMORY_SHARE` of the machine's
+    memory (checked before the work starts, so it is refused instead of killed by the OOM killer)."""
+    total = memory_bytes()
+    if total is not None and nbytes > MEMORY_SHARE * total:
+        raise InputError(f"{what} needs about {format_bytes(nbytes)}, more than this machine's "
+                         f"{format_bytes(total)} of memory allows; use smaller settings", field=field)
+
+
+def format_bytes(nbytes: float) -> str:
+    """1536 -> '1.5 KiB'."""
+    value = float(nbytes)
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if value < 1024 or unit == "PiB":
+            return f"{value:.1f} {unit}" if unit != "B" else f"{int(value)} B"
+        value /= 1024
+    return f"{value:.1f} PiB"

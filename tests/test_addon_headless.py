@@ -48,7 +48,7 @@ def _non_default_argv(action) -> list[str]:
         value = SAMPLE_VALUES[action.dest]
     elif action.choices:
         value = next(c for c in action.choices if c != action.default)
-    elif action.type in (int, float):
+    elif action.type in (int, float) or getattr(action.type, "__name__", "") in ("int", "float"):  # bounded()
         value = str((action.default or 0) + 3)
     else:
         value = f"x-{action.dest}"
@@ -85,7 +85,7 @@ def test_every_option_reaches_the_headless_job_through_its_options_json(monkeypa
     assert parent.render_threads == 4 and parent.encoder.masks == (("a red cube", "masks/cube"),)
     children = []
 
-    def child(cmd):  # the headless job's own reading of its command line, while the parent's file exists
+    def child(cmd, **kwargs):  # the headless job's own reading of its command line, while the parent's file exists
         assert cmd[:4] == [sys.executable, "-m", "fourlegs_addon.headless", "--options-json"]
         children.append(headless.job_options(cmd[3:]))
         return 0

@@ -426,7 +426,7 @@ def test_unannotated_views_cost_no_storage_and_the_held_out_camera_has_masks(tmp
 
 
 def test_balanced_sample_gives_a_rare_direction_an_equal_share():
-    from fourlegs_engine.language.autoencoder import balance_directions
+    from fourlegs_engine.language.ae_sample import balance_directions
 
     rng = np.random.default_rng(0)
     common = np.tile(np.eye(6)[0], (990, 1)) + rng.normal(scale=0.05, size=(990, 6))

@@ -246,3 +246,118 @@ def test_the_headless_job_on_bad_input_is_one_line(bad_scenes, tmp_path, capsys)
         err = capsys.readouterr().err
         assert code == 2 and "Traceback" not in err and err.strip().startswith("fourlegs: error:"), err
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+# ------------------------------------------------------------------------------------ issue #30
+DAMAGES = st.one_of(
+    st.tuples(st.just("truncate"), st.floats(0.0, 0.999)),
+    st.tuples(st.just("flip"), st.floats(0.0, 0.999), st.integers(1, 255)),
+    st.tuples(st.just("value"), st.floats(0.0, 0.999), st.sampled_from([float("nan"), float("inf"), -float("inf")])),
+    st.tuples(st.just("dtype"), st.sampled_from(["float32", "float64", "int16", "<U3"])),
+    st.tuples(st.just("shape"), st.integers(-2, 2).filter(bool)))
+
+
+def _damage_npy(path: Path, damage: tuple) -> None:
+    raw = path.read_bytes()
+    kind = damage[0]
+    if kind == "truncate":
+        path.write_bytes(raw[:int(len(raw) * damage[1])])
+    elif kind == "flip":
+        at = int(len(raw) * damage[1])
+        path.write_bytes(raw[:at] + bytes([raw[at] ^ damage[2]]) + raw[at + 1:])
+    elif kind == "value":
+        arr = np.load(path)
+        arr.reshape(-1)[int(arr.size * damage[1])] = damage[2]
+        np.save(path, arr)
+    elif kind == "dtype":
+        np.save(path, np.load(path).astype(damage[1]))
+    else:
+        arr = np.load(path)
+        np.save(path, arr[:damage[1]] if damage[1] < 0 else np.concatenate([arr, arr[:damage[1]]]))
+
+
+@settings(FAST, max_examples=max(EXAMPLES // 3, 1))
+@given(damage=DAMAGES, t=st.integers(0, 1), stage=st.sampled_from(["features", "language/steps"]))
+def test_any_damage_to_a_finished_step_file_is_never_trusted(distilled, tmp_path_factory, capsys, damage, t, stage):
+    """Issue #30, items 2 and 4: a resume verifies every finished file (shape, dtype, finite, checksum)."""
+    from fourlegs_engine.language.extract import feature_store
+    from fourlegs_engine.language.store import StepStore
+    from fourlegs_engine.scene.bundle import load_bundle
+
+    path = Path(shutil.copytree(distilled, tmp_path_factory.mktemp("damage") / "b"))
+    scene = load_bundle(path)
+    if stage == "features":
+        store = feature_store(scene)
+    else:
+        steps = path / "language" / "steps"
+        store = StepStore(steps, "latents", {"a": 1}, scene.num_timesteps, shape_of=lambda k: (scene.num_gaussians, 4),
+                          dtype="float16").open()
+        for k in range(scene.num_timesteps):
+            store.save(k, np.full((scene.num_gaussians, 4), 0.5, np.float16))
+    assert store.problem(t) is None
+    _damage_npy(store.step_path(t), damage)
+    assert store.problem(t) is not None and not store.is_done(t) and t in store.missing()
+    if stage == "features":
+        assert main(["train-ae", str(path), "--epochs", "1", "--samples", "1024", "--ae-batch-size", "256",
+                     "--seed", "9"]) == 2
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and f"t{t:06d}.npy" in err.strip().splitlines()[-1], err
+
+
+@settings(FAST, max_examples=max(EXAMPLES // 2, 1))
+@given(data=st.data())
+def test_train_ae_and_distill_refuse_bad_numbers_before_replacing_anything(distilled, tmp_path_factory, capsys, data):
+    """Issue #30, item 3: every --overwrite path validates its arguments first."""
+    tmp = tmp_path_factory.mktemp("ae")
+    path = Path(shutil.copytree(distilled, tmp / "b"))
+    keep = {p: p.read_bytes() for p in (path / "language").iterdir() if p.is_file()}
+    command = data.draw(st.sampled_from(["train-ae", "distill"]))
+    options = {"train-ae": {"--lr": ["-1", "0", "nan", "inf", "-inf", "1e9", "x"],
+                            "--holdout-camera": ["99", "-99", "1000000000"], "--seed": ["-1", "1e30", "x"],
+                            "--epochs": ["0", "-1", "nan"], "--ae-batch-size": ["1", "0", "-5"]},
+               "distill": {"--view-scale": ["1e-9", "0", "nan", "2", "-1"], "--teacher-stride": ["0", "100000", "-1"],
+                           "--neighbours": ["0", "100000"], "--iterations": ["-1", "1e99"]}}[command]
+    option = data.draw(st.sampled_from(sorted(options)))
+    argv = [command, str(path), option, data.draw(st.sampled_from(options[option])), "--overwrite"]
+    try:
+        code = main(argv + (["--no-progress"] if command == "distill" else []))
+    except SystemExit as exc:
+        code = exc.code
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err, (argv, err)
+    assert {p: p.read_bytes() for p in (path / "language").iterdir() if p.is_file()} == keep
+
+
+FIELD_FILES = ["features/t000000.npy", "features/manifest.json", "language/encoder.pt", "language/decoder.pt",
+               "language/autoencoder.json", "language/latents.npy", "scene.json"]
+FIELD_COMMANDS = [["query", "{p}", "person jumping", "--no-spatial"], ["info", "{p}"], ["extract", "{p}", "--check"],
+                  ["train-ae", "{p}", "--epochs", "1", "--samples", "1024", "--ae-batch-size", "256", "--seed", "4"],
+                  ["distill", "{p}", "--no-progress", "--teacher-stride", "2", "--overwrite"]]
+
+
+@settings(FAST, max_examples=max(EXAMPLES // 2, 1))
+@given(data=st.data())
+def test_every_command_on_a_field_with_one_damaged_file_is_one_line(distilled, tmp_path_factory, capsys, data):
+    """Issue #30: every command, with any file of a distilled field it reads damaged: success or one line."""
+    path = Path(shutil.copytree(distilled, tmp_path_factory.mktemp("field") / "b"))
+    target = path / data.draw(st.sampled_from(FIELD_FILES))
+    if target.suffix == ".json" and data.draw(st.booleans()):
+        text = json.dumps(data.draw(st.one_of(HOSTILE_JSON, st.just({"config_hash": 5}))))
+        target.write_text(text)
+    else:
+        target.write_bytes(_damaged(target.read_bytes(), data))
+    argv = [w.replace("{p}", str(path)) for w in data.draw(st.sampled_from(FIELD_COMMANDS))]
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        try:
+            code = main(argv)
+        except SystemExit as exc:
+            code = exc.code
+    finally:
+        torch.set_num_threads(old)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, (argv, target.name, err)
+    if code not in (0, 1, None) or (code == 1 and argv[0] != "extract"):
+        lines = [line for line in err.replace("\r", "\n").splitlines() if line.strip()]
+        assert lines and "error:" in lines[-1], (argv, target.name, err)

@@ -108,8 +108,11 @@ def fit_one(job: tuple[str, str], *, options: Any, overwrite: bool, progress: bo
     """Fit one ``(dataset, output)`` pair; returns the scene path (a Ray task's function)."""
     from ..fit.fitter import fit_capture
 
+    from ..runlock import run_lock
+
     dataset, output = job
-    return str(fit_capture(dataset, output, options, overwrite=overwrite, progress=progress))
+    with run_lock(output):  # one fit per output scene
+        return str(fit_capture(dataset, output, options, overwrite=overwrite, progress=progress))
 
 
 def run_fit(args: argparse.Namespace) -> int:

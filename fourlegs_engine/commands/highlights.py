@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .options import (add_demo_argument, add_effect_arguments, add_encoder_arguments, effects_of,
+from .options import (add_demo_argument, add_effect_arguments, add_encoder_arguments, bounded, effects_of,
                       encoder_options_from_args, parse_resolution)
 from ..errors import InputError
 from ..pipeline import EncoderOptions, QueryOptions
@@ -29,9 +29,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("-o", "--output", metavar="PLAN.json", help="where to write the plan")
     p.add_argument("--preview", metavar="PNG", help="also write a contact sheet of sampled frames")
     p.add_argument("--overlay", action="store_true", help="overlay relevancy on every preview tile")
-    p.add_argument("--preview-width", type=int, default=320, help="width of a preview tile (px)")
-    p.add_argument("--per-shot", type=int, default=4, help="preview frames per shot")
-    p.add_argument("--fps", type=float, help="override the preset's output frame rate")
+    p.add_argument("--preview-width", type=bounded(int, 16, 4096), default=320, help="width of a preview tile (px)")
+    p.add_argument("--per-shot", type=bounded(int, 1, 64), default=4, help="preview frames per shot (1..64)")
+    p.add_argument("--fps", type=bounded(float, 0, 240, low_open=True), help="override the preset's output frame rate")
     p.add_argument("--resolution", metavar="WxH", help="override the preset's output resolution")
     p.add_argument("--query-path", choices=("exact", "codebook"), default="exact",
                    help="per-Gaussian relevancy path of the query engine (default: exact)")

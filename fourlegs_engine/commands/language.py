@@ -171,8 +171,8 @@ def _crop_size(value: str | None) -> int | str | None:
         size = int(value)
     except ValueError:
         raise InputError(f"must be an integer or 'means', got {value!r}", field="--crop-size") from None
-    if size < 1:
-        raise InputError(f"must be positive, got {size}", field="--crop-size")
+    if not 1 <= size <= 4096:
+        raise InputError(f"must be 1..4096 pixels, got {size}", field="--crop-size")
     return size
 
 
@@ -207,6 +207,12 @@ def _print_evidence(encoder: Any, scene: Any, split: str = "train") -> None:
         print(encoder.evidence_line())
 
 
+def _lock_scene(args: argparse.Namespace, scene: Any) -> None:
+    """Hold the scene's run lock until the command ends (shared by ``--shard`` workers of one stage)."""
+    from ..runlock import hold_run_lock
+    hold_run_lock(scene.root, shared=bool(getattr(args, "shard", None)))
+
+
 def _print_check(report: dict[str, Any]) -> int:
     print(json.dumps(report, indent=2))
     return 0 if report.get("complete") else 1
@@ -218,6 +224,7 @@ def run_extract(args: argparse.Namespace) -> int:
     scene = resolve_bundle(args)
     if args.check:
         return _print_check(check_features(scene))
+    _lock_scene(args, scene)
     if args.batch_size is not None and args.batch_size < 1:
         raise InputError(f"must be >= 1, got {args.batch_size}", field="--batch-size")
     config = ExtractOptions(ratios=_ratios(args.ratios, args.steps), crop_size=_crop_size(args.crop_size),
@@ -245,6 +252,7 @@ def run_extract(args: argparse.Namespace) -> int:
 def run_train_ae(args: argparse.Namespace) -> int:
     from ..language.autoencoder import train_autoencoder
     scene = resolve_bundle(args)
+    _lock_scene(args, scene)
     report = train_autoencoder(scene, _ae_options(args), overwrite=args.overwrite, progress=True)
     if args.json:
         print(json.dumps(report, indent=2))
@@ -278,6 +286,7 @@ def heldout_text(report: dict) -> str:
 def run_distill(args: argparse.Namespace) -> int:
     from ..language.distill import check_distill, distill_scene
     scene = resolve_bundle(args)
+    _lock_scene(args, scene)
     if args.check:
         report = check_distill(scene)
         if report.get("missing") == [] and not report.get("bad") and not report.get("merged"):
@@ -308,6 +317,7 @@ def run_language(args: argparse.Namespace) -> int:
     from ..language.distill import distill_scene
     from ..language.extract import ExtractOptions, extract_features
     scene = resolve_bundle(args)
+    _lock_scene(args, scene)
     progress = not args.no_progress
     t0 = time.perf_counter()
     encoder = _encoder(args, scene)

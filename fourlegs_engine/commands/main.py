@@ -60,12 +60,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:  # the command modules' imports take seconds: Ctrl-C then is a quiet cancel too
+        parser = build_parser()
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt:
+        print("fourlegs: cancelled", file=sys.stderr)
+        return 130
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    return exit_code_of(lambda: args.func(args))
+    from ..runlock import release_all
+
+    try:
+        return exit_code_of(lambda: args.func(args))
+    finally:
+        release_all()
 
 
 if __name__ == "__main__":

@@ -60,7 +60,7 @@ def add_encoder_arguments(parser: argparse.ArgumentParser, *, default: str = "vi
     group.add_argument("--device", default="auto", help="cpu, cuda, cuda:1 or auto (default)")
     group.add_argument("--encoder-dtype", default="float32", choices=sorted(DTYPES),
                        help="ViCLIP weights precision (float16/bfloat16 only on GPU; default float32)")
-    group.add_argument("--encoder-batch-size", type=int, default=16,
+    group.add_argument("--encoder-batch-size", type=bounded(int, 1, 4096), default=16,
                        help="clips or texts per encoder forward pass (default 16)")
     group.add_argument("--pixel-normalization", default="clip", choices=("clip", "imagenet"),
                        help="pixel statistics ViCLIP sees: 'clip' (as the 4-LEGS pipeline describes, "
@@ -136,8 +136,9 @@ def add_highlight_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.add_argument("--resolution", default=None,
                    help="output WIDTHxHEIGHT (default: 640x360 for --demo, else the preset's)")
-    p.add_argument("--fps", type=float, default=None, help="output frame rate (default: the preset's)")
-    p.add_argument("--render-threads", type=int, default=1, metavar="N",
+    p.add_argument("--fps", type=bounded(float, 0, 240, low_open=True), default=None,
+                   help="output frame rate (default: the preset's)")
+    p.add_argument("--render-threads", type=bounded(int, 0, 1024), default=1, metavar="N",
                    help="torch threads for the per-frame rasterization (default 1: small per-frame work, "
                         "extra threads mostly wait; 0 = torch's default)")
     p.add_argument("--format", default="MP4", choices=VIDEO_FORMATS, help="video or image sequence")

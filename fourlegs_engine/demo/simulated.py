@@ -240,6 +240,22 @@ def _camera_bias_vector(seed: int, camera: str | None) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
+def _check_scene_labels(scene: Any, labels: Any) -> None:
+    """InputError when the vocabulary is not a list of text or a Gaussian's label is not one of its indices."""
+    root = getattr(scene, "root", None)
+    meta_file = f"{root}/scene.json" if root is not None else None
+    if not isinstance(labels, (list, tuple)) or not all(isinstance(x, str) for x in labels):
+        raise InputError("must be a list of text labels", file=meta_file, field="metadata.labels")
+    values = getattr(getattr(scene, "gaussians", None), "labels", None)
+    if values is None or not np.asarray(values).size:
+        return
+    low, high = int(np.min(values)), int(np.max(values))
+    if low < -1 or high >= len(labels):
+        raise InputError(f"holds label {high if high >= len(labels) else low}, the vocabulary has {len(labels)} "
+                         f"labels (0..{len(labels) - 1}, -1 for none)",
+                         file=f"{root}/labels.npy" if root is not None else None, field="labels")
+
+
 def create_encoder(*, labels: Sequence[str] | None = None, scene: Any = None, seed: int = 0,
                    **options: Any) -> SimulatedVideoEncoder:
     """Factory used by ``language.encoders.get_encoder("simulated", ...)``.
@@ -257,6 +273,8 @@ def create_encoder(*, labels: Sequence[str] | None = None, scene: Any = None, se
     if labels is None:
         raise InputError("the simulated encoder needs the scene's label vocabulary (a synthetic scene with "
                          "metadata['labels'])", field="encoder")
+    if scene is not None:
+        _check_scene_labels(scene, labels)
     allowed = {"noise_cosine", "camera_bias", "wrong_label_fraction", "camera", "background_labels",
                "foreground_salience", "salience"}
     unknown = set(options) - allowed - {"device", "dtype", "batch_size"}

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..jit_cache import JIT_CACHE
+
 try:  # pragma: no cover - exercised when numba is missing
     import numba
 except ImportError:  # pragma: no cover
@@ -56,9 +58,9 @@ def _uniforms_py(keys, first_counter, out):  # pragma: no cover - compiled by nu
 
 
 if numba is not None:
-    _splitmix64 = numba.njit(nogil=True, cache=True, inline="always")(_splitmix64_scalar_py)
-    _fold_keys = numba.njit(nogil=True, cache=True)(_fold_keys_py)
-    _uniforms = numba.njit(nogil=True, cache=True)(_uniforms_py)
+    _splitmix64 = numba.njit(nogil=True, cache=JIT_CACHE, inline="always")(_splitmix64_scalar_py)
+    _fold_keys = numba.njit(nogil=True, cache=JIT_CACHE)(_fold_keys_py)
+    _uniforms = numba.njit(nogil=True, cache=JIT_CACHE)(_uniforms_py)
 else:  # pragma: no cover
     _splitmix64 = _fold_keys = _uniforms = None
 

@@ -152,6 +152,8 @@ def _open_image(path: Path):
     try:
         im = Image.open(path)
         im.load()
+    except Image.DecompressionBombError as exc:
+        raise InputError(f"is too large to be a frame ({exc})"[:300], file=path) from None
     except (UnidentifiedImageError, OSError) as exc:
         raise InputError(f"is not a readable image ({exc.__class__.__name__})", file=path) from None
     return im

@@ -31,6 +31,7 @@ import hashlib
 import json
 import math
 import shutil
+import zipfile
 from pathlib import Path
 from typing import Any, Callable
 
@@ -38,7 +39,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigMismatchError, InputError, OutputExistsError
-from ..fileio import atomic_path, read_json, write_json_atomic
+from ..fileio import read_json, save_npz_atomic, write_json_atomic
 from ..scene.camera import Camera, CameraRig
 from ..scene.gaussians import GaussianSequence
 from ..scene.scene import Scene
@@ -58,16 +59,26 @@ def _work_dir(output: Path) -> Path:
 
 
 def _save_npz(path: Path, **arrays: np.ndarray) -> None:
-    with atomic_path(path, overwrite=True) as tmp:
-        np.savez(tmp, **arrays)
+    save_npz_atomic(path, **arrays)
+
+
+_NPZ_KEYS = {"static.npz": ("log_scales", "opacity_logits", "colors", "foreground", "cam_m", "cam_c", "floor_y")}
+_STEP_KEYS = ("means", "rotations")
 
 
 def _load_npz(path: Path) -> dict[str, np.ndarray]:
     try:
         with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"unreadable checkpoint ({exc}); delete it to refit that timestep", file=path) from None
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, MemoryError) as exc:
+        raise InputError(f"unreadable checkpoint ({type(exc).__name__}: {exc}); delete it to refit that timestep",
+                         file=path) from None
+    missing = [k for k in _NPZ_KEYS.get(path.name, _STEP_KEYS) if k not in arrays]
+    bad = [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]
+    if missing or bad:
+        what = f"lacks {', '.join(missing)}" if missing else f"{', '.join(bad)} hold NaN or Inf"
+        raise InputError(f"damaged checkpoint ({what}); delete it to refit that timestep", file=path)
+    return arrays
 
 
 def _generator(seed: int, t: int) -> torch.Generator:
@@ -198,6 +209,8 @@ def _run(capture: Capture, steps: range, cams_idx: list[int], cameras: list[Came
     a = steps.start
     history_path = work / "history.json"
     history: dict[str, float] = read_json(history_path) if history_path.is_file() else {}
+    if not isinstance(history, dict):
+        raise InputError("must be a JSON object (timestep -> PSNR); delete it or pass --overwrite", file=history_path)
     static_path = work / "static.npz"
     if static_path.is_file() and (work / f"t{a:06d}.npz").is_file():
         s = _load_npz(static_path)

@@ -82,6 +82,8 @@ class FitOptions:
     def check(self) -> "FitOptions":
         if not 0 < self.resolution_scale <= 4:
             raise InputError(f"must be in (0, 4], got {self.resolution_scale}", field="resolution_scale")
+        if not 0 <= int(self.seed) < 2 ** 32:
+            raise InputError(f"must be an integer in 0..{2 ** 32 - 1}, got {self.seed}", field="--seed")
         if int(self.clean_plate_samples) < 0:
             raise InputError(f"must be 0 or more, got {self.clean_plate_samples}", field="clean_plate_samples")
         if int(self.max_iterations) and not int(self.iterations) <= int(self.max_iterations):

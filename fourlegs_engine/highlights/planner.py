@@ -24,7 +24,7 @@ from .camera_paths import Pose, aim, look_at_rotation
 from .effects import LOCALIZATION_NEEDS, NEED_ACTION_CENTRE, NEED_BEST_VIEW, NEED_TEMPORAL, get_effect
 from .framing import Framing, scene_up
 from .plan import CameraKey, HighlightPlan, Shot, TimeKey, merge_ranges
-from .presets import Preset, ShotSpec
+from .presets import MAX_FPS, MAX_SIDE, MIN_SIDE, Preset, ShotSpec
 from .rig_volume import RigVolume
 from .shot_context import ShotContext
 from .shot_list import PlannedShot, expand_shots, highlighted_segments
@@ -129,11 +129,12 @@ def plan_highlight(scene, localizer: Optional[Localizer], query: str, preset: Pr
         context shot instead) and a message saying so.
     """
     resolution = tuple(int(v) for v in (resolution or preset.resolution))
-    if len(resolution) != 2 or min(resolution) <= 0:
-        raise InputError(f"must be [width, height] > 0, got {list(resolution)}", field="resolution")
+    if len(resolution) != 2 or not all(MIN_SIDE <= v <= MAX_SIDE for v in resolution):
+        raise InputError(f"must be [width, height] of {MIN_SIDE}..{MAX_SIDE} pixels, got {list(resolution)}",
+                         field="resolution")
     out_fps = float(fps if fps is not None else preset.fps)
-    if not out_fps > 0 or not np.isfinite(out_fps):
-        raise InputError(f"must be positive, got {out_fps}", field="fps")
+    if not (0 < out_fps <= MAX_FPS and np.isfinite(out_fps)):
+        raise InputError(f"must be a frame rate in (0, {MAX_FPS}], got {out_fps:g}", field="fps")
     messages: list[str] = []
     per_shot = shot_needs(preset)
     found = _localize(scene, localizer, query, preset, per_shot, messages)

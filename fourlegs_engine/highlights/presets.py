@@ -37,6 +37,9 @@ from ..errors import InputError
 from .effects import EFFECTS, get_effect
 
 ENV_PRESETS = "FOURLEGS_PRESETS"
+#: output bounds of a preset (and of the overrides of ``plan``/``highlight``): frames per second, pixels a side
+MAX_FPS = 240
+MIN_SIDE, MAX_SIDE = 16, 16384
 _PACKAGE_DIR = Path(__file__).resolve().parent
 REPO_PRESETS = _PACKAGE_DIR.parents[1] / "presets"
 PACKAGED_PRESETS = _PACKAGE_DIR / "presets"

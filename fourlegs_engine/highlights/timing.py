@@ -94,6 +94,19 @@ def check_fps(fps: float, field: str = "fps") -> float:
     return fps
 
 
+#: the most output frames one shot may have (69 minutes at 24 fps): more is a typo, not a highlight, and
+#: would take hours of planning and days of rendering
+MAX_SHOT_FRAMES = 100_000
+
+
+def bounded_frames(frames: float, what: str) -> int:
+    """``frames`` as an int, or InputError when it exceeds :data:`MAX_SHOT_FRAMES`."""
+    if not frames <= MAX_SHOT_FRAMES:
+        raise InputError(f"{what} needs {frames:.4g} frames, more than the {MAX_SHOT_FRAMES} a shot may have; "
+                         "lower the frame rate or the duration", field="frames")
+    return int(frames)
+
+
 def frames_for_duration(seconds: float, fps: float, *, minimum: int = 1) -> int:
     """Whole output frames for ``seconds`` at ``fps``: nearest frame (ties up), at least ``minimum``.
 
@@ -104,7 +117,8 @@ def frames_for_duration(seconds: float, fps: float, *, minimum: int = 1) -> int:
     seconds = float(seconds)
     if not math.isfinite(seconds) or seconds < 0:
         raise InputError(f"duration must be a finite number >= 0 seconds, got {seconds}", field="duration_s")
-    return max(int(minimum), int(math.floor(seconds * fps + 0.5 + _FRAME_EPS)))
+    frames = bounded_frames(math.floor(seconds * fps + 0.5 + _FRAME_EPS), f"{seconds:g} s at {fps:g} fps")
+    return max(int(minimum), frames)
 
 
 def seconds_to_timesteps(seconds: float, scene_fps: float) -> float:
@@ -134,7 +148,9 @@ def play_frame_count(t_from: float, t_to: float, *, scene_fps: float, output_fps
     if speed <= 0 or span == 0:
         return max(1, int(minimum))
     intervals = span / scene_fps / speed * output_fps
-    return max(int(minimum), int(math.floor(intervals + 0.5 + _FRAME_EPS)) + 1)
+    frames = bounded_frames(math.floor(intervals + 0.5 + _FRAME_EPS) + 1,
+                            f"playing {span:g} timesteps at {speed:g}x and {output_fps:g} fps")
+    return max(int(minimum), frames)
 
 
 def remap_time(t_from: float, t_to: float, n: int, *, hold_frames: int = 0) -> np.ndarray:

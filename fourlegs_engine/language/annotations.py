@@ -112,6 +112,8 @@ def read_mask(path: Path) -> np.ndarray:
     try:
         with Image.open(path) as img:
             arr = np.asarray(img)
+    except Image.DecompressionBombError as exc:
+        raise InputError(f"is too large to be a mask ({exc})"[:300], file=path, field="masks") from None
     except (OSError, UnidentifiedImageError) as exc:
         raise InputError(f"not a readable mask image ({exc})", file=path, field="masks") from None
     return arr != 0 if arr.ndim == 2 else np.any(arr != 0, axis=2)

@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..jit_cache import JIT_CACHE
+
 try:  # pragma: no cover - exercised when numba is missing
     import numba
 except ImportError:  # pragma: no cover
@@ -95,8 +97,8 @@ def _backward_py(lo, hi, q_tilde, latents, nbr, weights, grad_mixed, grad_q, gra
 
 # reassociation lets LLVM vectorize the d-long dot products; nothing here relies on inf/NaN semantics
 _FASTMATH = {"reassoc", "contract"}
-_forward = numba.njit(nogil=True, cache=True, fastmath=_FASTMATH)(_forward_py) if numba is not None else None
-_backward = numba.njit(nogil=True, cache=True, fastmath=_FASTMATH)(_backward_py) if numba is not None else None
+_forward = numba.njit(nogil=True, cache=JIT_CACHE, fastmath=_FASTMATH)(_forward_py) if numba is not None else None
+_backward = numba.njit(nogil=True, cache=JIT_CACHE, fastmath=_FASTMATH)(_backward_py) if numba is not None else None
 
 
 def _halves(n: int) -> list[tuple[int, int]]:

@@ -5,12 +5,13 @@ decoder 128 -> 256 -> 512 -> 768 (same blocks, L2-normalized output). Loss: L1 +
 """
 from __future__ import annotations
 
+import json
+import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
-import numpy as np
 import torch
 from torch import nn
 
@@ -132,6 +133,20 @@ class AETrainOptions:
     seed: int = 0
     balance: str = "auto"
 
+    def check(self, feature_dim: int = 768) -> "AETrainOptions":
+        """InputError naming the first value out of range (before anything is read or replaced)."""
+        from ..validate import check_memory, check_number
+        check_number(self.epochs, "--epochs", low=1, high=100_000, integer=True)
+        check_number(self.samples, "--samples", low=2, high=1 << 31, integer=True)
+        check_number(self.heldout_samples, "heldout_samples", low=0, high=1 << 31, integer=True)
+        check_number(self.batch_size, "--ae-batch-size", low=2, high=1 << 24, integer=True)
+        check_number(self.lr, "--lr", low=0, high=1.0, low_open=True)
+        check_number(self.latent_dim, "latent_dim", low=1, high=4096, integer=True)
+        check_number(self.seed, "--seed", low=0, high=2 ** 32 - 1, integer=True)
+        check_number(self.holdout_camera, "--holdout-camera", low=-(1 << 20), high=1 << 20, integer=True)
+        check_memory(4.0 * feature_dim * (self.samples + self.heldout_samples), "the training sample", "--samples")
+        return self
+
     def to_dict(self) -> dict[str, Any]:
         """The settings that enter the config hash (``balance`` is added by the training when it balances)."""
         d = asdict(self)
@@ -148,35 +163,6 @@ class AETrainOptions:
         return self.balance
 
 
-def _sample_pixel_features(scene: Any, store: Any, views: list[tuple[int, int]], total: int,
-                           rng: np.random.Generator) -> torch.Tensor:
-    """(≈total, D) float32 per-pixel features at uniformly random pixels of the given (t, camera) views."""
-    from .extract import load_step_features, view_has_evidence
-    from .pyramid import interpolate_points
-    if not views or total <= 0:
-        return torch.zeros((0, int(store.config["dim"])))
-    by_t: dict[int, list[int]] = {}
-    for t, c in views:
-        by_t.setdefault(t, []).append(c)
-    loaded = {t: load_step_features(scene, store, t) for t in sorted(by_t)}
-    # views without evidence (zero rows: annotation masks that do not cover them) are not sampled
-    by_t = {t: [c for c in cams if view_has_evidence(loaded[t][0], loaded[t][2][c])] for t, cams in by_t.items()}
-    count = sum(len(cams) for cams in by_t.values())
-    if count == 0:
-        return torch.zeros((0, int(store.config["dim"])))
-    per_view = max(1, -(-total // count))
-    out = []
-    for t in sorted(by_t):
-        feats, layouts, offsets = loaded[t]
-        for c in by_t[t]:
-            lay = layouts[c]
-            crop = torch.from_numpy(np.asarray(feats[offsets[c]:offsets[c] + lay.num_crops], dtype=np.float32))
-            xs = torch.from_numpy(rng.integers(0, lay.width, per_view).astype(np.float64))
-            ys = torch.from_numpy(rng.integers(0, lay.height, per_view).astype(np.float64))
-            out.append(interpolate_points(lay, crop, xs, ys))
-    return torch.cat(out)[:total] if len(out) else torch.zeros((0, int(store.config["dim"])))
-
-
 def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overwrite: bool = False,
                       progress: bool = False, stop_after_epoch: int | None = None,
                       timesteps: Sequence[int] | None = None) -> dict[str, Any]:
@@ -188,36 +174,32 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
     epoch buys and costs). Returns that report. ``stop_after_epoch`` stops early (tests of resumption);
     ``timesteps`` restricts the training data to those timesteps (benchmarks on a few timesteps).
     """
-    from ..errors import InputError
-    from ..fileio import atomic_path, read_json, write_json_atomic
+    from ..fileio import save_torch_atomic, write_json_atomic
+    from .ae_sample import check_features_complete, check_holdout_camera, training_data
     from .extract import feature_store
     from .store import config_hash
 
-    config = config or AETrainOptions()
-    if config.epochs < 1 or config.samples < 2 or config.batch_size < 2:
-        raise InputError("need epochs >= 1, samples >= 2 and batch size >= 2", field="train-ae")
+    config = (config or AETrainOptions()).check()
     root = Path(scene.root)
     store = feature_store(scene)
+    config.check(int(store.config["dim"]))
+    check_holdout_camera(config, scene.cameras.num_cameras(store.config.get("split", "train")))
     steps = list(range(scene.num_timesteps)) if timesteps is None else sorted({int(t) for t in timesteps})
-    missing = store.missing(steps)
-    if missing:
-        from .store import format_ranges
-        raise InputError(f"features of timesteps {format_ranges(missing)} are missing; finish "
-                         "`fourlegs extract` first", file=store.root)
+    check_features_complete(store, steps)
     balance = config.resolved_balance(str(store.config.get("encoder", "")))
     cfg = {"features": store.hash, **config.to_dict(), **({"balance": balance} if balance != "none" else {})}
     if timesteps is not None:
         cfg["timesteps"] = steps
     chash = config_hash(cfg)
     report_path = root / AE_REPORT
-    _refuse_or_drop_other_configurations(root, chash, overwrite)
-    if report_path.is_file() and not overwrite:
-        report = read_json(report_path)
+    trained = _refuse_or_drop_other_configurations(root, chash, overwrite)
+    if trained and not overwrite:
+        report = read_ae_report(report_path)
         report["skipped"] = True
         return report
 
     start = time.perf_counter()
-    x_train, x_held, holdout = _training_data(scene, store, config, steps, balance)
+    x_train, x_held, holdout = training_data(scene, store, config, steps, balance)
     sample_seconds = time.perf_counter() - start
     torch.manual_seed(config.seed)
     model = FeatureAutoencoder(int(store.config["dim"]), config.latent_dim, config.hidden)
@@ -228,6 +210,7 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
     if stopped_after is not None:
         return {"stopped_after_epoch": stopped_after}
     model.eval()
+    _check_trained(model, history)
     report = {"config_hash": chash, "config": cfg, "epochs": config.epochs, "loss_history": history,
               "cosine_history": cosine_history, "cosine_history_set": "heldout" if x_held.shape[0] else "train",
               "epoch_seconds": epoch_seconds,
@@ -240,91 +223,58 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
                   f"held-out camera {holdout} has no evidence (no camera but those trained on has any)"),
               "sample_seconds": sample_seconds, "balance": balance, "seconds": time.perf_counter() - start,
               "encoder": ENCODER_FILE, "decoder": DECODER_FILE}
-    with atomic_path(root / ENCODER_FILE) as tmp:
-        torch.save(model.encoder.state_dict(), tmp)
-    with atomic_path(root / DECODER_FILE) as tmp:
-        torch.save(model.decoder.state_dict(), tmp)
+    json.dumps(report, allow_nan=False)  # the report must be writable before the weights are replaced
+    save_torch_atomic(root / ENCODER_FILE, model.encoder.state_dict())
+    save_torch_atomic(root / DECODER_FILE, model.decoder.state_dict())
     write_json_atomic(report_path, report)
     (root / AE_CHECKPOINT).unlink(missing_ok=True)
     return report
 
 
-def _refuse_or_drop_other_configurations(root: Path, chash: str, overwrite: bool) -> None:
-    """ConfigMismatchError for a report or checkpoint of another configuration, unless ``overwrite``
-    (then they are removed)."""
+def _check_trained(model: nn.Module, history: list[float]) -> None:
+    """InputError when training diverged (NaN/Inf loss or weights): nothing is written then."""
+    from ..errors import InputError
+    finite = all(math.isfinite(v) for v in history) and all(
+        bool(torch.isfinite(v).all()) for v in model.state_dict().values() if v.is_floating_point())
+    if not finite:
+        raise InputError("training diverged (NaN or Inf loss or weights); the previous autoencoder is kept: "
+                         "lower --lr", field="--lr")
+
+
+def _refuse_or_drop_other_configurations(root: Path, chash: str, overwrite: bool) -> bool:
+    """ConfigMismatchError for a report or checkpoint of another configuration, unless ``overwrite`` (then
+    the checkpoint is removed; the report stays until the new autoencoder replaces it). A checkpoint of
+    this configuration is an interrupted run (``--overwrite`` or not) that is resumed. Returns whether the
+    report is of this configuration (the autoencoder is trained)."""
     from ..errors import ConfigMismatchError
+
+    report, ckpt = root / AE_REPORT, root / AE_CHECKPOINT
+    if ckpt.is_file():
+        old = _read_checkpoint(ckpt).get("config_hash")
+        if old == chash:
+            return False
+        if not overwrite:
+            raise ConfigMismatchError(f"{ckpt}: an autoencoder of another configuration exists (hash {old}, now "
+                                      f"{chash}); pass --overwrite to retrain, or use the same settings")
+        ckpt.unlink()
+    if not report.is_file():
+        return False
+    old = read_ae_report(report).get("config_hash")
+    if old != chash and not overwrite:
+        raise ConfigMismatchError(f"{report}: an autoencoder of another configuration exists (hash {old}, now "
+                                  f"{chash}); pass --overwrite to retrain, or use the same settings")
+    return old == chash
+
+
+def read_ae_report(path: Path) -> dict[str, Any]:
+    """``autoencoder.json`` as a dict; InputError naming it when it is not a JSON object."""
+    from ..errors import InputError
     from ..fileio import read_json
-
-    for path in (root / AE_REPORT, root / AE_CHECKPOINT):
-        if not path.is_file():
-            continue
-        old = (read_json(path).get("config_hash") if path.suffix == ".json"
-               else _read_checkpoint(path).get("config_hash"))
-        if old != chash:
-            if not overwrite:
-                raise ConfigMismatchError(
-                    f"{path}: an autoencoder of another configuration exists (hash {old}, now {chash}); "
-                    "pass --overwrite to retrain, or use the same settings")
-            path.unlink()
-
-
-def _training_data(scene: Any, store: Any, config: AETrainOptions, steps: list[int], balance: str = "none"
-                   ) -> tuple[torch.Tensor, torch.Tensor, int | None]:
-    """(samples, D) training features of every view but the held-out camera's, (heldout_samples, D) of the
-    held-out camera, and its index (None with a single camera)."""
-    num_cams = scene.cameras.num_cameras(store.config.get("split", "train"))
-    holdout = config.holdout_camera % num_cams if num_cams > 1 else None
-    if holdout is not None and config.holdout_camera == -1:
-        holdout = _last_camera_with_evidence(scene, store, steps, num_cams)
-    rng = np.random.default_rng(np.random.SeedSequence([config.seed, 0xAE]))
-    train_views = [(t, c) for t in steps for c in range(num_cams) if c != holdout]
-    held_views = [(t, holdout) for t in steps] if holdout is not None else []
-    if balance == "directions":
-        pool = _sample_pixel_features(scene, store, train_views, BALANCE_POOL * config.samples, rng)
-        x_train = balance_directions(pool, config.samples, BALANCE_CLUSTERS, rng)
-    else:
-        x_train = _sample_pixel_features(scene, store, train_views, config.samples, rng)
-    x_held = _sample_pixel_features(scene, store, held_views, config.heldout_samples, rng)
-    return x_train, x_held, holdout
-
-
-BALANCE_POOL = 2  # balanced training: candidates drawn per training sample
-BALANCE_CLUSTERS = 32  # balanced training: k-means clusters of feature directions sharing the sample
-
-
-def balance_directions(pool: torch.Tensor, total: int, clusters: int, rng: np.random.Generator) -> torch.Tensor:
-    """(total, D) rows of ``pool`` (M, D) with an equal share from each of ``clusters`` k-means clusters of
-    their directions (scipy's k-means++); a cluster smaller than its share is drawn with replacement.
-    Rows in random order."""
-    from scipy.cluster.vq import kmeans2
-
-    n = pool.shape[0]
-    if n == 0 or total <= 0:
-        return pool[:0]
-    unit = torch.nn.functional.normalize(pool.double(), dim=1).numpy()
-    k = max(1, min(int(clusters), n))
-    _, labels = kmeans2(unit, k, iter=10, minit="++", seed=rng)
-    groups = [np.flatnonzero(labels == c) for c in np.unique(labels)]
-    shares = np.full(len(groups), total // len(groups))
-    shares[:total % len(groups)] += 1
-    rows = np.concatenate([rng.choice(g, size=int(m), replace=g.size < m) for g, m in zip(groups, shares)])
-    return pool[torch.from_numpy(rng.permutation(rows))]
-
-
-HOLDOUT_PROBES = 8  # timesteps looked at to find a camera with evidence to hold out
-
-
-def _last_camera_with_evidence(scene: Any, store: Any, steps: list[int], num_cams: int) -> int:
-    """The default held-out camera: the last one, or when it has no evidence (annotation masks of other
-    cameras only) the last camera with evidence at a few spread timesteps, provided another camera has
-    some to train on; else the last one."""
-    from .extract import load_step_features, view_has_evidence
-
-    probes = steps[::max(1, -(-len(steps) // HOLDOUT_PROBES))] if steps else []
-    loaded = [load_step_features(scene, store, t) for t in probes]
-    with_evidence = [c for c in range(num_cams)
-                     if any(view_has_evidence(feats, offsets[c]) for feats, _, offsets in loaded)]
-    return with_evidence[-1] if len(with_evidence) >= 2 else num_cams - 1
+    report = read_json(path)
+    if not isinstance(report, dict) or not isinstance(report.get("config_hash", ""), str):
+        raise InputError("must be a JSON object with a text config_hash; run `fourlegs train-ae --overwrite`",
+                         file=path)
+    return report
 
 
 def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: torch.Tensor, config: AETrainOptions,
@@ -336,7 +286,7 @@ def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: t
     the training seconds (what they cost), and the epochs done when stopped early by ``stop_after_epoch``
     (else None).
     """
-    from ..fileio import atomic_path
+    from ..fileio import save_torch_atomic
 
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     history: list[float] = []
@@ -345,12 +295,21 @@ def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: t
     first_epoch = 0
     if ckpt_path.is_file():
         ckpt = _read_checkpoint(ckpt_path)
-        model.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["optimizer"])
-        first_epoch = int(ckpt["epoch"])
-        history = [float(v) for v in ckpt["history"]]
-        cosine_history = [float(v) for v in ckpt.get("cosine_history", [])]
-        epoch_seconds = [float(v) for v in ckpt.get("epoch_seconds", [])]
+        try:
+            model.load_state_dict(ckpt["model"])
+            opt.load_state_dict(ckpt["optimizer"])
+            first_epoch = int(ckpt["epoch"])
+            history = [float(v) for v in ckpt["history"]]
+            cosine_history = [float(v) for v in ckpt.get("cosine_history", [])]
+            epoch_seconds = [float(v) for v in ckpt.get("epoch_seconds", [])]
+        except (RuntimeError, ValueError, TypeError, KeyError, AttributeError) as exc:
+            from ..errors import InputError
+            raise InputError(f"damaged checkpoint ({type(exc).__name__}: {str(exc).splitlines()[0][:120]}); delete "
+                             "it or pass --overwrite", file=ckpt_path) from None
+        if not 0 <= first_epoch <= config.epochs:
+            from ..errors import InputError
+            raise InputError(f"epoch {first_epoch} is out of range 0..{config.epochs}; delete it or pass --overwrite",
+                             file=ckpt_path, field="epoch")
     epochs = range(first_epoch, config.epochs)
     if progress:
         from tqdm import tqdm
@@ -375,12 +334,12 @@ def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: t
             total += float(loss.detach()) * idx.numel()
             count += idx.numel()
         history.append(total / max(count, 1))
+        _check_trained(model, history)  # a diverged epoch is not checkpointed
         epoch_seconds.append(time.perf_counter() - epoch_start)
         cosine_history.append(reconstruction_cosine(model, x_monitor))
-        with atomic_path(ckpt_path) as tmp:
-            torch.save({"config_hash": chash, "epoch": epoch + 1, "model": model.state_dict(),
-                        "optimizer": opt.state_dict(), "history": history, "cosine_history": cosine_history,
-                        "epoch_seconds": epoch_seconds}, tmp)
+        save_torch_atomic(ckpt_path, {"config_hash": chash, "epoch": epoch + 1, "model": model.state_dict(),
+                                      "optimizer": opt.state_dict(), "history": history,
+                                      "cosine_history": cosine_history, "epoch_seconds": epoch_seconds})
         if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch and epoch + 1 < config.epochs:
             return history, cosine_history, epoch_seconds, epoch + 1
     return history, cosine_history, epoch_seconds, None

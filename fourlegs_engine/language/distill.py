@@ -53,12 +53,12 @@ import numpy as np
 import torch
 
 from ..errors import ConfigMismatchError, InputError
-from ..fileio import load_npy, read_json
+from ..fileio import load_npy
 from ..render.options import RasterOptions
 from ..scene.scene import Scene
 from ..threads import torch_threads
 from .attention import knn_indices
-from .autoencoder import AE_REPORT, ENCODER_FILE, FeatureEncoder, l2_normalize, load_encoder
+from .autoencoder import AE_REPORT, ENCODER_FILE, FeatureEncoder, l2_normalize, load_encoder, read_ae_report
 from .extract import feature_store, load_step_features, view_has_evidence
 from .latent_solvers import lift_latents, optimize_latents, smooth_lift, teacher_latents, timestep_seed
 from .latents_file import LANGUAGE_DIR, finish_swap, forget_merged, merge_latents, merged_hash
@@ -67,6 +67,8 @@ from .store import StepStore, config_hash, format_ranges, select_timesteps
 from .view_operator import ViewOperator, view_operator
 
 MODES = ("optimize", "lift", "lift+refine")
+#: the smallest fraction of a camera's resolution the training views are rendered at
+MIN_SCALE = 0.01
 SMOOTHING = ("attention", "none", "blur")
 LIFT_SMOOTHING = ("none", "blur")
 DEFAULT_ITERATIONS = {"optimize": 2000, "lift": 0, "lift+refine": 200}
@@ -127,10 +129,18 @@ class DistillOptions:
             raise InputError(f"must be >= 0, got {self.iterations}", field="--iterations")
         if self.mode == "optimize" and self.num_iterations < 1:
             raise InputError("optimize needs at least one iteration", field="--iterations")
-        if not 0 < self.view_scale <= 1:
-            raise InputError(f"must be in (0, 1], got {self.view_scale}", field="--view-scale")
+        if not MIN_SCALE <= self.view_scale <= 1:
+            raise InputError(f"must be in [{MIN_SCALE}, 1], got {self.view_scale}", field="--view-scale")
         if self.neighbours < 1 or self.views_per_iteration < 1 or self.teacher_stride < 1:
             raise InputError("neighbours, views per iteration and teacher stride must be >= 1", field="distill")
+        for name, value, high in (("--neighbours", self.neighbours, 1024), ("--teacher-stride", self.teacher_stride,
+                                  64), ("--views-per-iteration", self.views_per_iteration, 4096),
+                                  ("--iterations", self.iterations or 0, 10_000_000)):
+            if value > high:
+                raise InputError(f"must be at most {high}, got {value}", field=name)
+        for name, value in (("--lr-latents", self.lr_latents), ("--lr-attention", self.lr_attention)):
+            if not (0 < value <= 1 and math.isfinite(value)):
+                raise InputError(f"must be in (0, 1], got {value}", field=name)
         if not (self.smoothness >= 0 and math.isfinite(self.smoothness)):
             raise InputError(f"must be >= 0, got {self.smoothness}", field="--smoothness")
         return self
@@ -343,7 +353,7 @@ def distill_scene(scene: Scene, mode: str | None = None, iterations: int | None 
     ae_report_path = root / AE_REPORT
     if not ae_report_path.is_file():
         raise InputError("no trained autoencoder; run `fourlegs train-ae` first", file=ae_report_path)
-    ae_report = read_json(ae_report_path)
+    ae_report = read_ae_report(ae_report_path)
     cfg = {"features": features.hash, "autoencoder": ae_report.get("config_hash"), **config.to_dict()}
     chash = config_hash(cfg)
     default_out = out_dir is None
@@ -369,9 +379,10 @@ def distill_scene(scene: Scene, mode: str | None = None, iterations: int | None 
         result.latents = str(latents_path)
         return result
     store.open(overwrite=overwrite)
-    todo = [t for t in steps if not store.is_done(t)]
-    result.skipped = [t for t in steps if store.is_done(t)]
     encoder = load_encoder(root / ENCODER_FILE)
+    store.shape_of, store.dtype = (lambda t: (scene.num_gaussians, encoder.dims[-1])), "float16"
+    todo = [t for t in steps if not store.is_done(t)]  # a damaged step file is distilled again
+    result.skipped = [t for t in steps if t not in todo]
     bar = None
     if progress and todo:
         from tqdm import tqdm

@@ -76,8 +76,8 @@ class ExtractOptions:
     unchanged_below: float = DEFAULT_UNCHANGED_BELOW
 
     def check(self, num_cameras: int | None = None) -> "ExtractOptions":
-        if not 0 < self.frame_scale <= 1:
-            raise InputError(f"must be in (0, 1], got {self.frame_scale}", field="frame_scale")
+        if not 0.01 <= self.frame_scale <= 1:
+            raise InputError(f"must be in [0.01, 1], got {self.frame_scale}", field="--frame-scale")
         if not 0 < self.crop_stride <= 1:
             raise InputError(f"must be in (0, 1], got {self.crop_stride}", field="--crop-stride")
         if int(self.timestep_stride) < 1:
@@ -161,9 +161,33 @@ def feature_store(scene: Scene, config_dict: dict[str, Any] | None = None) -> St
         meta = store.read_manifest()
         if meta is None:
             raise InputError("no extracted features; run `fourlegs extract` first", file=root / "manifest.json")
-        store.config = meta["config"]
-        return store
-    return StepStore(root, "features", config_dict, scene.num_timesteps)
+        store.config = _manifest_config(meta, store.manifest_path)
+    else:
+        store = StepStore(root, "features", config_dict, scene.num_timesteps)
+    config = store.config
+    store.shape_of = lambda t: (sum(layout.num_crops for layout in camera_layouts(
+        scene, t, config["ratios"], config.get("split", "train"),
+        config.get("crop_stride", DEFAULT_STRIDE_FRACTION))[0]), int(config["dim"]))
+    store.dtype = "float16"
+    return store
+
+
+def _manifest_config(meta: dict[str, Any], path: Path) -> dict[str, Any]:
+    """The features' configuration from their manifest; InputError naming the field when it is malformed."""
+    config = meta.get("config")
+    if not isinstance(config, dict):
+        raise InputError("must be a JSON object", file=path, field="config")
+    ratios = config.get("ratios")
+    if not (isinstance(ratios, list) and ratios and all(isinstance(r, (int, float)) and not isinstance(r, bool)
+                                                        and 0 < r <= 1 for r in ratios)):
+        raise InputError("must be a non-empty list of numbers in (0, 1]", file=path, field="config.ratios")
+    dim = config.get("dim")
+    if not (isinstance(dim, int) and not isinstance(dim, bool) and 0 < dim <= 1 << 16):
+        raise InputError("must be an integer in 1..65536", file=path, field="config.dim")
+    stride = config.get("crop_stride", DEFAULT_STRIDE_FRACTION)
+    if not (isinstance(stride, (int, float)) and not isinstance(stride, bool) and 0 < stride <= 1):
+        raise InputError("must be a number in (0, 1]", file=path, field="config.crop_stride")
+    return config
 
 
 # ------------------------------------------------------------------------------- extraction
@@ -274,9 +298,13 @@ def view_has_evidence(feats: np.ndarray, offset: int) -> bool:
 def load_step_features(scene: Scene, store: StepStore, t: int) -> tuple[np.ndarray, list[PyramidLayout],
                                                                             list[int]]:
     """Memory-mapped (num_crops_total, D) float16 features of timestep t with the camera layouts."""
-    if not store.is_done(t):
+    if not store.step_path(t).is_file():
         raise InputError(f"features of timestep {t} are missing; run `fourlegs extract` (or check with "
                          "`fourlegs extract --check`)", file=store.root, field="features")
+    problem = store.problem(t)
+    if problem is not None:
+        raise InputError(f"{problem}; run `fourlegs extract` to compute it again", file=store.step_path(t),
+                         field="features")
     feats = store.load(t)
     layouts, offsets = camera_layouts(scene, t, store.config["ratios"], store.config.get("split", "train"),
                                       store.config.get("crop_stride", DEFAULT_STRIDE_FRACTION))

@@ -46,7 +46,7 @@ def merge_latents(scene: Scene, store: StepStore, out: Path, chash: str, config:
     """Assemble the per-timestep files into (T,N,d) float16 ``latents.npy`` atomically; then record it
     (scene.json ``language`` for the bundle's own field, ``latents.json`` elsewhere) and drop the parts."""
     from ..fileio import write_json_atomic
-    first = store.load(0)
+    first = store.load_verified(0)
     root = Path(scene.root)
     T = scene.num_timesteps
     path = out / "latents.npy"
@@ -59,7 +59,7 @@ def merge_latents(scene: Scene, store: StepStore, out: Path, chash: str, config:
     with atomic_path(next_path) as tmp:
         arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float16, shape=(T,) + tuple(first.shape))
         for t in range(T):
-            arr[t] = store.load(t)
+            arr[t] = store.load_verified(t)
         arr.flush()
         del arr
     if update_bundle:

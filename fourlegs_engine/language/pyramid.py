@@ -33,12 +33,16 @@ CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
 
 
+#: the most pyramid scales (the paper uses 5); more only repeats nearly equal crop sizes
+MAX_PYRAMID_STEPS = 32
+
+
 def pyramid_ratios(low: float = DEFAULT_RATIOS[0], high: float = DEFAULT_RATIOS[1],
                    steps: int = DEFAULT_STEPS) -> tuple[float, ...]:
     """``steps`` crop ratios evenly spaced from ``low`` to ``high`` (fractions of the image height)."""
-    if steps < 1 or not (0 < low <= high <= 1.0):
-        raise InputError(f"need 0 < low <= high <= 1 and steps >= 1, got {low}, {high}, {steps}",
-                         field="ratios")
+    if not 1 <= steps <= MAX_PYRAMID_STEPS or not (0 < low <= high <= 1.0):
+        raise InputError(f"need 0 < low <= high <= 1 and 1 <= steps <= {MAX_PYRAMID_STEPS}, got {low}, {high}, "
+                         f"{steps}", field="ratios")
     return tuple(float(r) for r in np.linspace(low, high, steps))
 
 

@@ -6,20 +6,26 @@ restarted one skips what is finished. ``manifest.json`` records the stage's conf
 hash; opening the store with a different configuration raises :class:`ConfigMismatchError` unless
 ``overwrite=True`` (then the old results are removed first). Independent workers (``--shard i/n``)
 share one store: they write the identical manifest and disjoint timestep files.
+
+A finished file is trusted only after it is verified (:meth:`StepStore.problem`): it opens, has the
+stage's shape and dtype, holds no NaN or Inf, and matches the SHA-256 written beside it when it was saved
+(``tNNNNNN.sha256``; one small file per timestep rather than an entry in the shared manifest, so
+workers never rewrite each other's records). A file that fails is not skipped by a resume (it is
+computed again) and never merged.
 """
 from __future__ import annotations
 
 import hashlib
 import json
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Optional, Sequence
 
 import numpy as np
 
 from ..errors import ConfigMismatchError, InputError
-from ..fileio import load_npy, read_json, save_npy_atomic, write_json_atomic
+from ..fileio import load_npy, read_json, save_npy_atomic, write_bytes_atomic, write_json_atomic
 
 MANIFEST = "manifest.json"
 _STEP_FILE = re.compile(r"^t(\d{6})\.npy$")
@@ -42,6 +48,9 @@ def _nonzero_rows(array: np.ndarray) -> np.ndarray | None:
     if array.ndim < 2 or array.shape[0] == 0:
         return None
     return np.flatnonzero(np.any(array.reshape(array.shape[0], -1) != 0, axis=1)).astype(np.int64)
+_CHECKSUM_FILE = re.compile(r"^t(\d{6})\.sha256$")
+#: rows checked for NaN/Inf at a time (bounds the memory of the check on large files)
+_FINITE_CHUNK_BYTES = 64 << 20
 
 
 def config_hash(config: dict[str, Any]) -> str:
@@ -101,6 +110,11 @@ class StepStore:
     stage: str
     config: dict[str, Any]
     num_timesteps: int
+    #: the shape of timestep t's array (None: any shape) and the dtype every file must have (None: any)
+    shape_of: Optional[Callable[[int], tuple[int, ...]]] = None
+    dtype: Optional[str] = None
+    #: files verified by this process: t -> (size, mtime) they had then
+    _verified: dict[int, tuple[int, int]] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def hash(self) -> str:
@@ -120,6 +134,9 @@ class StepStore:
     def step_file_names(self, t: int) -> list[str]:
         """The names (in the store's directory) of timestep ``t``'s files (see :func:`step_file_names`)."""
         return step_file_names(self.root, t)
+
+    def checksum_path(self, t: int) -> Path:
+        return self.root / f"t{int(t):06d}.sha256"
 
     # -------------------------------------------------------------------------- opening
     def open(self, *, overwrite: bool = False) -> "StepStore":
@@ -156,19 +173,22 @@ class StepStore:
         if not self.root.is_dir():
             return
         for p in self.root.iterdir():
-            if _STEP_FILE.match(p.name) or _ROWS_FILE.match(p.name) or p.name == MANIFEST \
+            if _STEP_FILE.match(p.name) or _ROWS_FILE.match(p.name) or _CHECKSUM_FILE.match(p.name) \
+                    or p.name == MANIFEST \
                     or p.name.endswith(".part.npy"):
                 p.unlink()
 
     # ---------------------------------------------------------------------- per timestep
     def is_done(self, t: int) -> bool:
-        return self.step_path(t).is_file()
+        """Whether timestep t's file is there and passes :meth:`problem` (a resume skips only those)."""
+        return self.step_path(t).is_file() and self.problem(t) is None
 
     def save(self, t: int, array: np.ndarray) -> None:
-        """Store timestep ``t``; an array whose rows are mostly all-zero (views without evidence) is stored
-        as its other rows plus their indices, so those views cost no disk."""
+        """Store timestep ``t``, then its checksum; an array whose rows are mostly all-zero (views without
+        evidence) is stored as its other rows plus their indices, so those views cost no disk."""
         array = np.asarray(array)
         path, rows_path = self.step_path(t), self.rows_path(t)
+        self.checksum_path(t).unlink(missing_ok=True)
         path.unlink(missing_ok=True)  # unfinished while its files change
         kept = _nonzero_rows(array)
         if kept is not None and kept.size <= (1.0 - SPARSE_ZERO_SHARE) * array.shape[0]:
@@ -176,7 +196,9 @@ class StepStore:
             save_npy_atomic(path, np.ascontiguousarray(array[kept]))
         else:
             rows_path.unlink(missing_ok=True)
-            save_npy_atomic(path, array)
+            save_npy_atomic(path, np.ascontiguousarray(array))
+        write_bytes_atomic(self.checksum_path(t), (self.files_sha256(t) + "\n").encode())
+        self._verified.pop(int(t), None)
 
     def load(self, t: int, *, mmap: bool = True) -> np.ndarray:
         """Timestep ``t``'s array (memory-mapped when stored whole; rebuilt with its zero rows otherwise)."""
@@ -196,6 +218,57 @@ class StepStore:
         dense[kept] = stored
         return dense
 
+    def files_sha256(self, t: int) -> str:
+        """Hex SHA-256 of timestep ``t``'s files, in :meth:`step_file_names` order (the row index, if any,
+        then the array)."""
+        digest = hashlib.sha256()
+        for name in self.step_file_names(t):
+            with open(self.root / name, "rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    digest.update(block)
+        return digest.hexdigest()
+
+    def load_verified(self, t: int, *, mmap: bool = True) -> np.ndarray:
+        """Timestep t's array after :meth:`problem`; InputError naming the file when it fails."""
+        problem = self.problem(t)
+        if problem is not None:
+            raise InputError(f"{problem}; run the {self.stage} stage again to recompute it",
+                             file=self.step_path(t), field=f"{self.stage} timestep {t}")
+        return self.load(t, mmap=mmap)
+
+    def problem(self, t: int) -> str | None:
+        """Why timestep t's file cannot be trusted (None when it can): missing, unreadable, another shape
+        or dtype than the stage's, NaN or Inf values, or bytes that differ from its recorded checksum."""
+        path = self.step_path(t)
+        try:
+            stat = path.stat()
+        except OSError:
+            return "file is missing"
+        if self._verified.get(int(t)) == (stat.st_size, stat.st_mtime_ns):
+            return None
+        try:
+            arr = self.load(t)
+        except InputError as exc:
+            return exc.problem
+        if self.shape_of is not None and tuple(arr.shape) != tuple(self.shape_of(int(t))):
+            return f"has shape {tuple(arr.shape)}, expected {tuple(self.shape_of(int(t)))}"
+        if self.dtype is not None and arr.dtype != np.dtype(self.dtype):
+            return f"has dtype {arr.dtype}, expected {np.dtype(self.dtype)}"
+        if arr.dtype.kind not in "fiub":
+            return f"has dtype {arr.dtype}, expected numbers"
+        if arr.dtype.kind == "f" and not _all_finite(arr):
+            return "contains NaN or Inf values"
+        recorded = self.checksum_path(t)
+        if recorded.is_file():
+            try:
+                expected = recorded.read_text(encoding="ascii").strip()
+            except (OSError, UnicodeDecodeError):
+                expected = ""
+            if self.files_sha256(t) != expected:
+                return "its bytes differ from the checksum recorded when it was written (damaged)"
+        self._verified[int(t)] = (stat.st_size, stat.st_mtime_ns)
+        return None
+
     def done(self) -> list[int]:
         if not self.root.is_dir():
             return []
@@ -211,19 +284,27 @@ class StepStore:
         return [t for t in steps if not self.is_done(t)]
 
     def check(self, expected_shape: tuple[int, ...] | None = None) -> dict[str, Any]:
-        """Verify every finished file opens and has ``expected_shape``; report missing/bad timesteps."""
+        """Verify every finished file (:meth:`problem`; ``expected_shape`` overrides the stage's shape) and
+        report missing/bad timesteps."""
+        if expected_shape is not None:
+            self.shape_of = lambda t: tuple(expected_shape)
         bad: list[dict[str, Any]] = []
         for t in self.done():
-            try:
-                arr = self.load(t)
-                if expected_shape is not None and tuple(arr.shape) != tuple(expected_shape):
-                    bad.append({"t": t, "problem": f"shape {tuple(arr.shape)}, expected {tuple(expected_shape)}"})
-            except InputError as exc:
-                bad.append({"t": t, "problem": str(exc)})
-        missing = self.missing()
+            problem = self.problem(t)
+            if problem is not None:
+                bad.append({"t": t, "problem": f"{self.step_path(t)}: {problem}"})
+        done = self.done()
+        bad_steps = {b["t"] for b in bad}
+        missing = [t for t in range(self.num_timesteps) if t not in done]
         return {"stage": self.stage, "root": str(self.root), "config_hash": self.hash,
-                "num_timesteps": self.num_timesteps, "done": len(self.done()) - len(bad),
+                "num_timesteps": self.num_timesteps, "done": len(done) - len(bad_steps),
                 "missing": missing, "bad": bad, "complete": not missing and not bad}
+
+
+def _all_finite(arr: np.ndarray) -> bool:
+    flat = arr.reshape(-1) if arr.ndim else arr.reshape(1)
+    step = max(1, _FINITE_CHUNK_BYTES // max(arr.dtype.itemsize, 1))
+    return all(bool(np.isfinite(flat[i:i + step]).all()) for i in range(0, flat.shape[0], step))
 
 
 def _changed_keys(old: dict[str, Any], new: dict[str, Any]) -> list[str]:

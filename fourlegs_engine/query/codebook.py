@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional
@@ -383,13 +384,24 @@ def load_codebook(out_dir: Path, k: int, latents=None) -> Optional[Codebook]:
             meta = json.loads(str(z["meta"]))
             book = Codebook(centroids=z["centroids"], codes=None, histogram=z["histogram"], coarse=z["coarse"],
                             meta=meta)
-    except (ValueError, KeyError, OSError, json.JSONDecodeError) as exc:
-        raise InputError(f"corrupt codebook ({exc}); delete it to rebuild", file=npz_path) from None
+    except (ValueError, KeyError, OSError, EOFError, MemoryError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
+        raise InputError(f"corrupt codebook ({type(exc).__name__}: {exc}); delete it to rebuild",
+                         file=npz_path) from None
+    if not isinstance(meta, dict):
+        raise InputError("corrupt codebook (meta is not an object); delete it to rebuild", file=npz_path)
     if meta.get("version") != CODEBOOK_VERSION or meta.get("k") != k:
         return None
     if latents is not None and meta.get("latents") != fingerprint(latents):
         return None
+    if book.centroids.ndim != 2 or book.centroids.dtype.kind != "f" or not np.isfinite(book.centroids).all():
+        raise InputError("corrupt codebook (centroids must be a finite 2D array); delete it to rebuild",
+                         file=npz_path, field="centroids")
     book.codes = load_npy(codes_path, mmap=True, field="codes")
+    expected = tuple(latents.shape[:2]) if latents is not None else book.codes.shape
+    if book.codes.dtype.kind not in "iu" or tuple(book.codes.shape) != expected or (
+            book.codes.size and not 0 <= int(book.codes.min()) <= int(book.codes.max()) < book.centroids.shape[0]):
+        raise InputError(f"corrupt codes (must be integers 0..{book.centroids.shape[0] - 1} of shape {expected}); "
+                         "delete them to rebuild", file=codes_path, field="codes")
     members_path = Path(out_dir) / f"members_{k}.npy"
     if members_path.is_file():
         book.members = load_npy(members_path, mmap=True, field="members")

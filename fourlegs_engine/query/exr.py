@@ -7,7 +7,7 @@ from typing import Mapping
 import numpy as np
 
 from ..errors import InputError
-from ..fileio import atomic_path
+from ..fileio import atomic_path, incomplete_write_error, writing
 
 
 def write_exr(path: str | Path, channels: Mapping[str, np.ndarray], *, overwrite: bool = False) -> Path:
@@ -27,9 +27,16 @@ def write_exr(path: str | Path, channels: Mapping[str, np.ndarray], *, overwrite
                                                   neginf=0.0)) for k, v in channels.items()}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     path = Path(path)
-    with atomic_path(path, overwrite=overwrite) as tmp:
+    with atomic_path(path, overwrite=overwrite) as tmp, writing(path):
         with OpenEXR.File(header, data) as f:
             f.write(str(tmp))
+        try:  # OpenEXR may not report a write the full disk cut short: read it back
+            with OpenEXR.File(str(tmp)) as check:
+                complete = set(check.channels()) == set(data)
+        except Exception:  # noqa: BLE001 (any failure to read back is an incomplete file)
+            complete = False
+        if not complete:
+            raise incomplete_write_error(path, "the EXR file does not read back")
     return path
 
 

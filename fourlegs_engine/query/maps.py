@@ -106,7 +106,9 @@ class SpatialMaps:
         in chunks."""
         Q, chunk = qs.shape[0], self.scorer.chunk
         covered = torch.nonzero(pix.any(dim=1)).flatten()
-        rel = self.scorer.score_latents_many(torch.zeros(1, pix.shape[1]), qs).T.expand(Q, pix.shape[0]).contiguous()
+        # a fresh (not inference-mode) tensor even when the expansion is already contiguous (a 1-pixel map)
+        rel = self.scorer.score_latents_many(torch.zeros(1, pix.shape[1]), qs).T.expand(Q, pix.shape[0]).clone(
+            memory_format=torch.contiguous_format)
         for s in range(0, covered.numel(), chunk):
             rows = covered[s:s + chunk]
             rel[:, rows] = self.scorer.score_latents_many(pix[rows], qs).T

@@ -67,6 +67,8 @@ def lift_centre(camera: Camera, centre_px, depth_map, alpha_map, relevancy_map) 
         if w.sum() <= 0:
             return None, 0.0
         z = float((w * depth).sum() / w.sum())
+    if not (np.isfinite(z) and np.isfinite(np.asarray(centre_px, dtype=np.float64)).all()):
+        return None, 0.0
     point = camera.unproject(np.asarray(centre_px, dtype=np.float64)[None], np.array([z]))[0]
     return point, float(z)
 

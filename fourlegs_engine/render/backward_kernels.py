@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..jit_cache import JIT_CACHE
 from .blend_kernels import _gauss_at, _pair_fragments, _pair_setup, _row_span, _shrink_row, _tile_reset, numba
 
 #: work counters of :func:`count_work` (see its docstring)
@@ -167,7 +168,7 @@ def _count_py(offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, hei
 
 
 if numba is not None:
-    _backward = numba.njit(nogil=True, cache=True)(_backward_py)
-    _count = numba.njit(nogil=True, cache=True)(_count_py)
+    _backward = numba.njit(nogil=True, cache=JIT_CACHE)(_backward_py)
+    _count = numba.njit(nogil=True, cache=JIT_CACHE)(_count_py)
 else:  # pragma: no cover
     _backward = _count = None

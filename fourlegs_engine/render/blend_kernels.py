@@ -28,6 +28,8 @@ import math
 
 import numpy as np
 
+from ..jit_cache import JIT_CACHE
+
 try:  # pragma: no cover - exercised when numba is missing
     import numba
 except ImportError:  # pragma: no cover
@@ -418,14 +420,14 @@ def _splat_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile
 
 
 if numba is not None:
-    _jit_inline = numba.njit(nogil=True, cache=True, inline="always")
+    _jit_inline = numba.njit(nogil=True, cache=JIT_CACHE, inline="always")
     _pair_setup = _jit_inline(_pair_setup_py)
     _row_span = _jit_inline(_row_span_py)
     _tile_reset = _jit_inline(_tile_reset_py)
     _shrink_row = _jit_inline(_shrink_row_py)
     _row_start = _jit_inline(_row_start_py)
     _gauss_at = _jit_inline(_gauss_at_py)
-    _jit = numba.njit(nogil=True, cache=True)
+    _jit = numba.njit(nogil=True, cache=JIT_CACHE)
     _row_blend3 = _jit_inline(_row_blend3_py)
     _blend_narrow = _jit(_blend_narrow_py)
     _row_fragments = _jit_inline(_row_fragments_py)

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..jit_cache import JIT_CACHE
 from ..threads import kernel_thread_count
 
 try:  # pragma: no cover - exercised when numba is missing
@@ -53,7 +54,7 @@ def _tile_pixels_py(tile, tiles_x, tile_size, width, height, rows, lxs, lys, tra
     return live
 
 
-_tile_pixels = numba.njit(nogil=True, cache=True, inline="always")(_tile_pixels_py) if numba is not None else None
+_tile_pixels = numba.njit(nogil=True, cache=JIT_CACHE, inline="always")(_tile_pixels_py) if numba is not None else None
 
 
 def _blend_tiles_py(tiles, coef, gids, tile_offsets, tiles_x, tile_size, width, height, values, alpha_floor,
@@ -186,8 +187,8 @@ def _splat_tiles_py(coef, gids, tile_offsets, tiles_x, tile_size, width, height,
                 break
 
 
-_splat_tiles = numba.njit(nogil=True, cache=True)(_splat_tiles_py) if numba is not None else None
-_blend_tiles = numba.njit(nogil=True, cache=True)(_blend_tiles_py) if numba is not None else None
+_splat_tiles = numba.njit(nogil=True, cache=JIT_CACHE)(_splat_tiles_py) if numba is not None else None
+_blend_tiles = numba.njit(nogil=True, cache=JIT_CACHE)(_blend_tiles_py) if numba is not None else None
 
 
 def _pair_arrays(geom: torch.Tensor, binning: Any, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

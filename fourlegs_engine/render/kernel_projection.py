@@ -14,6 +14,7 @@ import math
 import numpy as np
 import torch
 
+from ..jit_cache import JIT_CACHE
 from ..scene.camera import Camera
 from .options import RasterOptions
 from .projection import BOUND_MARGIN_PX, MAX_LOG_SCALE, Projected
@@ -292,7 +293,7 @@ def _project_backward_py(means, quats, scales, rot, trans, fx, fy, cx, cy, width
 
 
 if numba is not None:
-    _inline = numba.njit(nogil=True, cache=True, inline="always")
+    _inline = numba.njit(nogil=True, cache=JIT_CACHE, inline="always")
     _fov_limits = _inline(_fov_limits_py)
     _to_camera = _inline(_to_camera_py)
     _unit_rotation = _inline(_unit_rotation_py)
@@ -302,8 +303,8 @@ if numba is not None:
     _pixel_bounds = _inline(_pixel_bounds_py)
     _conic_backward = _inline(_conic_backward_py)
     _quaternion_backward = _inline(_quaternion_backward_py)
-    _project = numba.njit(nogil=True, cache=True)(_project_py)
-    _project_backward = numba.njit(nogil=True, cache=True)(_project_backward_py)
+    _project = numba.njit(nogil=True, cache=JIT_CACHE)(_project_py)
+    _project_backward = numba.njit(nogil=True, cache=JIT_CACHE)(_project_backward_py)
 else:  # pragma: no cover
     _project = _project_backward = None
 

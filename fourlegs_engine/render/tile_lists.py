@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..jit_cache import JIT_CACHE
+
 try:  # pragma: no cover - exercised when numba is missing
     import numba
 except ImportError:  # pragma: no cover
@@ -219,9 +221,9 @@ def _build_lists_py(visible, depth_bits, key_bits, means2d, conics, opacities, b
 
 
 if numba is not None:
-    _ellipse_reaches_rect = numba.njit(nogil=True, cache=True, inline="always")(_ellipse_reaches_rect_py)
-    _radix_order = numba.njit(nogil=True, cache=True)(_radix_order_py)
-    _build_lists = numba.njit(nogil=True, cache=True)(_build_lists_py)
+    _ellipse_reaches_rect = numba.njit(nogil=True, cache=JIT_CACHE, inline="always")(_ellipse_reaches_rect_py)
+    _radix_order = numba.njit(nogil=True, cache=JIT_CACHE)(_radix_order_py)
+    _build_lists = numba.njit(nogil=True, cache=JIT_CACHE)(_build_lists_py)
 else:  # pragma: no cover
     _ellipse_reaches_rect = _radix_order = _build_lists = None
 

@@ -105,7 +105,7 @@ def read_bundle_meta(path: str | Path) -> dict[str, Any]:
         raise InputError(f"format is {meta.get('format')!r}, expected {FORMAT_NAME!r}", file=meta_file,
                          field="format")
     version = meta.get("version")
-    if not isinstance(version, int) or version > FORMAT_VERSION or version < 1:
+    if not isinstance(version, int) or isinstance(version, bool) or version > FORMAT_VERSION or version < 1:
         raise InputError(f"unsupported bundle version {version!r} (this build reads 1..{FORMAT_VERSION})",
                          file=meta_file, field="version")
     for key in ("arrays", "cameras", "num_timesteps", "num_gaussians"):
@@ -122,6 +122,27 @@ def _integer(meta: dict[str, Any], key: str, low: int, high: int, file: Path) ->
     if not low <= value <= high:
         raise InputError(f"must be in {low}..{high}, got {value}", file=file, field=key)
     return value
+
+
+#: scene.json ``language`` fields and the types they must have (others are free)
+_LANGUAGE_TYPES = {"encoder": (str, "text"), "mode": (str, "text"), "config_hash": (str, "text"),
+                   "decoder_fingerprint": (str, "text"), "latent_dim": (int, "a whole number 1..4096"),
+                   "canonical_phrases": (list, "a list of text phrases")}
+
+
+def _check_language_types(language: dict[str, Any], meta_file: Path) -> None:
+    """InputError naming the ``language`` field of scene.json whose value has the wrong type."""
+    for key, (kind, what) in _LANGUAGE_TYPES.items():
+        if key not in language:
+            continue
+        value = language[key]
+        ok = isinstance(value, kind) and not isinstance(value, bool)
+        if ok and key == "latent_dim":
+            ok = 1 <= value <= 4096
+        if ok and key == "canonical_phrases":
+            ok = all(isinstance(p, str) and p for p in value)
+        if not ok:
+            raise InputError(f"must be {what}, got {value!r}"[:200], file=meta_file, field=f"language.{key}")
 
 
 def validate_bundle_meta(meta: dict[str, Any], meta_file: Path) -> None:
@@ -157,6 +178,7 @@ def validate_bundle_meta(meta: dict[str, Any], meta_file: Path) -> None:
     for key, rel in (meta.get("language") or {}).items():
         if key in LANGUAGE_FILE_KEYS and (not isinstance(rel, str) or not is_inside(root, rel)):
             raise InputError(f"{rel!r} is not a file inside the bundle", file=meta_file, field=f"language.{key}")
+    _check_language_types(meta.get("language") or {}, meta_file)
     cameras = meta["cameras"]
     if not isinstance(cameras, dict):
         raise InputError(f"must be an object, got {type(cameras).__name__}", file=meta_file, field="cameras")

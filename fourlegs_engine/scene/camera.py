@@ -144,9 +144,13 @@ class Camera:
         return uv, z
 
     def unproject(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
-        """Lift pixels with camera-z depth to world points: (M,2),(M,) -> (M,3)."""
+        """Lift pixels with camera-z depth to world points: (M,2),(M,) -> (M,3). InputError for a pixel or
+        depth that is not finite (a point at infinite depth has no world position)."""
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         z = np.asarray(depth, dtype=np.float64).reshape(-1)
+        if not (np.isfinite(uv).all() and np.isfinite(z).all()):
+            raise InputError("pixels and depths must be finite (a point at infinite depth has no position)",
+                             field="unproject")
         cam = np.stack([(uv[:, 0] - self.cx) / self.fx * z, (uv[:, 1] - self.cy) / self.fy * z, z], axis=1)
         c2w = self.c2w
         return cam @ c2w[:3, :3].T + c2w[:3, 3]

@@ -20,7 +20,7 @@ from __future__ import annotations
 import struct
 import zipfile
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PureWindowsPath
 from typing import Any, Optional
 
 import numpy as np
@@ -84,6 +84,9 @@ class NpzArrays:
                 raise InputError("holds an object/pickled array, which is refused (never unpickled)",
                                  file=self.path, field=key) from None
             raise InputError(f"corrupt array ({exc})", file=self.path, field=key) from None
+        except MemoryError:
+            raise InputError("its header claims an array larger than memory (damaged)", file=self.path,
+                             field=key) from None
         except (zipfile.BadZipFile, struct.error, RuntimeError, NotImplementedError) + NPY_HEADER_ERRORS as exc:
             # RuntimeError: encrypted entry; NotImplementedError: unsupported compression method
             raise InputError(f"corrupt, truncated or unreadable array ({exc})", file=self.path, field=key) from None
@@ -267,8 +270,10 @@ def _meta_camera(meta: dict[str, Any], t: int, c: int, path: Path, width: int, h
         raise InputError(f"focal length must be positive (fx={K[0, 0]}, fy={K[1, 1]})", file=path,
                          field=f"k[{t}][{c}]")
     fn = meta["fn"][t][c] if meta.get("fn") is not None else None
-    if fn is not None and (not isinstance(fn, str) or not fn or ".." in Path(fn).parts):
-        raise InputError(f"must be a relative file name, got {fn!r}", file=path, field=f"fn[{t}][{c}]")
+    if fn is not None and (not isinstance(fn, str) or not fn or ".." in Path(fn).parts or Path(fn).is_absolute()
+                           or PureWindowsPath(fn).anchor or "\x00" in fn):
+        raise InputError(f"must be a file name relative to the capture (no '..', not absolute), got {fn!r}",
+                         file=path, field=f"fn[{t}][{c}]")
     ids = meta.get("cam_id")
     name = str(ids[t][c]) if ids is not None else fn.split("/")[0] if fn is not None else str(c)
     cam = Camera(K=K, w2c=w2c, width=width, height=height, near=near, far=far, name=name)

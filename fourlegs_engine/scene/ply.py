@@ -80,6 +80,9 @@ def _read_vertex_table(path: Path) -> np.ndarray:
         raise InputError(f"corrupt or truncated PLY file ({exc})", file=path) from None
     except (ValueError, UnicodeDecodeError, EOFError, OSError, IndexError, KeyError) as exc:
         raise InputError(f"corrupt or truncated PLY file ({type(exc).__name__}: {exc})", file=path) from None
+    except MemoryError:
+        raise InputError(f"its header claims more vertices than fit in memory ({path.stat().st_size} bytes of "
+                         "file): damaged, or not a splat file", file=path, field="vertex") from None
     names = [el.name for el in ply.elements]
     if "vertex" not in names:
         raise InputError(f"has no 'vertex' element (elements: {names or 'none'})", file=path, field="vertex")

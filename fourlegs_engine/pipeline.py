@@ -261,7 +261,7 @@ def language_field_steps(scene: "Scene", encoder: Any = None, *, encoder_config:
     The first step of each stage reports the units already finished (``done`` may start above 0).
     Reopen the scene (:func:`open_scene`) afterwards to see the field.
     """
-    from .language.autoencoder import AETrainOptions, train_autoencoder
+    from .language.autoencoder import AETrainOptions, autoencoder_training
     from .language.distill import distill_scene
     from .language.extract import extract_features
 
@@ -273,15 +273,13 @@ def language_field_steps(scene: "Scene", encoder: Any = None, *, encoder_config:
     config = _plan_config(scene, encoder, plan)
     T = scene.num_timesteps
     for t in range(T):
-        report = extract_features(scene, encoder, config, timesteps=[t])
+        extract_features(scene, encoder, config, timesteps=[t])
         yield FieldStep("extract features", t + 1, T)
-    epochs = AETrainOptions().epochs
-    for epoch in range(epochs):
-        report = train_autoencoder(scene, stop_after_epoch=epoch + 1)
-        if "stopped_after_epoch" not in report:  # trained (or found trained): the last epoch is done
-            yield FieldStep("train autoencoder", epochs, epochs)
-            break
-        yield FieldStep("train autoencoder", int(report["stopped_after_epoch"]), epochs)
+    total = AETrainOptions().epochs
+    for done, total in autoencoder_training(scene):  # one training sample, a step per epoch
+        if done < total:
+            yield FieldStep("train autoencoder", done, total)
+    yield FieldStep("train autoencoder", total, total)
     for t in range(T):
         distill_scene(scene, mode=mode, timesteps=[t], view_scale=FIELD_VIEW_SCALE)
         yield FieldStep(f"distil ({mode})", t + 1, T)

@@ -89,8 +89,10 @@ def test_prepare_extracts_every_timestep_in_one_call_as_the_main_job(bl, tmp_pat
         calls.append(("extract", None if timesteps is None else tuple(timesteps)))
         done.update(range(scene.num_timesteps) if timesteps is None else timesteps)
 
-    def fake_train(scene, stop_after_epoch=None, **kw):
-        calls.append(("train", stop_after_epoch))
+    def fake_training(scene, *args, **kw):
+        for epoch in (1, 2):
+            calls.append(("train", epoch))
+            yield epoch, 2
         return {"config_hash": "x"}
 
     def fake_distill(scene, mode="lift", timesteps=None, view_scale=1.0, **kw):
@@ -101,11 +103,12 @@ def test_prepare_extracts_every_timestep_in_one_call_as_the_main_job(bl, tmp_pat
             update_bundle_meta(scene.root, language={"encoder": "simulated", "latents": "latents.npy"})
 
     monkeypatch.setattr(extract, "extract_features", fake_extract)
-    monkeypatch.setattr(autoencoder, "train_autoencoder", fake_train)
+    monkeypatch.setattr(autoencoder, "autoencoder_training", fake_training)
     monkeypatch.setattr(distill, "distill_scene", fake_distill)
     monkeypatch.setattr(pipeline, "text_encoder", lambda scene, config=None: object())
     assert bl.ops.fourlegs.prepare_field() == {"FINISHED"}
     extract_calls = [c for c in calls if c[0] == "extract"]
     assert extract_calls[0] == ("extract", None) and done == {0, 1, 2, 3}
     assert calls.index(("extract", None)) < min(i for i, c in enumerate(calls) if c[0] == "train")
+    assert [c for c in calls if c[0] == "train"] == [("train", 1), ("train", 2)]  # one training, a step per epoch
     assert [c for c in calls if c[0] == "distill"] == [("distill", (t,)) for t in range(4)]

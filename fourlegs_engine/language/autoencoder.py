@@ -10,7 +10,7 @@ import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Generator, Sequence
 
 import torch
 from torch import nn
@@ -166,13 +166,32 @@ class AETrainOptions:
 def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overwrite: bool = False,
                       progress: bool = False, stop_after_epoch: int | None = None,
                       timesteps: Sequence[int] | None = None) -> dict[str, Any]:
+    """Train the scene's autoencoder (:func:`autoencoder_training` run to its end, or until
+    ``stop_after_epoch`` epochs are done: then ``{"stopped_after_epoch": n}``) and return its report."""
+    training = autoencoder_training(scene, config, overwrite=overwrite, progress=progress, timesteps=timesteps)
+    while True:
+        try:
+            done, total = next(training)
+        except StopIteration as end:
+            return end.value
+        if stop_after_epoch is not None and stop_after_epoch <= done < total:
+            training.close()
+            return {"stopped_after_epoch": done}
+
+
+def autoencoder_training(scene: Any, config: AETrainOptions | None = None, *, overwrite: bool = False,
+                         progress: bool = False, timesteps: Sequence[int] | None = None
+                         ) -> Generator[tuple[int, int], None, dict[str, Any]]:
     """Train the scene's autoencoder from its extracted features; resumable from per-epoch checkpoints.
+
+    A generator: yields (epochs done, epochs) after each epoch's checkpoint is written (closing it there
+    stops the training; a later call resumes from that checkpoint) and returns the report. The training
+    sample is drawn once per call, so a caller reporting progress per epoch pays for it once.
 
     Writes ``language/encoder.pt`` and ``language/decoder.pt`` (state dicts) and
     ``language/autoencoder.json`` (config hash, reconstruction cosine on held-out and training views,
     loss history, and per epoch the held-out reconstruction cosine and the training seconds: what each
-    epoch buys and costs). Returns that report. ``stop_after_epoch`` stops early (tests of resumption);
-    ``timesteps`` restricts the training data to those timesteps (benchmarks on a few timesteps).
+    epoch buys and costs). ``timesteps`` restricts the training data to those timesteps (benchmarks on a few timesteps).
     """
     from ..fileio import save_torch_atomic, write_json_atomic
     from .ae_sample import check_features_complete, check_holdout_camera, training_data
@@ -204,11 +223,8 @@ def train_autoencoder(scene: Any, config: AETrainOptions | None = None, *, overw
     torch.manual_seed(config.seed)
     model = FeatureAutoencoder(int(store.config["dim"]), config.latent_dim, config.hidden)
     x_monitor = x_held if x_held.shape[0] else x_train[:config.heldout_samples]
-    run = _train_epochs(model, x_train, x_monitor, config, chash, root / AE_CHECKPOINT, progress=progress,
-                        stop_after_epoch=stop_after_epoch)
-    history, cosine_history, epoch_seconds, stopped_after = run
-    if stopped_after is not None:
-        return {"stopped_after_epoch": stopped_after}
+    history, cosine_history, epoch_seconds = yield from _train_epochs(model, x_train, x_monitor, config, chash,
+                                                                      root / AE_CHECKPOINT, progress=progress)
     model.eval()
     _check_trained(model, history)
     report = {"config_hash": chash, "config": cfg, "epochs": config.epochs, "loss_history": history,
@@ -278,13 +294,13 @@ def read_ae_report(path: Path) -> dict[str, Any]:
 
 
 def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: torch.Tensor, config: AETrainOptions,
-                  chash: str, ckpt_path: Path, *, progress: bool, stop_after_epoch: int | None
-                  ) -> tuple[list[float], list[float], list[float], int | None]:
-    """Adam over shuffled batches, resuming from and saving to ``ckpt_path`` after every epoch.
+                  chash: str, ckpt_path: Path, *, progress: bool
+                  ) -> Generator[tuple[int, int], None, tuple[list[float], list[float], list[float]]]:
+    """Adam over shuffled batches, resuming from and saving to ``ckpt_path`` after every epoch, then
+    yielding (epochs done, epochs).
 
     Returns per epoch the mean loss, the reconstruction cosine on ``x_monitor`` (what the epochs buy) and
-    the training seconds (what they cost), and the epochs done when stopped early by ``stop_after_epoch``
-    (else None).
+    the training seconds (what they cost).
     """
     from ..fileio import save_torch_atomic
 
@@ -340,9 +356,8 @@ def _train_epochs(model: FeatureAutoencoder, x_train: torch.Tensor, x_monitor: t
         save_torch_atomic(ckpt_path, {"config_hash": chash, "epoch": epoch + 1, "model": model.state_dict(),
                                       "optimizer": opt.state_dict(), "history": history,
                                       "cosine_history": cosine_history, "epoch_seconds": epoch_seconds})
-        if stop_after_epoch is not None and epoch + 1 >= stop_after_epoch and epoch + 1 < config.epochs:
-            return history, cosine_history, epoch_seconds, epoch + 1
-    return history, cosine_history, epoch_seconds, None
+        yield epoch + 1, config.epochs
+    return history, cosine_history, epoch_seconds
 
 
 def _read_checkpoint(path: Path) -> dict[str, Any]:

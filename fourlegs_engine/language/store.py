@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Optional, Sequence
 
@@ -28,6 +29,9 @@ from ..errors import ConfigMismatchError, InputError
 from ..fileio import load_npy, read_json, save_npy_atomic, write_bytes_atomic, write_json_atomic
 
 MANIFEST = "manifest.json"
+#: step files this process has verified (:meth:`StepStore.problem`): path -> what the verification holds
+#: for; shared by every store object, so the per-unit steps of a field do not verify a file twice
+_VERIFIED: dict[str, tuple] = {}
 _STEP_FILE = re.compile(r"^t(\d{6})\.npy$")
 ROWS_SUFFIX = ".rows.npy"
 _ROWS_FILE = re.compile(r"^t(\d{6})\.rows\.npy$")
@@ -113,8 +117,6 @@ class StepStore:
     #: the shape of timestep t's array (None: any shape) and the dtype every file must have (None: any)
     shape_of: Optional[Callable[[int], tuple[int, ...]]] = None
     dtype: Optional[str] = None
-    #: files verified by this process: t -> (size, mtime) they had then
-    _verified: dict[int, tuple[int, int]] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def hash(self) -> str:
@@ -198,7 +200,7 @@ class StepStore:
             rows_path.unlink(missing_ok=True)
             save_npy_atomic(path, np.ascontiguousarray(array))
         write_bytes_atomic(self.checksum_path(t), (self.files_sha256(t) + "\n").encode())
-        self._verified.pop(int(t), None)
+        _VERIFIED.pop(str(self.step_path(t)), None)
 
     def load(self, t: int, *, mmap: bool = True) -> np.ndarray:
         """Timestep ``t``'s array (memory-mapped when stored whole; rebuilt with its zero rows otherwise)."""
@@ -244,7 +246,8 @@ class StepStore:
             stat = path.stat()
         except OSError:
             return "file is missing"
-        if self._verified.get(int(t)) == (stat.st_size, stat.st_mtime_ns):
+        verified_as = self._verification_key(t, stat)
+        if _VERIFIED.get(str(path)) == verified_as:
             return None
         try:
             arr = self.load(t)
@@ -266,8 +269,21 @@ class StepStore:
                 expected = ""
             if self.files_sha256(t) != expected:
                 return "its bytes differ from the checksum recorded when it was written (damaged)"
-        self._verified[int(t)] = (stat.st_size, stat.st_mtime_ns)
+        _VERIFIED[str(path)] = verified_as
         return None
+
+    def _verification_key(self, t: int, stat: os.stat_result) -> tuple:
+        """What a verification of timestep t's files holds for: the files as they are now (identity, size,
+        modification time: the row index's and the checksum's too) and the shape and dtype expected."""
+        def identity(path: Path) -> tuple:
+            try:
+                st = path.stat()
+            except OSError:
+                return ()
+            return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+        return ((stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns), identity(self.rows_path(t)),
+                identity(self.checksum_path(t)), None if self.shape_of is None else tuple(self.shape_of(int(t))),
+                self.dtype)
 
     def done(self) -> list[int]:
         if not self.root.is_dir():

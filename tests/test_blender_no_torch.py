@@ -248,10 +248,10 @@ def test_installed_zip_carries_plyfile_numba_and_the_scipy_of_its_python(tmp_pat
         except ImportError:
             torch = None
         if torch is not None:
-            from fourlegs_engine.render import cpu_kernels
+            from fourlegs_engine.render import cpu_kernels, kernel_backend
             calls = []
-            blend = cpu_kernels.blend_tiles
-            cpu_kernels.blend_tiles = lambda *a, **k: calls.append(1) or blend(*a, **k)
+            blend = kernel_backend.blend_forward  # the fused kernels (RasterOptions' default, v2)
+            kernel_backend.blend_forward = lambda *a, **k: calls.append(1) or blend(*a, **k)
             for o in list(bpy.data.objects):  # the PLY scene's objects
                 bpy.data.objects.remove(o)
             bpy.ops.fourlegs.import_scene(filepath={str(bundle / "scene.json")!r})

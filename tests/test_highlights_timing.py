@@ -72,15 +72,19 @@ def test_remap_time_hold_then_run_and_effective_speed():
 @given(t0=st.floats(0, 500), t1=st.floats(0, 500), speed=st.floats(0.01, 10),
        scene_fps=st.floats(1, 240), out_fps=st.floats(1, 240))
 def test_play_time_properties(t0, t1, speed, scene_fps, out_fps):
+    ideal_intervals = abs(t1 - t0) / scene_fps / speed * out_fps
+    if math.floor(ideal_intervals + 0.5 + timing._FRAME_EPS) + 1 > timing.MAX_SHOT_FRAMES:  # too many: refused
+        with pytest.raises(InputError, match="frames"):
+            timing.play_frame_count(t0, t1, scene_fps=scene_fps, output_fps=out_fps, speed=speed)
+        return
     n = timing.play_frame_count(t0, t1, scene_fps=scene_fps, output_fps=out_fps, speed=speed)
-    assert n >= 1
+    assert 1 <= n <= timing.MAX_SHOT_FRAMES
     times = timing.remap_time(t0, t1, n)
     assert np.all(np.isfinite(times)) and times[-1] == pytest.approx(t1)
     if n > 1:
         assert times[0] == pytest.approx(t0)
         achieved = timing.effective_speed(t0, t1, n, scene_fps=scene_fps, output_fps=out_fps)
         # rounding to whole frames changes the speed by at most half a frame interval
-        ideal_intervals = abs(t1 - t0) / scene_fps / speed * out_fps
         assert abs((n - 1) - ideal_intervals) <= 0.5 + 1e-6
         assert math.isfinite(achieved) and achieved > 0
 

@@ -264,6 +264,7 @@ def language_field_steps(scene: "Scene", encoder: Any = None, *, encoder_config:
     from .language.autoencoder import AETrainOptions, autoencoder_training
     from .language.distill import distill_scene
     from .language.extract import extract_features
+    from .runlock import run_lock
 
     if scene.root is None:
         raise InputError("the scene must be a bundle on disk to hold its language field", field="scene")
@@ -272,14 +273,15 @@ def language_field_steps(scene: "Scene", encoder: Any = None, *, encoder_config:
     encoder = encoder if encoder is not None else text_encoder(scene, encoder_config)
     config = _plan_config(scene, encoder, plan)
     T = scene.num_timesteps
-    for t in range(T):
-        extract_features(scene, encoder, config, timesteps=[t])
-        yield FieldStep("extract features", t + 1, T)
-    total = AETrainOptions().epochs
-    for done, total in autoencoder_training(scene):  # one training sample, a step per epoch
-        if done < total:
-            yield FieldStep("train autoencoder", done, total)
-    yield FieldStep("train autoencoder", total, total)
-    for t in range(T):
-        distill_scene(scene, mode=mode, timesteps=[t], view_scale=FIELD_VIEW_SCALE)
-        yield FieldStep(f"distil ({mode})", t + 1, T)
+    with run_lock(scene.root):  # one writer per scene, held between the steps too
+        for t in range(T):
+            extract_features(scene, encoder, config, timesteps=[t])
+            yield FieldStep("extract features", t + 1, T)
+        total = AETrainOptions().epochs
+        for done, total in autoencoder_training(scene):  # one training sample, a step per epoch
+            if done < total:
+                yield FieldStep("train autoencoder", done, total)
+        yield FieldStep("train autoencoder", total, total)
+        for t in range(T):
+            distill_scene(scene, mode=mode, timesteps=[t], view_scale=FIELD_VIEW_SCALE)
+            yield FieldStep(f"distil ({mode})", t + 1, T)

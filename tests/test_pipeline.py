@@ -141,3 +141,22 @@ def test_language_field_steps_draw_the_autoencoder_sample_once(tmp_path, monkeyp
     assert [done for stage, done in steps if stage == "train autoencoder"] == list(range(1, epochs + 1))
     assert len(draws) == 1
     assert pipeline.has_language_field(load_bundle(scene.root))
+
+
+def test_language_field_steps_hold_the_scene_lock_between_steps(tmp_path):
+    """The panel's field is one writer of its scene while it runs, between its steps too: another process
+    is refused with the holder named, and may write once the steps are closed (cancel)."""
+    import os
+    import subprocess
+    import sys
+
+    scene = load_bundle(micro_bundle(tmp_path / "micro", T=2))
+    probe = [sys.executable, "-c", "import sys; from fourlegs_engine.runlock import RunLock; "
+             f"RunLock({str(scene.root)!r}).acquire(); print('acquired')"]
+    steps = pipeline.language_field_steps(scene)
+    assert next(steps).stage == "extract features"
+    refused = subprocess.run(probe, capture_output=True, text=True, timeout=120)
+    assert refused.returncode != 0 and "acquired" not in refused.stdout
+    assert str(os.getpid()) in refused.stderr  # the holder is named
+    steps.close()
+    assert subprocess.run(probe, capture_output=True, text=True, timeout=120).stdout.strip() == "acquired"

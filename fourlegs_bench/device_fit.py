@@ -139,7 +139,7 @@ def step_fit(ctx: StepContext) -> None:
     opts = FitOptions(resolution_scale=float(plan["resolution_scale"]), timesteps=(0, steps),
                       first_iterations=int(plan["first_iterations"]), iterations=int(plan["iterations"]),
                       max_gaussians=int(plan["max_gaussians"]), init_background=int(plan["init_background"]),
-                      device=ctx.device.type, **plan.get("options", {}))
+                      max_iterations=0, device=ctx.device.type, **plan.get("options", {}))
     ctx.record(data=str(ctx.data), backend=backend, device=str(ctx.device), paper_psnr=PAPER_FIT_PSNR,
                resolution=[round(capture.width * opts.resolution_scale), round(capture.height * opts.resolution_scale)],
                planned={"first_iterations": opts.first_iterations, "iterations": opts.iterations, "timesteps": steps})

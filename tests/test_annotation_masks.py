@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from PIL import Image
 
 from _language_helpers import micro_bundle
@@ -58,6 +60,72 @@ def test_coverage_features_equal_the_phrase_embedding_where_set(tmp_path):
     assert torch.allclose(out[0], torch.from_numpy(phrase_embedding("a person")), atol=1e-6)
     assert torch.allclose(out[1], torch.from_numpy(phrase_embedding("a ball")), atol=1e-6)
     assert torch.allclose(out[2], torch.from_numpy(phrase_embedding("background")), atol=1e-6)
+
+
+PHRASES = ["the ball", "the ball in the air", "a person holding the ball", "a person", "a dog", "the net",
+           "a referee", "the hoop"]
+
+
+def _relevancy_of_each(features: torch.Tensor, phrases: list[str]) -> np.ndarray:
+    """(B, P) LERF relevancy of each phrase, float64."""
+    from fourlegs_engine.query.lerf import relevancy
+    canon = torch.from_numpy(np.stack([phrase_embedding(c) for c in CANONICAL_PHRASES]))
+    return np.stack([relevancy(features.double(), torch.from_numpy(phrase_embedding(p)), canon).numpy()
+                     for p in phrases], axis=1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.sets(st.integers(0, len(PHRASES) - 1), min_size=1, max_size=5), st.floats(0.5, 1.0))
+def test_a_crop_in_overlapping_masks_is_relevant_to_each_of_them_and_to_no_other(covered, share):
+    """The ball inside 'a person holding the ball' inside 'a person': each covering phrase scores above
+    0.5 and every other phrase below, for up to five overlapping phrases (each covering ``share`` of the
+    crop, the rest background)."""
+    enc = AnnotationMaskEncoder({p: f"/nonexistent/{i}" for i, p in enumerate(PHRASES)})
+    cov = torch.zeros(1, 8, len(PHRASES), dtype=torch.float64)
+    for k in covered:
+        cov[0, :, k] = share
+    rel = _relevancy_of_each(enc.encode_coverage(cov), PHRASES)[0]
+    inside = np.array([k in covered for k in range(len(PHRASES))])
+    assert rel[inside].min() > 0.5 and rel[~inside].max() < 0.5, (sorted(covered), share, rel.round(3))
+
+
+def test_a_plain_weighted_sum_would_lose_overlapping_phrases():
+    """The failure the mix rule fixes: with the weighted sum of the embeddings, a crop inside the masks of
+    'the ball', 'the ball in the air' and 'a person' is below 0.5 for all three (the generic shares add
+    up); the rule keeps all three above 0.5."""
+    phrases = ["the ball", "the ball in the air", "a person"]
+    emb = torch.from_numpy(np.stack([phrase_embedding(p) for p in phrases]))
+    plain = emb.sum(dim=0, keepdim=True)
+    assert _relevancy_of_each(plain, phrases).max() < 0.5
+    enc = AnnotationMaskEncoder({p: f"/nonexistent/{i}" for i, p in enumerate(phrases)})
+    mixed = enc.encode_coverage(torch.ones(1, 8, 3, dtype=torch.float64))
+    assert _relevancy_of_each(mixed, phrases).min() > 0.75
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.floats(0.0, 1e6, allow_subnormal=False), min_size=3, max_size=3), st.integers(0, 2 ** 31 - 1))
+def test_mix_embeddings_matches_a_float64_reference(weights, seed):
+    from fourlegs_engine.language.annotations import mix_embeddings
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=16)
+    axis /= np.linalg.norm(axis)
+    emb = rng.normal(size=(3, 16))
+    emb /= np.linalg.norm(emb, axis=1, keepdims=True)
+    w = np.asarray(weights, dtype=np.float64)
+    w = w / w.sum() if w.sum() > 0 else np.full(3, 1 / 3)
+    g = emb @ axis
+    spec = emb - g[:, None] * axis
+    direction = w @ spec
+    ref = (w @ g) * axis + (w @ np.linalg.norm(spec, axis=1)) * direction / np.linalg.norm(direction)
+    ref /= np.linalg.norm(ref)
+    out = mix_embeddings(torch.tensor([weights], dtype=torch.float64), torch.from_numpy(emb),
+                         torch.from_numpy(axis))[0].numpy()
+    assert np.isfinite(out).all() and abs(np.linalg.norm(out) - 1) < 1e-12
+    np.testing.assert_allclose(out, ref, atol=1e-10)
+    # one embedding holding all the weight comes back unchanged
+    single = mix_embeddings(torch.tensor([[0.0, 7.0, 0.0]], dtype=torch.float64), torch.from_numpy(emb),
+                            torch.from_numpy(axis))[0].numpy()
+    np.testing.assert_allclose(single, emb[1], atol=1e-12)
 
 
 def test_masks_lift_to_the_masked_region(tmp_path):

@@ -151,6 +151,35 @@ def test_zoom_and_orbit_reach_the_target_subject_height(people):
     assert min(heights) > 0.4 and max(heights) < 0.6, heights
 
 
+def test_a_best_view_tighter_than_the_zoom_target_starts_wide_and_the_zoom_grows_the_subject(people):
+    """A long lens on every camera (the person spans ~0.7 of the frame height at the best view, above the
+    zoom's target 0.5): the context shot's lens is widened so the zoom starts at about 0.6 x 0.5 and grows
+    the person to 0.5, instead of holding a frame-filling view."""
+    scene, relevant, big, small = people
+    cams = [Camera.look_at(c.center, (0.0, 0.0, 0.9), width=WIDTH, height=HEIGHT, focal=420.0, name=c.name)
+            for c in scene.cameras.cameras(0, "train")]
+    tight = Scene(gaussians=scene.gaussians, cameras=CameraRig.static(cams, [], scene.num_timesteps),
+                  name="two-people-tele", fps=30.0)
+    best = cams[0]
+    at_best_view = frame_quality(frame_at(tight.gaussians, 15), big, best)["height"]
+    assert at_best_view > 0.65
+    localizer = PeopleLocalizer(tight, relevant, segment=(10, 20), centre=(0.0, 0.0, 0.9), best_view="cam00")
+    plan = plan_highlight(tight, localizer, QUERY, _preset(zoom_target=0.5, orbit_target=0.5))
+    context = next(s for s in plan.shots if s.name == "context")
+    zoom = next(s for s in plan.shots if s.name == "zoom")
+    wide = _subject_height(tight, plan, context.camera_keys[0], 0, big)["height"]
+    start = _subject_height(tight, plan, zoom.camera_keys[0], 0, big)["height"]
+    end = _subject_height(tight, plan, zoom.camera_keys[-1], 0, big)["height"]
+    assert wide == pytest.approx(0.6 * 0.5, abs=0.05) and start == pytest.approx(wide, abs=0.02), (wide, start)
+    assert end == pytest.approx(0.5, abs=0.07), end
+    assert any("so the zoom starts wide" in m for m in plan.messages)
+    # the widening is bounded: a target far below the view is reached by the zoom's end, not the context
+    far = plan_highlight(tight, localizer, QUERY, _preset(zoom_target=0.1, orbit_target=0.5))
+    context = next(s for s in far.shots if s.name == "context")
+    assert _subject_height(tight, far, context.camera_keys[0], 0, big)["height"] == pytest.approx(
+        at_best_view * 0.5, abs=0.06)
+
+
 def test_every_camera_stays_inside_the_ring_and_above_the_floor(people):
     scene, relevant, big, small = people
     for preset in (_preset(), load_preset("broadcast")):

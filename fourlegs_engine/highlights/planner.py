@@ -29,6 +29,11 @@ from .rig_volume import RigVolume
 from .shot_context import ShotContext
 from .shot_list import PlannedShot, expand_shots, highlighted_segments
 
+#: the anchor (context) shot shows the subject at most at this share of the first sized zoom's target
+#: height, so that zoom has something to grow; the best view's lens is widened to it, but at most to this
+#: share of its focal length (a wider lens shows what the capture's cameras never saw)
+ZOOM_ROOM = 0.6
+MAX_PULL_BACK = 0.5
 
 class Localizer(Protocol):
     """What the planner needs from a query engine (``fourlegs_engine.query.QueryEngine`` fits).
@@ -254,7 +259,10 @@ def _anchor_camera(scene, found: _Found, framing: Optional[Framing], resolution:
                    up: np.ndarray, messages: list[str]) -> tuple[Optional[Pose], Optional[float]]:
     """The best view, turned onto the action centre (§6.1) when it is known; with the action region known,
     moved to the nearest clear viewpoint, turned level (upright about the scene's up) onto the region's
-    centre and widened until the region fits. (None, None) without a best view."""
+    centre and widened until the region fits, and further (down to ``MAX_PULL_BACK`` of its focal length)
+    until the subject spans at most ``ZOOM_ROOM`` of the first sized zoom's target height, so a best view
+    already tighter than the zoom's target starts wide instead of holding. (None, None) without a best
+    view."""
     if found.best_view is None:
         return None, None
     name, centre = found.best_view, found.centre
@@ -275,12 +283,32 @@ def _anchor_camera(scene, found: _Found, framing: Optional[Framing], resolution:
         messages.append(f"the best view {name!r} sees the action through other scene Gaussians; the shots "
                         f"start from the nearest clear viewpoint ({np.linalg.norm(eye - anchor.position):.2f} m away)")
     anchor = Pose(eye, look_at_rotation(eye, centre, up, previous=anchor.rotation))
-    fit = framing.fitting_focal(float(np.linalg.norm(eye - centre)), resolution)
+    distance = float(np.linalg.norm(eye - centre))
+    fit = framing.fitting_focal(distance, resolution)
     if fit < anchor_focal:
         messages.append(f"the action region does not fit the best view's lens; its lens is widened "
                         f"x{fit / anchor_focal:.2f} to show all of it")
         anchor_focal = fit
+    room = _zoom_room_focal(preset, framing, distance, resolution)
+    if room is not None and room < anchor_focal:
+        wider = max(room, anchor_focal * MAX_PULL_BACK)
+        messages.append(f"the best view {name!r} already shows the subject at "
+                        f"{anchor_focal * framing.region.height / distance / resolution[1]:.2f} of the frame height, "
+                        f"above what the zoom grows it to; its lens is widened x{wider / anchor_focal:.2f} so the "
+                        "zoom starts wide")
+        anchor_focal = wider
     return anchor, anchor_focal
+
+
+def _zoom_room_focal(preset: Preset, framing: Framing, distance: float, resolution: tuple[int, int]) -> Optional[float]:
+    """The widest-needed anchor lens (output px) at which the subject spans at most ``ZOOM_ROOM`` of the
+    first sized zoom's ``target_height``, so that zoom grows it; None when no zoom_in shot has a target
+    size."""
+    for spec in preset.shots:
+        target = float(spec.params.get("target_height", 0.0) or 0.0) if spec.effect == "zoom_in" else 0.0
+        if target > 0:
+            return ZOOM_ROOM * target * resolution[1] * distance / max(framing.region.height, 1e-9)
+    return None
 
 
 def _context_shot(scene, anchor: Optional[Pose], anchor_focal: Optional[float], resolution: tuple[int, int],

@@ -17,11 +17,19 @@ Embeddings (768-d, L2-normalized, deterministic)
     every phrase.
 
 Features
-    A crop tube's feature is the mix ``Σ_k s m_k e_k + (1 - Σ_k m_k) e_background`` (normalized), with
-    ``m_k`` the share of the crop's pixels set in phrase k's masks averaged over the tube's 8 frames and
-    ``s`` the ``salience`` of a masked pixel against an unmasked one (default 6, the simulated encoder's
-    foreground salience: a person filling a fifth of the smallest crop still dominates its feature, as it
-    would for a video model); a crop inside one phrase's mask gets exactly that phrase's embedding.
+    A crop tube's feature mixes the embeddings of what it holds with weights ``w_k = s m_k`` and
+    ``w_background = 1 - Σ_k m_k``, with ``m_k`` the share of the crop's pixels set in phrase k's masks
+    averaged over the tube's 8 frames and ``s`` the ``salience`` of a masked pixel against an unmasked one
+    (default 6, the simulated encoder's foreground salience: a person filling a fifth of the smallest crop
+    still dominates its feature, as it would for a video model). Every embedding is a share ``g_k`` of the
+    common generic axis plus a phrase-specific part ``p_k``; the mix keeps the two apart
+    (:func:`mix_embeddings`): the generic share is the weights' mean of the ``g_k``, the specific part
+    points along ``Σ_k w_k p_k`` with the weights' mean of the ``|p_k|`` as its length. A crop inside one
+    phrase's mask gets exactly that phrase's embedding, and a crop inside the masks of several
+    overlapping phrases ("the ball" inside "a person holding the ball" inside "a person") has relevancy
+    above 0.5 for each of them (up to five at once) and below 0.5 for every other phrase. A plain weighted
+    sum of the embeddings would not: their generic shares add up coherently while the specific parts do
+    not, so a pixel in three masks came out closer to the canonical phrases than to any of its own.
 
 Views without masks
     Real annotations cover a few views only. A missing mask file means "not annotated", never "absent":
@@ -52,6 +60,9 @@ from .phrases import CANONICAL_PHRASES
 
 ENCODER_NAME = "masks"
 DEFAULT_SALIENCE = 6.0
+#: how a crop's feature mixes the embeddings of what it holds (recorded with the features: features made
+#: by an earlier rule are stale)
+MIX_RULE = "generic-apart"
 MASK_PATTERN = "{camera}/{t:06d}.png"
 
 
@@ -72,6 +83,32 @@ def phrase_embedding(text: str) -> np.ndarray:
     h = np.random.default_rng(int.from_bytes(digest[:8], "little")).normal(size=EMBED_DIM)
     e = math.sqrt(GENERIC_SHARE) * phrase_basis()[GENERIC_AXIS] + math.sqrt(1 - GENERIC_SHARE) * h / np.linalg.norm(h)
     return e / np.linalg.norm(e)
+
+
+def mix_embeddings(weights: torch.Tensor, embeddings: torch.Tensor, generic: torch.Tensor) -> torch.Tensor:
+    """Unit features mixing unit embeddings, their generic and specific parts kept apart.
+
+    Args:
+        weights: (B, K) non-negative weights (a row of zeros gives the plain mean).
+        embeddings: (K, D) unit embeddings e_k = g_k a + p_k, with ``a`` the generic axis and p_k ⟂ a.
+        generic: (D,) the unit generic axis ``a``.
+    Returns:
+        (B, D) unit rows ``normalize(ḡ a + |p̄| p / |p|)`` with ``ḡ`` and ``|p̄|`` the weighted means of
+        the g_k and |p_k| and ``p = Σ_k w_k p_k``; a row whose ``p`` vanishes keeps ``ḡ a``. One
+        embedding with all the weight comes back unchanged. The dtype is that of ``embeddings``.
+    """
+    dtype = embeddings.dtype
+    w = torch.nan_to_num(weights.to(dtype), nan=0.0).clamp_min(0.0)
+    total = w.sum(dim=1, keepdim=True)
+    w = torch.where(total > 0, w / total.clamp_min(1e-300), torch.full_like(w, 1.0 / max(w.shape[1], 1)))
+    g = embeddings @ generic.to(dtype)                                      # (K,)
+    specific = embeddings - g[:, None] * generic.to(dtype)[None]            # (K, D)
+    length = specific.norm(dim=1)                                           # (K,)
+    direction = w @ specific                                                # (B, D)
+    norm = direction.norm(dim=1, keepdim=True)
+    unit = torch.where(norm > 1e-12, direction / norm.clamp_min(1e-12), torch.zeros_like(direction))
+    out = (w @ g)[:, None] * generic.to(dtype)[None] + (w @ length)[:, None] * unit
+    return out / out.norm(dim=1, keepdim=True).clamp_min(1e-12)
 
 
 def parse_mask_spec(spec: str) -> tuple[str, str]:
@@ -149,6 +186,7 @@ class AnnotationMaskEncoder(PhraseEncoder):
         self._label_emb = torch.from_numpy(np.stack([phrase_embedding(p) for p in self.labels])) if pairs \
             else torch.zeros(0, EMBED_DIM, dtype=torch.float64)                    # (C, D) float64
         self._background = torch.from_numpy(phrase_embedding("background"))       # (D,)
+        self._generic = torch.from_numpy(phrase_basis()[GENERIC_AXIS])              # (D,) unit
         self._checked = False
         self._available: list[dict[str, frozenset[int]]] | None = None    # per phrase: camera -> timesteps
         self._scanned_cameras: list[str] = []
@@ -161,7 +199,7 @@ class AnnotationMaskEncoder(PhraseEncoder):
     def config(self) -> dict[str, Any]:
         """JSON-serializable settings (recorded with the features and in scene.json's language block)."""
         config = {"encoder": self.name, "masks": {p: str(f) for p, f in zip(self.labels, self.folders)},
-                  "mask_pattern": MASK_PATTERN, "salience": self.salience}
+                  "mask_pattern": MASK_PATTERN, "salience": self.salience, "mix": MIX_RULE}
         if self._available is not None:  # features made before masks were added or removed are stale
             config["mask_files"] = self.mask_files_digest()
         return config
@@ -291,8 +329,9 @@ class AnnotationMaskEncoder(PhraseEncoder):
                              field="frame_coverage")
         coverage = cov.mean(dim=1)                                          # (B, C)
         background = (1.0 - coverage.sum(dim=1)).clamp_min(0.0)           # (B,)
-        out = self.salience * coverage @ self._label_emb + background[:, None] * self._background[None]
-        return (out / out.norm(dim=1, keepdim=True).clamp_min(1e-12)).float()
+        weights = torch.cat([self.salience * coverage, background[:, None]], dim=1)          # (B, C+1)
+        embeddings = torch.cat([self._label_emb, self._background[None]], dim=0)            # (C+1, D)
+        return mix_embeddings(weights, embeddings, self._generic).float()
 
     def encode_video(self, clips: torch.Tensor) -> torch.Tensor:
         """clips (B, 8, C, h, w) mask coverage in [0, 1] -> (B, 768) float32 L2-normalized."""

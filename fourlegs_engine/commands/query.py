@@ -52,6 +52,9 @@ def register(subparsers: Any) -> None:
                         "--view-confirm best re-scored at full (default %(default)s; 1: all at full)")
     p.add_argument("--view-confirm", type=bounded(int, 1, MAX_TIMESTEP_ARGUMENT), default=QueryOptions.view_confirm,
                    help="best view: cameras re-scored at the map resolution (default %(default)s)")
+    p.add_argument("--view-score", choices=("relevant", "mean"), default=QueryOptions.view_score,
+                   help="best view: rank the cameras by the mass of relevancy above 0.5 (relevant: follows a small "
+                        "subject) or by the mean relevancy (mean: the paper's) (default %(default)s)")
     p.add_argument("--scale", type=bounded(float, 0, MAX_RESOLUTION_SCALE, low_open=True), default=1.0,
                    help=f"resolution scale of the maps, in (0, {MAX_RESOLUTION_SCALE:g}] (default 1)")
     p.add_argument("--stride", type=bounded(int, 1, MAX_TIMESTEP_ARGUMENT), default=1,
@@ -101,7 +104,7 @@ def _open(args: argparse.Namespace, inputs: QueryInputs):
     options = QueryOptions(path=args.path, codebook_size=args.codebook_size, codebook_refine=args.codebook_refine,
                            negatives=tuple(args.negatives), temporal_stride=args.stride, spatial=args.spatial,
                            resolution_scale=args.scale, dilation=args.dilation, view_scale=args.view_scale,
-                           view_confirm=args.view_confirm)
+                           view_confirm=args.view_confirm, view_score=args.view_score)
     if args.codebook_samples is not None:
         options = options.replace(codebook_samples=args.codebook_samples)
     with stage_bar("opening the field") as report:
@@ -255,7 +258,8 @@ def _run_one(args: argparse.Namespace, inputs: QueryInputs) -> int:
     else:
         print(f"not found: {tmp.message}")
     if loc.best_view is not None:
-        print(f"best view {loc.best_view} (mean relevancy {loc.view_scores[loc.best_view]:.3f})")
+        label = "relevant mass" if args.view_score == "relevant" else "mean relevancy"
+        print(f"best view {loc.best_view} ({label} {loc.view_scores[loc.best_view]:.4f})")
     if loc.action_centre is not None:
         print("action centre (world) " + ", ".join(f"{v:.3f}" for v in loc.action_centre)
               + f"; pixel {loc.centre_px[0]:.1f}, {loc.centre_px[1]:.1f} in {loc.best_view}; box {loc.bbox}")

@@ -259,7 +259,8 @@ def _anchor_camera(scene, found: _Found, framing: Optional[Framing], resolution:
                    up: np.ndarray, messages: list[str]) -> tuple[Optional[Pose], Optional[float]]:
     """The best view, turned onto the action centre (§6.1) when it is known; with the action region known,
     moved to the nearest clear viewpoint, turned level (upright about the scene's up) onto the region's
-    centre and widened until the region fits, and further (down to ``MAX_PULL_BACK`` of its focal length)
+    centre and widened until the region fits, and further (down to ``MAX_PULL_BACK`` of the best view's focal
+    length in all)
     until the subject spans at most ``ZOOM_ROOM`` of the first sized zoom's target height, so a best view
     already tighter than the zoom's target starts wide instead of holding. (None, None) without a best
     view."""
@@ -284,14 +285,15 @@ def _anchor_camera(scene, found: _Found, framing: Optional[Framing], resolution:
                         f"start from the nearest clear viewpoint ({np.linalg.norm(eye - anchor.position):.2f} m away)")
     anchor = Pose(eye, look_at_rotation(eye, centre, up, previous=anchor.rotation))
     distance = float(np.linalg.norm(eye - centre))
+    best_view_focal = anchor_focal
     fit = framing.fitting_focal(distance, resolution)
     if fit < anchor_focal:
         messages.append(f"the action region does not fit the best view's lens; its lens is widened "
                         f"x{fit / anchor_focal:.2f} to show all of it")
         anchor_focal = fit
     room = _zoom_room_focal(preset, framing, distance, resolution)
-    if room is not None and room < anchor_focal:
-        wider = max(room, anchor_focal * MAX_PULL_BACK)
+    if room is not None and room < anchor_focal and best_view_focal * MAX_PULL_BACK < anchor_focal:
+        wider = max(room, best_view_focal * MAX_PULL_BACK)
         messages.append(f"the best view {name!r} already shows the subject at "
                         f"{anchor_focal * framing.region.height / distance / resolution[1]:.2f} of the frame height, "
                         f"above what the zoom grows it to; its lens is widened x{wider / anchor_focal:.2f} so the "

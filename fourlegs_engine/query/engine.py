@@ -238,7 +238,8 @@ class QueryEngine:
         return self.scene.cameras.cameras(t, split or self.camera_split)
 
     def best_view(self, query: str, t: int, cameras: Optional[Sequence[Camera]] = None) -> ViewResult:
-        """The camera with the highest mean relevancy at timestep ``t`` (paper §6.1): every camera scored at
+        """The camera with the highest ``view_score`` (the relevant pixels' mass, or the paper's mean relevancy,
+        §6.1) at timestep ``t``: every camera scored at
         ``view_scale`` of the map resolution, the ``view_confirm`` best re-scored at the map resolution."""
         self.stats["best_view"] += 1
         cams = list(cameras) if cameras is not None else self.cameras_at(t)
@@ -254,8 +255,9 @@ class QueryEngine:
             return self.relevancy_map(query, cam, t, outputs=("relevancy",), scale=scale)["relevancy"]
 
         if not coarse:
-            return viewpoint.best_view(cams, lambda cam: relevancy_of(cam, False), t)
-        return viewpoint.best_view_confirmed(cams, relevancy_of, t, self.options.view_confirm)
+            return viewpoint.best_view(cams, lambda cam: relevancy_of(cam, False), t, self.options.view_score)
+        return viewpoint.best_view_confirmed(cams, relevancy_of, t, self.options.view_confirm,
+                                             self.options.view_score)
 
     def action_centre(self, query: str, t: int, camera: Camera) -> CentreResult:
         """Centre of mass of the best relevant component of the relevancy map, lifted to 3D with the rendered
@@ -351,6 +353,9 @@ def _check_options(options: QueryOptions) -> None:
         raise InputError(f"unknown spatial path {options.spatial!r} (exact, fast)", field="spatial")
     check_number(options.resolution_scale, "resolution_scale", low=0, high=MAX_RESOLUTION_SCALE, low_open=True)
     check_number(options.view_scale, "view_scale", low=0, high=1, low_open=True)
+    if options.view_score not in viewpoint.VIEW_SCORES:
+        raise InputError(f"must be one of {', '.join(viewpoint.VIEW_SCORES)}, got {options.view_score!r}",
+                         field="view_score")
     check_number(options.view_confirm, "view_confirm", low=1, high=MAX_TIMESTEP_ARGUMENT, integer=True)
     check_number(options.temporal_stride, "temporal_stride", low=1, high=MAX_TIMESTEP_ARGUMENT, integer=True)
     check_number(options.dilation, "dilation", low=0, high=MAX_TIMESTEP_ARGUMENT, integer=True)

@@ -47,6 +47,9 @@ class QueryOptions:
             (1: every camera at the map resolution) ...
         view_confirm: ... and re-scores the ``view_confirm`` best of them at the map resolution; the best
             of those is the best view.
+        view_score: what ranks the views: "relevant" (the mass of relevancy above 0.5, which follows a
+            small subject) or "mean" (the paper's mean relevancy, which the background's relevancy decides
+            when the subject is small); see :mod:`~fourlegs_engine.query.viewpoint`.
         dilation: radius of the temporal dilation.
         chunk: latents decoded per batch on the exact path.
         latent_dtype: read latents as this numpy dtype before decoding (e.g. "float16" to measure
@@ -66,6 +69,7 @@ class QueryOptions:
     resolution_scale: float = 1.0
     view_scale: float = DEFAULT_VIEW_SCALE
     view_confirm: int = DEFAULT_VIEW_CONFIRM
+    view_score: str = "relevant"
     dilation: int = 1
     chunk: int = 32768
     latent_dtype: Optional[str] = None

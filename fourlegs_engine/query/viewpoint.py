@@ -1,5 +1,12 @@
 """Best viewpoint (paper §6.1): the camera whose relevancy map has the highest mean relevancy.
 
+Two scores (:data:`VIEW_SCORES`): ``"mean"`` is the paper's, the mean of the map; ``"relevant"`` is the
+mean of the part above 0.5, ``mean(max(R - 0.5, 0))``: the relevant pixels' mass. Where the subject is
+small (a ball covers 0.3 % of a frame) the paper's mean is decided by the relevancy of the
+background, 0.1 or so everywhere but varying from camera to camera by more than the subject adds, so it
+can pick a view in which the subject is barely visible; the relevant mass ranks the views by how much of
+the subject they show. When no camera has a pixel above 0.5, "relevant" falls back to the mean.
+
 :func:`best_view_confirmed` finds it coarse to fine: every camera's map at reduced resolution, then the few
 best again at full resolution (the mean of a map changes little with its resolution, so the reduced maps
 rank the cameras and the full ones decide among the close ones)."""
@@ -12,21 +19,35 @@ import numpy as np
 from ..scene.camera import Camera
 from .results import ViewResult
 
+VIEW_SCORES = ("relevant", "mean")
+
+
+def view_score(relevancy: np.ndarray, score: str) -> float:
+    """One camera's score from its (H,W) relevancy map: the mean ("mean") or the mean of the part above
+    0.5 ("relevant"); 0 for an empty map."""
+    m = np.asarray(relevancy, dtype=np.float64)
+    if not m.size:
+        return 0.0
+    if score == "relevant":
+        return float(np.clip(m - 0.5, 0.0, None).mean())
+    return float(m.mean())
+
 
 def camera_name(camera: Camera, index: int) -> str:
     """The camera's name, or ``camera{index:02d}`` when it has none."""
     return camera.name or f"camera{index:02d}"
 
 
-def best_view(cameras: Sequence[Camera], relevancy_of: Callable[[Camera], np.ndarray], t: int) -> ViewResult:
-    """Score every camera by the mean of ``relevancy_of(camera)`` (an (H,W) map) and pick the best.
+def best_view(cameras: Sequence[Camera], relevancy_of: Callable[[Camera], np.ndarray], t: int,
+              score: str = "mean") -> ViewResult:
+    """Score every camera by :func:`view_score` of ``relevancy_of(camera)`` (an (H,W) map) and pick the
+    best ("relevant" falls back to "mean" when every camera scores 0).
 
     Ties go to the earlier camera; an empty camera list gives ``best=None``.
     """
-    scores: dict[str, float] = {}
-    for i, cam in enumerate(cameras):
-        m = np.asarray(relevancy_of(cam), dtype=np.float64)
-        scores[camera_name(cam, i)] = float(m.mean()) if m.size else 0.0
+    maps = [np.asarray(relevancy_of(cam), dtype=np.float64) for cam in cameras]
+    score = _usable_score(maps, score)
+    scores = {camera_name(cam, i): view_score(m, score) for i, (cam, m) in enumerate(zip(cameras, maps))}
     if not scores:
         return ViewResult(best=None, index=None, scores={}, t=int(t))
     names = list(scores)
@@ -35,7 +56,7 @@ def best_view(cameras: Sequence[Camera], relevancy_of: Callable[[Camera], np.nda
 
 
 def best_view_confirmed(cameras: Sequence[Camera], relevancy_of: Callable[[Camera, bool], np.ndarray], t: int,
-                        confirm: int) -> ViewResult:
+                        confirm: int, score: str = "mean") -> ViewResult:
     """:func:`best_view` from reduced maps (``relevancy_of(camera, True)``), then the ``confirm`` best cameras
     (ties to the earlier) re-scored from full maps (``relevancy_of(camera, False)``); the best of those wins.
 
@@ -43,15 +64,28 @@ def best_view_confirmed(cameras: Sequence[Camera], relevancy_of: Callable[[Camer
         the result whose ``scores`` hold the full-resolution score of the confirmed cameras and the
         reduced one of the others; ``confirmed`` lists the names of the cameras scored at full resolution.
     """
-    reduced = best_view(cameras, lambda cam: relevancy_of(cam, True), t)
+    reduced_maps: list[np.ndarray] = []
+
+    def reduced_of(cam: Camera) -> np.ndarray:
+        reduced_maps.append(np.asarray(relevancy_of(cam, True), dtype=np.float64))
+        return reduced_maps[-1]
+
+    reduced = best_view(cameras, reduced_of, t, score)
     if reduced.best is None:
         return reduced
+    score = _usable_score(reduced_maps, score)
     names = list(reduced.scores)
     order = sorted(range(len(names)), key=lambda i: (-reduced.scores[names[i]], i))[:max(1, int(confirm))]
     order.sort()  # full-resolution ties go to the earlier camera, as in best_view
     scores = dict(reduced.scores)
     for i in order:
-        m = np.asarray(relevancy_of(cameras[i], False), dtype=np.float64)
-        scores[names[i]] = float(m.mean()) if m.size else 0.0
+        scores[names[i]] = view_score(relevancy_of(cameras[i], False), score)
     idx = max(order, key=lambda i: (scores[names[i]], -i))
     return ViewResult(best=names[idx], index=idx, scores=scores, t=int(t), confirmed=[names[i] for i in order])
+
+
+def _usable_score(maps: Sequence[np.ndarray], score: str) -> str:
+    """``score``, or "mean" where it is "relevant" and no map has a pixel above 0.5."""
+    if score == "relevant" and not any(m.size and float(m.max()) > 0.5 for m in maps):
+        return "mean"
+    return score

@@ -132,3 +132,20 @@ def test_the_autoencoder_trains_on_the_extracted_grid_only(latent_field, tmp_pat
     (copy / "features" / "t000003.npy").unlink()
     with pytest.raises(Exception, match="timesteps 3 are missing"):
         train_autoencoder(scene, AETrainOptions(epochs=1, samples=512), overwrite=True)
+
+
+def test_the_bench_check_counts_label_changes_between_encoded_timesteps():
+    from fourlegs_bench.latent_fill_check import decode_interpolate_encode, label_change_share
+    labels = np.zeros((5, 4), np.int32)                # grid of stride 4: 0, 4; in between 1, 2, 3
+    labels[2:, 0] = 1                                  # Gaussian 0 changes at 2: differs from t=0 at 2 only
+    labels[3, 1] = 2                                   # Gaussian 1 holds another label at 3 alone
+    # nearer neighbours: 1 -> 0, 2 -> 0 (tie: earlier), 3 -> 4; changed pairs: (2, g0), (3, g1) of 3 x 4
+    assert label_change_share(labels, 4) == pytest.approx(2 / 12)
+    assert label_change_share(labels, 1) == 0.0
+    identity = torch.nn.Identity()
+    before = torch.tensor([[1.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    after = torch.tensor([[0.0, 1.0], [0.6, 0.8], [0.0, 0.0]])
+    out = decode_interpolate_encode(lambda x: torch.nn.functional.normalize(x, dim=1), identity, before, after, 0.25)
+    np.testing.assert_allclose(out[0].numpy(), np.array([0.75, 0.25]) / np.hypot(0.75, 0.25), rtol=1e-6)
+    np.testing.assert_allclose(out[1].numpy(), [0.6, 0.8], rtol=1e-6)   # seen at one neighbour: its feature
+    assert torch.all(out[2] == 0)                                        # seen by neither: zero

@@ -25,7 +25,7 @@ def add_plan_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--fill", default=None, choices=FILL_MODES,
                    help="how skipped timesteps are filled: interpolate their neighbours' features (default), reuse the "
                         "nearer one's, or latents: lift only the encoded timesteps and give each Gaussian the "
-                        "interpolation of its own latents (follows moving objects)")
+                        "interpolation of its own latents (the fill moves with the Gaussians)")
     g.add_argument("--levels", default=None, metavar="I,J,...",
                    help="keep these pyramid scales (indices into --ratios/--steps, 0 = smallest)")
     g.add_argument("--crop-stride", type=bounded(float, 0, 1, low_open=True), default=None, metavar="F",

@@ -55,7 +55,7 @@ def knob_rows(num_cameras: int) -> list[tuple[str, str, ExtractPlan]]:
     for frac in (2 / 3, 1 / 2, 1 / 3):
         k = max(1, int(round(frac * num_cameras)))
         rows.append(("cameras", f"{k} of {num_cameras} cameras (coverage)", full.with_(cameras=k)))
-    for s in (2, 4, 8):
+    for s in (2, 4, 6, 8):
         rows.append(("timestep stride", f"stride {s}, interpolate", full.with_(timestep_stride=s)))
     rows.append(("timestep stride", "stride 4, reuse", full.with_(timestep_stride=4, fill="reuse")))
     for s in (4, 6, 8):

@@ -55,9 +55,11 @@ def knob_rows(num_cameras: int) -> list[tuple[str, str, ExtractPlan]]:
     for frac in (2 / 3, 1 / 2, 1 / 3):
         k = max(1, int(round(frac * num_cameras)))
         rows.append(("cameras", f"{k} of {num_cameras} cameras (coverage)", full.with_(cameras=k)))
-    for s in (2, 4, 8):
+    for s in (2, 4, 6, 8):
         rows.append(("timestep stride", f"stride {s}, interpolate", full.with_(timestep_stride=s)))
     rows.append(("timestep stride", "stride 4, reuse", full.with_(timestep_stride=4, fill="reuse")))
+    for s in (4, 6, 8):
+        rows.append(("timestep stride", f"stride {s}, latents", full.with_(timestep_stride=s, fill="latents")))
     rows += [("levels", "levels 1-4 (no smallest)", full.with_(levels=(1, 2, 3, 4))),
              ("levels", "levels 2-4", full.with_(levels=(2, 3, 4)))]
     rows += [("crop stride", f"crop stride {f:g}", full.with_(crop_stride=f)) for f in (0.75, 1.0)]
@@ -66,6 +68,9 @@ def knob_rows(num_cameras: int) -> list[tuple[str, str, ExtractPlan]]:
                                                                            early_exit="foreground")),
              ("combined", "stride 8 + crop stride 0.75 + early exit", full.with_(timestep_stride=8, crop_stride=0.75,
                                                                               early_exit="foreground"))]
+    rows += [("combined", f"stride {s} + crop stride 0.75 + early exit, latents",
+              full.with_(timestep_stride=s, crop_stride=0.75, early_exit="foreground", fill="latents"))
+             for s in (5, 6, 8)]
     rows.append(("default", "default plan", PLANS["default"]))
     return rows
 
@@ -472,7 +477,9 @@ def register_bench(bench_sub: Any) -> None:
                    help="the real capture's masks {camera}/{t:06d}.png (default the Panoptic capture's seg/)")
     p.add_argument("--held-out", type=int, default=4, help="real proxy: training cameras held out (default 4)")
     p.add_argument("--timesteps", type=int, default=9, help="real proxy: first timesteps used (default 9)")
-    p.add_argument("--rows", default=None, help="only the rows whose name contains one of these (comma separated)")
+    p.add_argument("--rows", default=None,
+                   help="only the rows whose name contains one of these (separated by ';', or by ',' when the "
+                        "text holds no ';')")
     p.add_argument("--ae-epochs", type=int, default=4, help="autoencoder epochs (default 4)")
     p.add_argument("--own-autoencoder", action="store_true",
                    help="train an autoencoder per row (default: every row reuses the reference row's, so the rows "
@@ -507,7 +514,7 @@ def run_cli(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     json_path = out / "language_cost.json"
     report = json.loads(json_path.read_text(encoding="utf-8")) if json_path.is_file() else {"rows": []}
-    wanted = [w.strip() for w in (args.rows or "").split(",") if w.strip()]
+    wanted = row_patterns(args.rows)
 
     def pick(rows):
         return [r for r in rows if not wanted or any(w in r[1] for w in wanted)]
@@ -552,6 +559,12 @@ def run_cli(args: argparse.Namespace) -> int:
     print(markdown(report))
     print(f"wrote {json_path}, {out / 'language_cost.md'}, {out / 'language_cost.png'}")
     return 0
+
+
+def row_patterns(text: str | None) -> list[str]:
+    """The ``--rows`` patterns: separated by ';' when the text holds one (row names hold commas), else by ','."""
+    sep = ";" if text and ";" in text else ","
+    return [w.strip() for w in (text or "").split(sep) if w.strip()]
 
 
 def _row_order(name: str) -> int:

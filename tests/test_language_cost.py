@@ -66,7 +66,7 @@ def test_plan_clips_of_a_panoptic_rig():
     assert levels["planned"] == (572 - 336) * 27 * 150     # the smallest scale holds 336 of the 572
 
 
-@given(T=st.integers(1, 40), stride=st.integers(1, 9), fill=st.sampled_from(["interpolate", "reuse"]),
+@given(T=st.integers(1, 40), stride=st.integers(1, 9), fill=st.sampled_from(["interpolate", "reuse", "latents"]),
        data=st.data())
 def test_timesteps_off_the_grid_are_filled_from_encoded_neighbours(T, stride, fill, data):
     grid = encoded_timesteps(T, stride)
@@ -77,7 +77,7 @@ def test_timesteps_off_the_grid_are_filled_from_encoded_neighbours(T, stride, fi
         assert all(k in grid for k, _ in sources)
         if t in grid:
             assert sources == [(t, 1.0)]
-        elif fill == "interpolate":
+        elif fill in ("interpolate", "latents"):
             (a, wa), (b, wb) = sources
             assert a < t < b and wb == pytest.approx((t - a) / (b - a))
         else:
@@ -334,12 +334,15 @@ def test_the_panel_prices_the_field_through_the_api_before_building_it(micro, tm
 def test_bench_prices_rows_from_their_counted_clips():
     """The bench's cost columns: the early exit's share over the timesteps that could copy, and a row's plan
     on the 27-camera, 150-timestep rig scaled from its proxy's camera count."""
-    from fourlegs_bench.language_cost import exit_share_of, knob_rows, panoptic_hours
+    from fourlegs_bench.language_cost import exit_share_of, knob_rows, panoptic_hours, row_patterns
 
     row = {"clips_copied": 300, "clips_encoded": 700, "timesteps_encoded": 5}   # 200 crops per timestep
     assert exit_share_of(row) == pytest.approx(300 / (200 * 4))
     assert exit_share_of({"clips_copied": 0, "clips_encoded": 10, "timesteps_encoded": 1}) == 0.0
     names = [name for _, name, _ in knob_rows(12)]
+    picked = row_patterns("stride 6, latents;full (paper)")
+    assert [n for n in names if any(w in n for w in picked)] == ["full (paper)", "stride 6, latents"]
+    assert row_patterns("stride 2,levels") == ["stride 2", "levels"] and row_patterns(None) == []
     assert names[0] == "full (paper)" and names[-1] == "default plan" and len(set(names)) == len(names)
     plan = dataclasses.asdict(PLANS["full"].with_(cameras=6))
     priced = panoptic_hours({"plan": plan, "scene": {"cameras": 12}}, clip_s=2.0, exit_share=0.0)

@@ -23,7 +23,9 @@ def add_plan_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--timestep-stride", type=bounded(int, 1), default=None, metavar="N",
                    help="encode every N-th timestep and the last; the others are filled from their neighbours")
     g.add_argument("--fill", default=None, choices=FILL_MODES,
-                   help="how skipped timesteps get features: interpolate (default) or reuse the nearer one")
+                   help="how skipped timesteps are filled: interpolate their neighbours' features (default), reuse the "
+                        "nearer one's, or latents: lift only the encoded timesteps and give each Gaussian the "
+                        "interpolation of its own latents (the fill moves with the Gaussians)")
     g.add_argument("--levels", default=None, metavar="I,J,...",
                    help="keep these pyramid scales (indices into --ratios/--steps, 0 = smallest)")
     g.add_argument("--crop-stride", type=bounded(float, 0, 1, low_open=True), default=None, metavar="F",

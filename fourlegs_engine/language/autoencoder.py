@@ -195,7 +195,7 @@ def autoencoder_training(scene: Any, config: AETrainOptions | None = None, *, ov
     """
     from ..fileio import save_torch_atomic, write_json_atomic
     from .ae_sample import check_features_complete, check_holdout_camera, training_data
-    from .extract import feature_store
+    from .extract import feature_store, stored_timesteps
     from .store import config_hash
 
     config = (config or AETrainOptions()).check()
@@ -203,7 +203,7 @@ def autoencoder_training(scene: Any, config: AETrainOptions | None = None, *, ov
     store = feature_store(scene)
     config.check(int(store.config["dim"]))
     check_holdout_camera(config, scene.cameras.num_cameras(store.config.get("split", "train")))
-    steps = list(range(scene.num_timesteps)) if timesteps is None else sorted({int(t) for t in timesteps})
+    steps = stored_timesteps(scene, store.config) if timesteps is None else sorted({int(t) for t in timesteps})
     check_features_complete(store, steps)
     balance = config.resolved_balance(str(store.config.get("encoder", "")))
     cfg = {"features": store.hash, **config.to_dict(), **({"balance": balance} if balance != "none" else {})}

@@ -7,7 +7,9 @@ Modes (geometry frozen in all of them):
     w_i(p) = α_i T_i. The lift is the rendering-weighted average of the encoded teacher latents
     L_i ∝ Σ_v Σ_p w_i(p) e_v(p) / Σ_v Σ_p w_i(p), L2-normalized — one rasterizer pass per view. Where
     every pixel sees a single Gaussian this is exactly the direction of the least-squares solution.
-    Gaussians no training pixel sees keep a zero latent. Computed by one splat pass per view
+    Gaussians no training pixel sees keep a zero latent. The in-between timesteps of a ``fill="latents"``
+    extraction are not lifted but filled from their lifted neighbours (:mod:`.latent_fill`).
+    Computed by one splat pass per view
     (:func:`~fourlegs_engine.render.splat`, the transpose of rendering: Σ_p w·[e, 1] per Gaussian
     without materializing the weights; equal to the weights-based sum up to float32 summation order).
     ``lift_smoothing="blur"`` then replaces each lifted latent by the mean over its ``neighbours``
@@ -60,10 +62,11 @@ from ..threads import torch_threads
 from .attention import knn_indices
 from .autoencoder import AE_REPORT, ENCODER_FILE, FeatureEncoder, l2_normalize, load_encoder, read_ae_report
 from .extract import feature_store, load_step_features, view_has_evidence
+from .latent_fill import fill_latent_steps, latent_fill_of, lift_and_fill_work
 from .latent_solvers import lift_latents, optimize_latents, smooth_lift, teacher_latents, timestep_seed
 from .latents_file import LANGUAGE_DIR, finish_swap, forget_merged, merge_latents, merged_hash
 from .pyramid import PyramidLayout
-from .store import StepStore, config_hash, format_ranges, select_timesteps
+from .store import StepStore, config_hash, format_ranges
 from .view_operator import ViewOperator, view_operator
 
 MODES = ("optimize", "lift", "lift+refine")
@@ -192,6 +195,8 @@ class DistillResult:
     latents: str | None
     timings: list[TimestepTiming] = field(default_factory=list)
     skipped: list[int] = field(default_factory=list)
+    #: in-between timesteps of a fill="latents" extraction filled from their lifted neighbours
+    filled: list[int] = field(default_factory=list)
 
     @property
     def seconds_per_timestep(self) -> float | None:
@@ -199,7 +204,7 @@ class DistillResult:
 
     def to_dict(self) -> dict[str, Any]:
         return {"mode": self.mode, "config": self.config, "config_hash": self.config_hash,
-                "out_dir": self.out_dir, "latents": self.latents, "skipped": self.skipped,
+                "out_dir": self.out_dir, "latents": self.latents, "skipped": self.skipped, "filled": self.filled,
                 "seconds_per_timestep": self.seconds_per_timestep,
                 "timings": [dict(asdict(t), seconds_per_iteration=t.seconds_per_iteration) for t in self.timings]}
 
@@ -373,16 +378,17 @@ def distill_scene(scene: Scene, mode: str | None = None, iterations: int | None 
             forget_merged(out)
         existing_hash = None
     result = DistillResult(config.mode, cfg, chash, str(out), None)
-    steps = select_timesteps(scene.num_timesteps, timesteps, shard)
+    stride = latent_fill_of(features.config)  # a fill="latents" extraction: the lift fills the in-between steps
+    steps, to_fill = lift_and_fill_work(scene.num_timesteps, stride, timesteps, shard)
     if existing_hash == chash:
-        result.skipped = list(steps)
+        result.skipped = sorted(steps + to_fill)
         result.latents = str(latents_path)
         return result
     store.open(overwrite=overwrite)
     encoder = load_encoder(root / ENCODER_FILE)
     store.shape_of, store.dtype = (lambda t: (scene.num_gaussians, encoder.dims[-1])), "float16"
     todo = [t for t in steps if not store.is_done(t)]  # a damaged step file is distilled again
-    result.skipped = [t for t in steps if t not in todo]
+    result.skipped = sorted([t for t in steps if t not in todo] + [t for t in to_fill if store.is_done(t)])
     bar = None
     if progress and todo:
         from tqdm import tqdm
@@ -400,6 +406,7 @@ def distill_scene(scene: Scene, mode: str | None = None, iterations: int | None 
     finally:
         if bar is not None:
             bar.close()
+    result.filled = fill_latent_steps(store, to_fill, stride) if stride is not None else []
     if merge and not store.missing():
         merge_latents(scene, store, out, chash, config, update_bundle=default_out)
         result.latents = str(latents_path)

@@ -31,8 +31,8 @@ from ..scene.scene import Scene
 from .crop_encoding import COVERAGE_MEANS, RGB_CROP_SIZE, TimestepEncoder
 from .frames import FrameSource
 from .pyramid import DEFAULT_STRIDE_FRACTION, TUBE_OFFSETS, PyramidLayout, crop_layout, pyramid_ratios
-from .skipping import DEFAULT_UNCHANGED_BELOW, EARLY_EXITS, FILL_MODES, encoded_timesteps, fill_features, \
-    fill_sources, timestep_work
+from .skipping import DEFAULT_UNCHANGED_BELOW, EARLY_EXITS, FILL_MODES, LATENT_FILLS, encoded_timesteps, \
+    feature_timesteps, fill_features, fill_sources, timestep_work
 from .store import StepStore, format_ranges, parse_shard, select_timesteps
 
 FEATURES_DIR = "features"
@@ -58,7 +58,8 @@ class ExtractOptions:
             rows (no evidence).
         crop_stride: distance between neighbouring crops as a fraction of the crop side (0.5: paper).
         timestep_stride: encode every n-th timestep (and the last); the others are filled (``fill``:
-            "interpolate" between the two encoded neighbours or "reuse" the nearer one).
+            "interpolate" between the two encoded neighbours' features or "reuse" the nearer one's; "latents":
+            no features, the lift fills those timesteps in the field).
         early_exit: "none" | "foreground" | "difference": copy the previous encoded timestep's feature
             of crops whose pixels stay unchanged (:func:`.skipping.unchanged_crops`, ``unchanged_below``).
     """
@@ -238,6 +239,8 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractOptions | None =
     encode_steps, fill_steps = timestep_work(scene.num_timesteps, select_timesteps(scene.num_timesteps, timesteps),
                                              config.timestep_stride, config.fill, parse_shard(shard) if
                                              shard is None or isinstance(shard, str) else tuple(shard))
+    if config.fill in LATENT_FILLS:  # the lift fills these timesteps in the field
+        fill_steps = []
     todo = [t for t in encode_steps if not store.is_done(t)]
     skipped = [t for t in sorted(encode_steps + fill_steps) if store.is_done(t)]
     start, cpu_start = time.perf_counter(), time.process_time()
@@ -279,12 +282,22 @@ def _fill_timesteps(store: StepStore, to_fill: Sequence[int], grid: Sequence[int
     return filled
 
 
+def stored_timesteps(scene: Scene, config: dict[str, Any]) -> list[int]:
+    """The timesteps a complete extraction with this features configuration has files for (all, or the
+    stride's grid when the lift fills the others)."""
+    return feature_timesteps(scene.num_timesteps, int(config.get("timestep_stride", 1)),
+                             str(config.get("fill", "interpolate")))
+
+
 def check_features(scene: Scene) -> dict[str, Any]:
     """Merge/check step: which timesteps are finished, missing or unreadable."""
     store = feature_store(scene)
     layouts, _ = camera_layouts(scene, 0, store.config["ratios"], store.config.get("split", "train"),
                                 store.config.get("crop_stride", DEFAULT_STRIDE_FRACTION))
     report = store.check((sum(l.num_crops for l in layouts), int(store.config["dim"])))
+    expected = set(stored_timesteps(scene, store.config))
+    report["missing"] = [t for t in report["missing"] if t in expected]
+    report["complete"] = not report["missing"] and not report["bad"]
     report["missing_ranges"] = format_ranges(report["missing"])
     return report
 

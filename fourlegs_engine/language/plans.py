@@ -23,8 +23,12 @@ if TYPE_CHECKING:
 
 #: neighbouring crops overlap by half their side (paper)
 PAPER_CROP_STRIDE = 0.5
-#: how timesteps off the stride's grid get their features
-FILL_MODES = ("interpolate", "reuse")
+#: how timesteps off the stride's grid are filled: their crop features ("interpolate" between the two encoded
+#: neighbours, "reuse" the nearer one), or their lifted field ("latents": every Gaussian gets the
+#: interpolation of its own latents at the two encoded neighbours, so the fill moves with the Gaussians)
+FILL_MODES = ("interpolate", "reuse", "latents")
+#: the fill modes whose in-between timesteps have no teacher features (the lift fills them)
+LATENT_FILLS = ("latents",)
 #: which crops an early exit copies from the previous encoded timestep instead of encoding
 EARLY_EXITS = ("none", "foreground", "difference")
 
@@ -37,7 +41,7 @@ class ExtractPlan:
         name: "full", "default" or "custom".
         cameras: encode this many training cameras, chosen for coverage (None: all).
         timestep_stride: encode every n-th timestep and the last; fill the others (``fill``).
-        fill: "interpolate" | "reuse".
+        fill: "interpolate" | "reuse" (crop features) | "latents" (the lifted field; :data:`FILL_MODES`).
         levels: indices of the pyramid scales kept (None: all), e.g. (1, 2, 3, 4) drops the smallest.
         crop_stride: distance between neighbouring crops, as a fraction of the crop side (0.5: paper).
         early_exit: "none" | "foreground" | "difference".

@@ -10,6 +10,9 @@ the autoencoder and the query engine read them unchanged.
   (:func:`encoded_timesteps`). The 8-frame tubes of neighbouring timesteps share 7 of their 8 frames, so
   the features of a timestep in between are the normalized linear interpolation of its two encoded
   neighbours' (``fill="interpolate"``) or the nearer neighbour's (``fill="reuse"``) (:func:`fill_features`).
+  With ``fill="latents"`` the in-between timesteps get no features: the lift fills them in the field, each
+  Gaussian with the normalized interpolation of its own latents at the two encoded neighbours
+  (:mod:`.latent_fill`), so the fill follows a moving object instead of smearing it at fixed pixels.
 - **Early exits**: a crop whose pixels do not change over every frame from the previous encoded
   timestep's tube to this timestep's tube sees the same clip both times, so its feature is copied
   (:func:`unchanged_crops`). "Unchanged" is read off the foreground (``"foreground"``: no foreground
@@ -25,7 +28,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from .plans import EARLY_EXITS, FILL_MODES
+from .plans import EARLY_EXITS, FILL_MODES, LATENT_FILLS
 
 #: a crop counts as unchanged when its mean foreground coverage / mean absolute change per pixel (summed
 #: over channels) stays below this in every frame of the tubes compared
@@ -73,6 +76,14 @@ def encoded_timesteps(num_timesteps: int, stride: int) -> list[int]:
     return steps
 
 
+def feature_timesteps(num_timesteps: int, stride: int, fill: str) -> list[int]:
+    """The timesteps that have teacher features once extraction is complete: every one, or with a fill of
+    the lifted field (:data:`LATENT_FILLS`) only the stride's grid."""
+    if fill in LATENT_FILLS:
+        return encoded_timesteps(num_timesteps, stride)
+    return list(range(num_timesteps))
+
+
 def timestep_work(num_timesteps: int, selection: Sequence[int], stride: int, fill: str,
                   shard: tuple[int, int] = (0, 1)) -> tuple[list[int], list[int]]:
     """(timesteps to encode, timesteps to fill) of one worker.
@@ -93,7 +104,7 @@ def fill_sources(t: int, encoded: Sequence[int], fill: str) -> list[tuple[int, f
     """The encoded timesteps timestep ``t``'s features are made of, with their weights (summing to 1).
 
     ``t`` itself when it is encoded; else its two neighbours weighted by closeness ("interpolate") or
-    the nearer one, the earlier on a tie ("reuse")."""
+    the nearer one, the earlier on a tie ("reuse"); "latents" weighs like "interpolate"."""
     if fill not in FILL_MODES:
         raise InputError(f"unknown fill {fill!r} (choose from {', '.join(FILL_MODES)})", field="fill")
     grid = np.asarray(sorted(encoded))

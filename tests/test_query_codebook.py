@@ -204,7 +204,8 @@ def _segment_problem(seed: int, S: int = 40, N: int = 400, K: int = 64, ramp: fl
 def test_refined_counts_rescore_only_the_timesteps_a_decision_depends_on():
     codes, code_scores, exact, hist = _segment_problem(0)
     calls = []
-    counts, r_avg, n_rel, rescored, sampled = _refined(code_scores, hist, codes, exact, 0.01, calls, samples=512)
+    counts, r_avg, n_rel, rescored, sampled = _refined(code_scores, hist, codes, exact, 0.01, calls, samples=512,
+                                                       exact_band_pairs=0)
     S = codes.shape[0]
     want_counts, want_r_avg, _ = counts_from_relevancy(torch.from_numpy(exact))
     np.testing.assert_array_equal(_positives(counts, S), _positives(want_counts, S))
@@ -215,6 +216,43 @@ def test_refined_counts_rescore_only_the_timesteps_a_decision_depends_on():
     band = [c[1] for c in calls if c[0] == "members"]
     assert all(np.all(np.abs(code_scores[b] - r_avg) < 0.01 + 0.01) for b in band)  # codes near R_avg only
     assert np.isin(codes.reshape(-1)[handles], np.concatenate(band)).all()
+
+
+def _small_object_problem(seed: int, S: int = 30, N: int = 200, K: int = 40):
+    """A small object's 4 codes near R_avg whose members spread over 0.45 .. 0.75 (beyond the margin),
+    present in 0-8 % of the Gaussians of each timestep; every other code's members equal its score."""
+    rng = np.random.default_rng(seed)
+    code_scores = np.concatenate([rng.uniform(0.0, 0.3, K - 4), rng.uniform(0.6, 0.62, 4)])
+    codes = np.where(rng.random((S, N)) < rng.uniform(0.0, 0.08, (S, 1)), rng.integers(K - 4, K, (S, N)),
+                     rng.integers(0, K - 4, (S, N)))
+    exact = code_scores[codes].copy()
+    small = codes >= K - 4
+    exact[small] = rng.uniform(0.45, 0.75, int(small.sum()))
+    hist = np.stack([np.bincount(codes[t], minlength=K) for t in range(S)]).astype(np.int32)
+    return codes, code_scores, exact, hist, small
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000))
+def test_a_small_band_scored_whole_gives_the_exact_counts(seed):
+    """The real capture's ball: its codes mix members on both sides of R_avg. Scored whole, the band gives
+    every timestep its exact count, so the decisions s_t > 1/T are exact counting's against the exact
+    total, not only against the estimate's."""
+    codes, code_scores, exact, hist, small = _small_object_problem(seed)
+    calls = []
+    counts, r_avg, n_rel, rescored, _ = _refined(code_scores, hist, codes, exact, 0.05, calls)
+    want_counts, want_r_avg, want_n = counts_from_relevancy(torch.from_numpy(exact))
+    np.testing.assert_array_equal(counts, want_counts)
+    assert rescored == int(small.sum()) and r_avg == pytest.approx(want_r_avg, abs=1e-12) and n_rel == want_n
+
+
+def test_without_the_whole_band_rule_a_small_object_gets_estimated_counts():
+    differ = 0
+    for seed in range(30):
+        codes, code_scores, exact, hist, _ = _small_object_problem(seed)
+        counts = _refined(code_scores, hist, codes, exact, 0.05, [], exact_band_pairs=0)[0]
+        differ += not np.array_equal(counts, np.asarray(counts_from_relevancy(torch.from_numpy(exact))[0]))
+    assert differ > 0
 
 
 def test_sampled_r_avg_is_exact_with_every_pair_and_within_its_error_otherwise():

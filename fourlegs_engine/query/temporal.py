@@ -86,18 +86,20 @@ R_AVG_Z = 3.0  # R_avg's confidence interval, in standard errors of its sampled 
 R_AVG_MAX_SAMPLES_FACTOR = 16  # the sample grows 4x at a time up to this many times the first one
 RESCORE_CHUNKS = 4  # an open timestep's band members are re-scored in this many random chunks
 RESCORE_MIN_CHUNK = 64
+#: a band holding at most this many (Gaussian, timestep) pairs is re-scored whole at once (about 1 s per
+#: 100k on the reference machine)
+EXACT_BAND_PAIRS = 50_000
 
 
 def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.ndarray, np.ndarray], tuple],
                               score: Callable[[np.ndarray], np.ndarray], sample: Callable[[list, list], list],
                               margin: float,
                               weights: Optional[np.ndarray] = None, samples: int = R_AVG_SAMPLES,
-                              tied_rows: Optional[Callable[[np.ndarray], list]] = None
-                              ) -> tuple[np.ndarray, float, int, int, int]:
+                              tied_rows: Optional[Callable[[np.ndarray], list]] = None,
+                              exact_band_pairs: int = EXACT_BAND_PAIRS) -> tuple[np.ndarray, float, int, int, int]:
     """:func:`counts_from_code_histogram` with exact scores where the localization's decisions need them.
 
-    Two things decide the answer: R_avg, and for every timestep whether its count is above the mean
-    count (s_t > 1/T). The codebook gets both nearly right; this makes them exact where it matters:
+    R_avg and each timestep's decision (count above the mean, s_t > 1/T) come nearly right from the codes:
 
     1. R_avg from the code relevancies r_k, corrected by the exact scores of a uniform sample of (g, t)
        pairs: a control variate, stratified by the code's distance from 0.5 (finest near 0.5, where
@@ -110,14 +112,14 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
        straddle the mean count (the total of the current counts / T), its band members are re-scored
        exactly, a random 1/``RESCORE_CHUNKS`` of them at a time, each chunk narrowing the bounds. A
        fully re-scored timestep still open because of R_avg's interval gets a 4x larger sample (up to
-       ``R_AVG_MAX_SAMPLES_FACTOR`` x). Members not re-scored count by their code (the lookup
-       estimate), which keeps every count inside its bounds.
+       ``R_AVG_MAX_SAMPLES_FACTOR`` x). Members not re-scored count by their code (the lookup estimate,
+       inside the bounds); a band of at most ``exact_band_pairs`` members is re-scored whole first.
     3. If ``tied_rows`` finds equally long longest segments, their s_t sums decide: from the bounds when
        they do not overlap, else from exact counts of every timestep in them.
 
-    So, against the total it returns, every timestep is decided as its exact count would be whenever
-    every member's relevancy is within ``margin`` of its code's and R_avg lies in its interval (it is
-    exact when ``samples`` covers every pair); the total itself mixes exact counts and lookup estimates.
+    So, against the total it returns, every timestep is decided as its exact count would be whenever every
+    member is within ``margin`` of its code's relevancy and R_avg lies in its interval (exact when
+    ``samples`` covers every pair); the total mixes exact counts and lookup estimates.
 
     Args:
         code_scores: (K,) relevancy of each code.
@@ -136,6 +138,7 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
         samples: exact scores spent on R_avg.
         tied_rows: positive (S,) bool -> one array per longest segment when more than one is longest (else
             none): the scored row of each of its timesteps (see :func:`tied_segment_rows`).
+        exact_band_pairs: a band with at most this many members is re-scored whole (0: never).
     Returns:
         counts (S,), R_avg, number of relevant (g,t) pairs (estimated), latents re-scored, latents sampled.
     """
@@ -159,6 +162,7 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
     first = (r_low, r_high)
     # 2. counts above R_avg: by code outside the band, bounded inside it until re-scored
     band = _Band(r, hist, held, r_avg, first, margin, members, score)
+    band.score_whole_if_at_most(exact_band_pairs)
     while True:  # the total is the estimate's; each row's own count is decided from its bounds
         low, high = band.bounds(r_low, r_high)
         above, pending = band.above(r_avg)
@@ -275,6 +279,13 @@ class _Band:
             above[i] = int((exact_i > threshold).sum()) + int((self.r[codes_i] > threshold).sum())
             pending[i] = codes_i.size
         return above, pending
+
+    def score_whole_if_at_most(self, limit: int) -> None:
+        """Score every band member now when there are at most ``limit`` of them (a small object's few codes):
+        the counts, and the total each timestep is compared with, are then exact wherever every code outside
+        the band has its members on its own side of R_avg, however far its members are from its score."""
+        if 0 < int(self.unsure.sum()) <= int(limit):
+            self.score_next(np.nonzero(self.unsure > 0)[0], everything=True)
 
     def bounds(self, r_low: float, r_high: float) -> tuple[np.ndarray, np.ndarray]:
         """(S,) lowest and highest count above any R in [r_low, r_high] the pending members allow."""

@@ -7,7 +7,8 @@ where the previous camera ended), and lists per render pass the frames that need
 frame, ``relevancy`` only where the background is desaturated, ``depth`` only for shots that ask for
 depth of field.
 
-Following the paper (§6.1): the best view is the camera with the highest mean relevancy at the peak;
+Following the paper (§6.1): the best view is the camera with the most relevancy at the peak (by default
+the mass above 0.5, which follows a small subject; the paper's mean with ``view_score="mean"``);
 the action centre is the relevancy centre of mass lifted with rendered depth; with ``recentre`` the
 best view is turned so the action centre sits mid-frame; the segment is the longest positive run and
 the peak its centre.

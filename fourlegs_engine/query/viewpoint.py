@@ -1,4 +1,4 @@
-"""Best viewpoint (paper §6.1): the camera whose relevancy map has the highest mean relevancy.
+"""Best viewpoint (paper §6.1): the camera whose relevancy map holds the most relevancy.
 
 Two scores (:data:`VIEW_SCORES`): ``"mean"`` is the paper's, the mean of the map; ``"relevant"`` is the
 mean of the part above 0.5, ``mean(max(R - 0.5, 0))``: the relevant pixels' mass. Where the subject is

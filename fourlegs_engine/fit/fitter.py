@@ -112,7 +112,8 @@ def _tqdm_progress(total_timesteps: int):
 
 
 def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitOptions | None = None, *,
-                overwrite: bool = False, progress: bool | Callable[[FitEvent], None] = True) -> Path:
+                overwrite: bool = False, progress: bool | Callable[[FitEvent], None] = True,
+                check_test_frames: bool = True) -> Path:
     """Fit dynamic Gaussians to a capture and write the native bundle at ``output``.
 
     Args:
@@ -121,6 +122,8 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
         options: :class:`FitOptions`.
         overwrite: replace an existing bundle, and restart a partial fit made with other options.
         progress: True for tqdm bars, False for silence, or a callable receiving :class:`FitEvent`.
+        check_test_frames: also check the test cameras' frames before fitting (they are read afterwards to
+            measure the held-out PSNR).
     Returns:
         the bundle path. Per-Gaussian foreground flags, the per-camera colour correction and per-timestep
         training PSNR are stored in the bundle (``foreground.npy``; ``metadata.fit``).
@@ -137,6 +140,8 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
     steps = capture.timestep_range(opts.timesteps)
     cams_idx = capture.camera_indices("train", opts.cameras)
     capture.check_frames("train", steps, cams_idx, masks=capture.has_masks)
+    if check_test_frames:
+        capture.check_frames("test", steps, capture.camera_indices("test", None), masks=False)
     device = torch.device("cuda" if opts.device == "cuda" or (opts.device == "auto" and torch.cuda.is_available())
                           else "cpu")
     a = steps.start
@@ -165,6 +170,10 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
     report = progress if callable(progress) else (_tqdm_progress(len(steps)) if progress else (lambda ev: None))
     try:
         history = _run(capture, steps, cams_idx, cameras, size, opts, device, scene_radius, work, report)
+    except BaseException:
+        if not (work / "static.npz").is_file():  # nothing finished to resume from: leave nothing behind
+            shutil.rmtree(work, ignore_errors=True)
+        raise
     finally:
         if hasattr(report, "close"):
             report.close()

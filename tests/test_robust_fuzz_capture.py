@@ -1,0 +1,165 @@
+"""Issue #30: ``fourlegs fit`` on damaged captures and ``fourlegs viclip-info`` on damaged checkpoints.
+
+Each case either succeeds (a tiny fit: 2 + 1 iterations at 32x18) or ends with exactly one
+``fourlegs: error:`` line naming the damaged file, exit code 2, no traceback, and nothing left behind
+(no output folder, no ``.NAME.fit`` work folder, no ``.part`` file). A checkpoint that is a pickle with a
+payload never runs it.
+"""
+from __future__ import annotations
+
+import gzip
+import io
+import json
+import os
+import pickle
+import shutil
+import struct
+import zipfile
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from PIL import Image
+
+from _fit_helpers import write_tiny_capture
+from _fuzz_helpers import HOSTILE_JSON, json_paths, remove_at, replace_at
+from fourlegs_engine.commands.main import main
+
+EXAMPLES = int(os.environ.get("FOURLEGS_FUZZ_EXAMPLES", "30"))
+FUZZ = settings(max_examples=max(EXAMPLES // 3, 1), deadline=None,
+                derandomize=not os.environ.get("FOURLEGS_FUZZ_RANDOM"),
+                suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+TINY_FIT = ["--first-iterations", "2", "--iterations", "1", "--max-iterations", "0", "--device", "cpu",
+            "--init-foreground", "300", "--init-background", "300", "--max-gaussians", "1000"]
+
+
+def _run(argv: list[str], capsys) -> tuple[int, list[str]]:
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        try:
+            code = main(argv)
+        except SystemExit as exc:
+            code = exc.code
+    finally:
+        torch.set_num_threads(old)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, (argv, err)
+    return code, [line for line in err.replace("\r", "\n").splitlines() if line.strip()]
+
+
+def _assert_one_line_naming(code: int, lines: list[str], name: str) -> None:
+    assert code == 2 and len(lines) == 1, (code, lines)
+    assert lines[0].startswith("fourlegs: error:") and name in lines[0], (name, lines)
+
+
+# ----------------------------------------------------------------------------------- fit on a capture
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Path:
+    return write_tiny_capture(tmp_path_factory.mktemp("capture") / "cap")
+
+
+def _png_with_header(width: int, height: int) -> bytes:
+    """A PNG whose header claims ``width`` x ``height`` pixels and whose data is a few bytes."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(b"\x00" * 16)) + chunk(b"IEND", b""))
+
+
+def _image_bytes(kind: str, raw: bytes, at: float) -> bytes:
+    if kind == "truncated":
+        return raw[:int(len(raw) * at)]
+    if kind == "flipped":
+        i = min(int(len(raw) * at), len(raw) - 1)
+        return raw[:i] + bytes([raw[i] ^ 0x5A]) + raw[i + 1:]
+    if kind == "empty":
+        return b""
+    if kind == "text":
+        return b"not an image\n"
+    if kind == "bomb":
+        return _png_with_header(60_000, 60_000)
+    buffer = io.BytesIO()
+    size = (33, 18) if kind == "wrong size" else (32, 18)
+    mode = {"rgba": "RGBA", "16-bit": "I;16"}.get(kind, "RGB")
+    Image.new(mode, size).save(buffer, "PNG")
+    return buffer.getvalue()
+
+
+IMAGE_DAMAGES = ["truncated", "flipped", "empty", "text", "bomb", "wrong size", "rgba", "16-bit"]
+
+
+def _damage(cap: Path, kind: str, data) -> str | None:
+    """Damage one file of ``cap`` in the way ``kind`` names; returns the file name the error must mention
+    (None: the capture is still valid and the fit must succeed)."""
+    if kind in IMAGE_DAMAGES:
+        target = data.draw(st.sampled_from(sorted(cap.rglob("*.png"))), label="file")
+        target.write_bytes(_image_bytes(kind, target.read_bytes(), data.draw(st.floats(0.0, 0.99), label="at")))
+        return None if kind in ("rgba", "16-bit") else target.name
+    meta_file = cap / data.draw(st.sampled_from(["train_meta.json", "test_meta.json"]), label="meta")
+    meta = json.loads(meta_file.read_text())
+    if kind == "value":
+        path = data.draw(st.sampled_from(sorted(json_paths(meta), key=repr)), label="path")
+        meta = replace_at(meta, path, data.draw(HOSTILE_JSON, label="value"))
+    elif kind == "remove":
+        path = data.draw(st.sampled_from(sorted(json_paths(meta), key=repr)[1:]), label="path")
+        meta = remove_at(meta, path)
+    elif kind == "fn outside":
+        elsewhere = str(next(cap.glob("ims/*/000000.png")).resolve())
+        meta["fn"][data.draw(st.integers(0, 1))][0] = data.draw(st.sampled_from(
+            [elsewhere, "../cap/ims/1/000000.png", "1/../../cap/ims/1/000000.png", "C:\\x.png", "1/\x00.png"]))
+    else:  # one camera moves 50 m and turns between the timesteps: taken as given
+        w2c = np.asarray(meta["w2c"][1][0])
+        w2c[:3, :3] = w2c[:3, [2, 0, 1]]
+        w2c[:3, 3] += 50.0
+        meta["w2c"][1][0] = w2c.tolist()
+    meta_file.write_text(json.dumps(meta))
+    return None if kind == "camera jumps" else meta_file.name
+
+
+def _fit_damaged(capture: Path, root: Path, kind: str, data, capsys) -> None:
+    cap = Path(shutil.copytree(capture, root / "cap"))
+    name = _damage(cap, kind, data)
+    out = root / "out" / "scene"
+    out.parent.mkdir()
+    code, lines = _run(["fit", str(cap), "-o", str(out), *TINY_FIT], capsys)
+    leftovers = sorted(p.name for p in out.parent.iterdir() if p != out)
+    assert not leftovers, leftovers  # no .scene.fit work folder, no .part, no lock file
+    if name is None:
+        assert code == 0 and (out / "scene.json").is_file(), lines
+    elif code == 0:
+        assert kind in ("value", "remove") and (out / "scene.json").is_file()  # e.g. a test camera's id renamed
+    else:
+        assert not out.exists()
+        _assert_one_line_naming(code, lines, name)
+
+
+@settings(FUZZ, max_examples=2)
+@given(data=st.data())
+@pytest.mark.parametrize("kind", IMAGE_DAMAGES + ["fn outside", "camera jumps"])
+def test_fit_on_a_damaged_frame_or_camera_fits_or_is_one_line_and_leaves_nothing(capture, tmp_path_factory, capsys,
+                                                                                 kind, data):
+    _fit_damaged(capture, tmp_path_factory.mktemp("fit"), kind, data, capsys)
+
+
+@FUZZ
+@given(data=st.data(), kind=st.sampled_from(["value", "remove"]))
+def test_fit_on_damaged_metadata_fits_or_is_one_line_and_leaves_nothing(capture, tmp_path_factory, capsys, kind, data):
+    _fit_damaged(capture, tmp_path_factory.mktemp("fit"), kind, data, capsys)
+
+
+def test_fit_checks_every_frame_before_fitting(capture, tmp_path, capsys):
+    """A damaged frame of the last timestep (or of a test camera) stops the fit before its first step."""
+    for damaged in ("ims/2/000001.png", "seg/3/000001.png", "ims/0/000001.png"):
+        cap = Path(shutil.copytree(capture, tmp_path / damaged.replace("/", "_") / "cap"))
+        (cap / damaged).write_bytes((cap / damaged).read_bytes()[:60])
+        code, lines = _run(["fit", str(cap), "-o", str(cap.parent / "scene"), *TINY_FIT], capsys)
+        _assert_one_line_naming(code, lines, damaged)
+        assert "not a readable image" in lines[0]
+        assert sorted(p.name for p in cap.parent.iterdir()) == ["cap"]
+    code, lines = _run(["fit", str(cap), "-o", str(cap.parent / "scene"), *TINY_FIT, "--no-test-psnr"], capsys)
+    assert code == 0, lines  # the test cameras' frames are not read then

@@ -28,6 +28,7 @@ from PIL import Image
 from _fit_helpers import write_tiny_capture
 from _fuzz_helpers import HOSTILE_JSON, json_paths, remove_at, replace_at
 from fourlegs_engine.commands.main import main
+from fourlegs_engine.language.viclip.tokenizer import MAX_VOCAB_BYTES
 
 EXAMPLES = int(os.environ.get("FOURLEGS_FUZZ_EXAMPLES", "30"))
 FUZZ = settings(max_examples=max(EXAMPLES // 3, 1), deadline=None,
@@ -163,3 +164,140 @@ def test_fit_checks_every_frame_before_fitting(capture, tmp_path, capsys):
         assert sorted(p.name for p in cap.parent.iterdir()) == ["cap"]
     code, lines = _run(["fit", str(cap), "-o", str(cap.parent / "scene"), *TINY_FIT, "--no-test-psnr"], capsys)
     assert code == 0, lines  # the test cameras' frames are not read then
+
+
+# ----------------------------------------------------------------------------------- viclip-info
+class _Payload:
+    """Unpickling it would create the marker folder: proof that pickled code ran."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.makedirs, (str(self.marker),)
+
+
+@pytest.fixture(scope="module")
+def viclip_files(tmp_path_factory) -> dict[str, Path]:
+    from _viclip_helpers import randomize_, tiny_config, write_tiny_vocab
+    from fourlegs_engine.language.viclip.model import ViCLIPModel
+
+    root = tmp_path_factory.mktemp("viclip")
+    state = {k: v.contiguous() for k, v in randomize_(ViCLIPModel(tiny_config()), seed=1).state_dict().items()}
+    torch.save({"model": state}, root / "tiny.pth")
+    from safetensors.torch import save_file
+    save_file(state, str(root / "tiny.safetensors"))
+    return {"pth": root / "tiny.pth", "safetensors": root / "tiny.safetensors",
+            "vocab": write_tiny_vocab(root / "bpe.txt.gz")}
+
+
+CHECKPOINT_DAMAGES = ["truncated", "flipped", "empty", "pickle payload", "torch pickle payload", "zip not torch",
+                      "wrong shape", "wrong dtype", "missing key", "nan", "not a tensor", "not a dict"]
+
+
+def _damaged_checkpoint(files: dict[str, Path], work: Path, kind: str, data) -> Path:
+    fmt = data.draw(st.sampled_from(["pth", "safetensors"]), label="format")
+    path = work / files[fmt].name
+    raw = files[fmt].read_bytes()
+    if kind in ("truncated", "flipped", "empty"):
+        at = data.draw(st.integers(0, len(raw) - 1), label="at")
+        path.write_bytes({"truncated": raw[:at], "empty": b"",
+                          "flipped": raw[:at] + bytes([raw[at] ^ 0xA5]) + raw[at + 1:]}[kind])
+        return path
+    if kind == "pickle payload":
+        path = work / "tiny.pth"
+        path.write_bytes(pickle.dumps({"model": {"w": _Payload(work / "pwned")}}))
+        return path
+    if kind == "torch pickle payload":
+        path = work / "tiny.pth"
+        torch.save({"model": {"w": _Payload(work / "pwned")}}, path)
+        return path
+    if kind == "zip not torch":
+        path = work / "tiny.pth"
+        with zipfile.ZipFile(path, "w") as z:
+            z.writestr("archive/data.pkl", b"not a pickle")
+            z.writestr("readme.txt", "hello")
+        return path
+    state = dict(torch.load(files["pth"], weights_only=True)["model"])
+    key = data.draw(st.sampled_from(sorted(state)), label="key")
+    if kind == "wrong shape":
+        state[key] = torch.zeros(tuple(s + 1 for s in state[key].shape) or (2,))
+    elif kind == "wrong dtype":
+        state[key] = torch.zeros(state[key].shape, dtype=data.draw(st.sampled_from(
+            [torch.int64, torch.bool, torch.uint8, torch.complex64]), label="dtype"))
+    elif kind == "missing key":
+        del state[key]
+    elif kind == "nan":
+        state[key] = state[key].clone()
+        state[key].view(-1)[0] = data.draw(st.sampled_from([float("nan"), float("inf")]), label="value")
+    if kind in ("not a tensor", "not a dict"):
+        path = work / "tiny.pth"
+        torch.save({"model": dict(state, extra=3)} if kind == "not a tensor" else [1, 2, 3], path)
+    elif fmt == "pth":
+        torch.save({"model": state}, path)
+    else:
+        from safetensors.torch import save_file
+        save_file(state, str(path))
+    return path
+
+
+@settings(FUZZ, max_examples=2)
+@given(data=st.data())
+@pytest.mark.parametrize("kind", CHECKPOINT_DAMAGES)
+def test_viclip_info_on_a_damaged_checkpoint_is_one_line_and_runs_no_pickled_code(viclip_files, tmp_path_factory,
+                                                                                  capsys, kind, data):
+    work = tmp_path_factory.mktemp("ckpt")
+    path = _damaged_checkpoint(viclip_files, work, kind, data)
+    argv = ["viclip-info", str(path), "--vocab", str(viclip_files["vocab"]), "--convert", str(work / "out.safetensors")]
+    code, lines = _run(argv, capsys)
+    assert not (work / "pwned").exists()
+    if code == 0:
+        assert kind in ("flipped", "wrong dtype")  # a flipped byte of a tensor's data changes one weight
+        assert (work / "out.safetensors").is_file()
+    else:
+        _assert_one_line_naming(code, lines, path.name)
+        assert sorted(p.name for p in work.iterdir()) == [path.name]
+
+
+VOCAB_DAMAGES = ["empty", "garbage", "gzip of garbage", "truncated gzip", "header only", "three symbols",
+                 "gzip bomb"]
+
+
+@settings(FUZZ, max_examples=1)
+@given(data=st.data())
+@pytest.mark.parametrize("kind", VOCAB_DAMAGES)
+def test_viclip_info_on_a_damaged_vocabulary_is_one_line(viclip_files, tmp_path_factory, capsys, kind, data):
+    vocab = tmp_path_factory.mktemp("vocab") / "bpe_simple_vocab_16e6.txt.gz"
+    good = viclip_files["vocab"].read_bytes()
+    vocab.write_bytes({
+        "empty": b"", "garbage": bytes(range(256)) * 4, "gzip of garbage": gzip.compress(bytes(range(128, 256)) * 8),
+        "truncated gzip": good[:data.draw(st.integers(1, len(good) - 1))],
+        "header only": gzip.compress(b"#version: 0.2\n"), "three symbols": gzip.compress(b"#version: 0.2\nh e l\n"),
+        "gzip bomb": gzip.compress(b"#version: 0.2\n" + b"a b\n" * (MAX_VOCAB_BYTES >> 2))}[kind])
+    code, lines = _run(["viclip-info", str(viclip_files["safetensors"]), "--vocab", str(vocab)], capsys)
+    lines = [line for line in lines if not line.startswith(str(viclip_files["safetensors"]))]
+    _assert_one_line_naming(code, lines, vocab.name)
+    if kind == "gzip bomb":
+        assert "more than 16 MiB of text" in lines[0]  # refused before it is unpacked whole
+
+
+@pytest.mark.parametrize("kind", ["pickle payload", "wrong dtype", "vocab"])
+def test_extract_with_a_damaged_viclip_checkpoint_or_vocabulary_is_one_line(viclip_files, tmp_path, capsys, kind):
+    from _language_helpers import micro_bundle
+
+    bundle = micro_bundle(tmp_path / "bundle", T=2, cameras=2)
+    checkpoint, vocab = tmp_path / "tiny.pth", viclip_files["vocab"]
+    if kind == "pickle payload":
+        torch.save({"model": {"w": _Payload(tmp_path / "pwned")}}, checkpoint)
+    elif kind == "wrong dtype":
+        state = torch.load(viclip_files["pth"], weights_only=True)["model"]
+        torch.save({"model": dict(state, temp=torch.zeros((), dtype=torch.int64))}, checkpoint)
+    else:
+        checkpoint, vocab = viclip_files["pth"], tmp_path / "bpe.txt.gz"
+        vocab.write_bytes(b"\x1f\x8b garbage")
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    code, lines = _run(["extract", str(bundle), "--encoder", "viclip", "--checkpoint", str(checkpoint),
+                        "--vocab", str(vocab), "--no-progress"], capsys)
+    _assert_one_line_naming(code, lines, (vocab if kind == "vocab" else checkpoint).name)
+    assert not (tmp_path / "pwned").exists()
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before

@@ -301,3 +301,44 @@ def test_extract_with_a_damaged_viclip_checkpoint_or_vocabulary_is_one_line(vicl
     _assert_one_line_naming(code, lines, (vocab if kind == "vocab" else checkpoint).name)
     assert not (tmp_path / "pwned").exists()
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+
+
+# ----------------------------------------------------------------------------------- bench commands
+BENCH_READERS = {
+    "compare": lambda bad, out: ["bench", "compare", bad, "--out", str(out / "cmp")],
+    "fit-pareto": lambda bad, out: ["bench", "fit-pareto", bad, "--out", str(out / "pareto")],
+    "fit": lambda bad, out: ["bench", "fit", "--dataset", bad, "--out", str(out / "fit"), "--timesteps", "2"],
+    "fit-background": lambda bad, out: ["bench", "fit-background", "--dataset", bad, "--out", str(out / "bg")],
+    "real-lift": lambda bad, out: ["bench", "real-lift", "--scene", bad, "--masks", bad],
+    "real-annotations": lambda bad, out: ["bench", "real-annotations", "--scene", bad, "-o", str(out / "ann")],
+    "device-data": lambda bad, out: ["bench", "device-data", "--source", bad, "-o", str(out / "dd"),
+                                     "--timesteps", "1"],
+    "viclip": lambda bad, out: ["bench", "viclip", "--checkpoint", bad],
+    "query-interactive": lambda bad, out: ["bench", "query-interactive", bad, "ball", "--json", str(out / "q.json")],
+    "grounding": lambda bad, out: ["bench", "grounding", "--bundle", bad],
+    "accuracy-time": lambda bad, out: ["bench", "accuracy-time", "--bundle", bad, "--out", str(out / "at")],
+    "language-cost": lambda bad, out: ["bench", "language-cost", "--proxies", "real", "--real-scene", bad,
+                                       "--masks", bad, "--out", str(out / "lc")],
+}
+
+
+@pytest.fixture(scope="module")
+def bad_inputs(capture, tmp_path_factory) -> list[str]:
+    root = tmp_path_factory.mktemp("bad")
+    (root / "garbage.json").write_text("{not json")
+    (root / "list.json").write_text("[1, 2]")
+    (root / "empty").mkdir()
+    damaged = Path(shutil.copytree(capture, root / "damaged-capture"))
+    meta = json.loads((damaged / "train_meta.json").read_text())
+    meta["k"][0][0] = "x"
+    (damaged / "train_meta.json").write_text(json.dumps(meta))
+    return [str(root / "missing"), str(root / "garbage.json"), str(root / "list.json"), str(root / "empty"),
+            str(damaged)]
+
+
+@pytest.mark.parametrize("bench", sorted(BENCH_READERS))
+def test_bench_commands_on_bad_inputs_are_one_line_and_write_nothing(bench, bad_inputs, tmp_path, capsys):
+    for bad in bad_inputs:
+        code, lines = _run(BENCH_READERS[bench](bad, tmp_path), capsys)
+        assert code not in (0, None) and lines and "error:" in lines[-1], (bench, bad, lines)
+        assert not any(tmp_path.iterdir()), (bench, bad, sorted(p.name for p in tmp_path.iterdir()))

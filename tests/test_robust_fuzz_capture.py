@@ -342,3 +342,65 @@ def test_bench_commands_on_bad_inputs_are_one_line_and_write_nothing(bench, bad_
         code, lines = _run(BENCH_READERS[bench](bad, tmp_path), capsys)
         assert code not in (0, None) and lines and "error:" in lines[-1], (bench, bad, lines)
         assert not any(tmp_path.iterdir()), (bench, bad, sorted(p.name for p in tmp_path.iterdir()))
+
+
+# ----------------------------------------------------------------------- annotation masks and presets
+@pytest.fixture(scope="module")
+def masks_scene(tmp_path_factory) -> tuple[Path, Path]:
+    from _language_helpers import micro_bundle
+    from fourlegs_engine.scene.bundle import load_bundle
+
+    root = tmp_path_factory.mktemp("masks")
+    bundle = micro_bundle(root / "micro", T=2)
+    scene = load_bundle(bundle)
+    for cam in scene.cameras.train[0]:
+        (root / "person" / cam.name).mkdir(parents=True)
+        for t in range(scene.num_timesteps):
+            mask = np.zeros((cam.height, cam.width), np.uint8)
+            mask[: cam.height // 2] = 255
+            Image.fromarray(mask).save(root / "person" / cam.name / f"{t:06d}.png")
+    return bundle, root / "person"
+
+
+@pytest.mark.parametrize("kind", ["truncated", "empty", "text", "bomb", "wrong size"])
+def test_language_with_a_damaged_annotation_mask_is_one_line_naming_it(masks_scene, tmp_path, capsys, kind):
+    bundle, masks = masks_scene
+    scene = Path(shutil.copytree(bundle, tmp_path / "scene"))
+    folder = Path(shutil.copytree(masks, tmp_path / "person"))
+    target = sorted(folder.rglob("*.png"))[-1]
+    target.write_bytes(_image_bytes(kind, target.read_bytes(), 0.5))
+    code, lines = _run(["language", str(scene), "--encoder", "masks", "--masks", f"a person={folder}",
+                        "--no-progress"], capsys)
+    assert code == 2 and lines and lines[-1].startswith("fourlegs: error:") and target.name in lines[-1], lines
+    assert not (scene / "language").exists()
+
+
+@settings(FUZZ, max_examples=6)
+@given(data=st.data())
+def test_plan_with_a_damaged_preset_file_is_one_line_naming_it(tmp_path_factory, capsys, data):
+    from fourlegs_engine.highlights.presets import available_presets
+
+    root = tmp_path_factory.mktemp("preset")
+    text = Path(available_presets()["broadcast"]).read_bytes()
+    how = data.draw(st.sampled_from(["truncated", "garbage", "not utf-8", "value"]))
+    if how == "truncated":
+        text = text[:data.draw(st.integers(0, len(text) - 1))]
+    elif how == "garbage":
+        text = bytes(range(256))
+    elif how == "not utf-8":
+        text = text.replace(b"broadcast", b"broad\xffcast", 1)
+    else:
+        key = data.draw(st.sampled_from([b"fps", b"resolution", b"factor", b"from", b"effect", b"speed"]))
+        value = data.draw(st.sampled_from([b"nan", b"inf", b"-1", b"1e400", b'"x"', b"[[1]]", b"{a = 1}", b"true"]))
+        lines = text.split(b"\n")
+        at = next((i for i, line in enumerate(lines) if line.split(b"=")[0].strip() == key), 0)
+        lines[at] = key + b" = " + value
+        text = b"\n".join(lines)
+    preset = root / "mine.toml"
+    preset.write_bytes(text)
+    # the preset is read before the scene: a preset still valid meets the missing scene next
+    code, lines = _run(["plan", str(root / "no-scene"), "a ball", "--preset", str(preset), "-o",
+                        str(root / "plan.json")], capsys)
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("fourlegs: error:"), lines
+    assert "mine.toml" in lines[0] or "no-scene" in lines[0], lines
+    assert sorted(p.name for p in root.iterdir()) == ["mine.toml"]

@@ -153,6 +153,55 @@ def test_fit_on_damaged_metadata_fits_or_is_one_line_and_leaves_nothing(capture,
     _fit_damaged(capture, tmp_path_factory.mktemp("fit"), kind, data, capsys)
 
 
+@pytest.fixture(scope="module")
+def interrupted_fit(capture, tmp_path_factory) -> Path:
+    """A fit of ``capture`` stopped during its second timestep: its work folder holds config.json,
+    history.json, effort.json, static.npz and t000000.npz."""
+    from fourlegs_engine.commands.fit import options_from_args
+    from fourlegs_engine.commands.main import build_parser
+    from fourlegs_engine.errors import Cancelled
+    from fourlegs_engine.fit.fitter import fit_capture
+
+    root = tmp_path_factory.mktemp("interrupted")
+    args = build_parser().parse_args(["fit", str(capture), "-o", str(root / "scene"), *RESUMED_FIT])
+
+    def stop_in_timestep_1(event):
+        if event.timestep == 1:
+            raise Cancelled("stopped by the test")
+    with pytest.raises(Cancelled):
+        fit_capture(capture, root / "scene", options_from_args(args), progress=stop_in_timestep_1)
+    assert sorted(p.name for p in (root / ".scene.fit").iterdir()) == [
+        "config.json", "effort.json", "history.json", "static.npz", "t000000.npz"]
+    return root
+
+
+RESUMED_FIT = [*TINY_FIT[:TINY_FIT.index("--max-iterations")], "--max-iterations", "2", "--min-iterations", "1",
+               *TINY_FIT[TINY_FIT.index("--max-iterations") + 2:]]
+
+
+@FUZZ
+@given(data=st.data())
+def test_a_fit_resumed_over_a_damaged_work_file_fits_or_is_one_line(capture, interrupted_fit, tmp_path_factory,
+                                                                  capsys, data):
+    root = Path(shutil.copytree(interrupted_fit, tmp_path_factory.mktemp("resume") / "r"))
+    target = root / ".scene.fit" / data.draw(st.sampled_from(
+        ["config.json", "effort.json", "history.json", "static.npz", "t000000.npz"]))
+    if target.suffix == ".json" and data.draw(st.booleans()):
+        target.write_text(json.dumps(data.draw(st.one_of(HOSTILE_JSON, st.just({"1": [1]}),
+                                                         st.just({"1": {"residual": "x"}})))))
+    else:
+        raw = target.read_bytes()
+        target.write_bytes(raw[:data.draw(st.integers(0, len(raw) - 1))])
+    code, lines = _run(["fit", str(capture), "-o", str(root / "scene"), *RESUMED_FIT, "--no-test-psnr"], capsys)
+    if code == 0:
+        assert (root / "scene" / "scene.json").is_file() and not (root / ".scene.fit").exists()
+    else:
+        assert lines and lines[-1].startswith("fourlegs: error:"), lines
+        named = target.name if target.name != "config.json" else ".scene.fit"  # another config is not this one's
+        assert named in lines[-1], lines
+        assert not (root / "scene").exists()
+
+
 def test_fit_checks_every_frame_before_fitting(capture, tmp_path, capsys):
     """A damaged frame of the last timestep (or of a test camera) stops the fit before its first step."""
     for damaged in ("ims/2/000001.png", "seg/3/000001.png", "ims/0/000001.png"):

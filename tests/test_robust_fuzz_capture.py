@@ -1,9 +1,51 @@
-"""Issue #30: ``fourlegs fit`` on damaged captures and ``fourlegs viclip-info`` on damaged checkpoints.
+"""Issue #30: damaged inputs of ``fit``, ``viclip-info``, the bench commands, annotation masks and presets,
+and the map of which test fuzzes which file of which command.
 
-Each case either succeeds (a tiny fit: 2 + 1 iterations at 32x18) or ends with exactly one
-``fourlegs: error:`` line naming the damaged file, exit code 2, no traceback, and nothing left behind
-(no output folder, no ``.NAME.fit`` work folder, no ``.part`` file). A checkpoint that is a pickle with a
-payload never runs it.
+Each case either succeeds (a tiny fit: 2 + 1 iterations at 32x18) or ends with one ``fourlegs: error:``
+line naming the damaged file, exit code 2, no traceback, and nothing left behind (no output folder, no
+``.NAME.fit`` work folder, no ``.part`` file). A checkpoint that is a pickle with a payload never runs it.
+
+Every ``fourlegs`` command (``fourlegs --help``, ``fourlegs bench --help``) against the files it reads, and
+where they are fuzzed (F: tests/test_robust_fuzz.py, C: this file, D: test_robust_damaged.py,
+R: test_robust_field.py, V: test_robust_video.py, O: test_robust_outputs.py, P: test_highlights_presets.py,
+A: test_annotation_masks.py):
+
+=====================  ==========================================================  =======================
+command                files it reads                                              fuzzed in
+=====================  ==========================================================  =======================
+info                   scene: bundle (scene.json, .npy), params.npz + *_meta.json,  F (loaders, bad scenes,
+                       .ply; the field's files                                      damaged field files)
+extract                scene; features/*.npy + .sha256 + manifest.json;            F, C (viclip), A, D
+                       --checkpoint/--vocab (viclip); --masks folders (PNG)        (60000-px mask), C
+train-ae               features; autoencoder.ckpt.pt, history.json, decoder.pt     F, D, R
+distill                features, decoder.pt, encoder.pt, latents, steps/*.npy      F, R
+language               all of extract, train-ae and distill                         F, C (masks)
+viclip-info            checkpoint (.pth, .safetensors, -hf folder), --vocab .gz     C
+query                  bundle, field files, codebook; several scenes                F, D (codebook), O
+plan                   any scene; preset .toml (--preset, --preset-dir)             F, C (preset), P
+highlight              any scene, preset, its output folder's own files, frames     F (headless job), O, V
+fit                    capture: *_meta.json, ims/, seg/; its .NAME.fit work folder  C, D (checkpoints)
+generate               nothing (writes -o)                                          F
+build-extension        --extra-wheel / wheels folder                                D (garbage wheel)
+bench compare,         JSON files of earlier runs                                   C (bench)
+  fit-pareto
+bench fit, fit-        a capture (+ its fitted scene)                               C (bench)
+  background, device,
+  device-data
+bench real-lift,       a fitted scene bundle + annotation mask folders              C (bench)
+  real-annotations,
+  language-cost
+bench viclip           --checkpoint (and its dataset folder)                        C (bench)
+bench query-           a scene bundle with a field                                  C (bench)
+  interactive,
+  grounding,
+  accuracy-time
+bench blender, native- a scene (bpy only: tests/test_blender_*.py)                  not here (no bpy on the
+  render, prepare-cost                                                              CPU test machine)
+bench render, query-   nothing from the user (synthetic scenes)                     -
+  speed, distill,
+  cluster, main-job
+=====================  ==========================================================  =======================
 """
 from __future__ import annotations
 
@@ -360,6 +402,8 @@ BENCH_READERS = {
     "fit-background": lambda bad, out: ["bench", "fit-background", "--dataset", bad, "--out", str(out / "bg")],
     "real-lift": lambda bad, out: ["bench", "real-lift", "--scene", bad, "--masks", bad],
     "real-annotations": lambda bad, out: ["bench", "real-annotations", "--scene", bad, "-o", str(out / "ann")],
+    "device": lambda bad, out: ["bench", "device", "--size", "toy", "--device", "cpu", "--data", bad, "--out",
+                                str(out / "dev")],
     "device-data": lambda bad, out: ["bench", "device-data", "--source", bad, "-o", str(out / "dd"),
                                      "--timesteps", "1"],
     "viclip": lambda bad, out: ["bench", "viclip", "--checkpoint", bad],

@@ -48,8 +48,9 @@ class LockedError(FourlegsError):
 
 
 def lock_file_of(target: str | Path) -> Path:
-    """The lock file of a scene or output folder: ``.NAME.fourlegs-lock`` beside it."""
-    target = Path(os.path.abspath(target))
+    """The lock file of a scene or output folder: ``.NAME.fourlegs-lock`` beside it (symbolic links resolved,
+    so a scene reached through a link and its real path share one lock)."""
+    target = Path(os.path.realpath(target))
     return target.parent / f".{target.name}{LOCK_SUFFIX}"
 
 

@@ -150,6 +150,16 @@ def test_one_process_reads_then_writes_then_reads_again(tmp_path):
     assert _probe(target, tmp_path, shared=False) == 0
 
 
+def test_a_scene_reached_through_a_link_shares_the_lock_of_its_real_path(tmp_path):
+    real = tmp_path / "scene"
+    real.mkdir()
+    (tmp_path / "link").symlink_to(real, target_is_directory=True)
+    assert lock_file_of(tmp_path / "link") == lock_file_of(real)
+    with run_lock(tmp_path / "link"):
+        with pytest.raises(LockedError):
+            _probe(real, tmp_path, shared=True)
+
+
 def _probe(target: Path, tmp_path: Path, *, shared: bool) -> int:
     """Try ``target``'s lock from another process; LockedError with its message if refused."""
     code = textwrap.dedent(f"""

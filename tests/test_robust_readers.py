@@ -123,6 +123,25 @@ def test_the_highlight_job_reads_the_scene_under_a_shared_lock(field, tmp_path):
     assert _probe(field, tmp_path, shared=False) == 0
 
 
+def test_prepare_holding_its_scene_leaves_the_panels_query_working(field, tmp_path):
+    """The add-on's Prepare Language Field holds its scene's lock between steps; the panel's query (the API's
+    open_query_engine, no lock) still answers in the same process, and a command-line reader of the prepared
+    scene in another process is refused with Blender named."""
+    from fourlegs_engine import api
+
+    prepared = api.open_scene(micro_bundle(tmp_path / "prepared", T=2))
+    steps = api.language_field_steps(prepared)
+    assert next(steps).stage == "extract features"
+    try:
+        engine = api.open_query_engine(api.open_scene(field))
+        assert engine.localize("person jumping").temporal is not None
+        with pytest.raises(LockedError, match=f"pid {os.getpid()}"):
+            _probe(prepared.root, tmp_path, shared=True)
+    finally:
+        steps.close()
+    assert _probe(prepared.root, tmp_path, shared=True) == 0
+
+
 def test_a_reader_that_must_build_the_field_is_refused_while_others_read(tmp_path, capsys):
     scene = micro_bundle(tmp_path / "nofield", T=2)
     other = _holder(scene, tmp_path, shared=True, argv=["fourlegs", "query", "SCENE", "a ball"])

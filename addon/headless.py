@@ -148,9 +148,12 @@ def run(options: api.HighlightJobOptions) -> dict[str, Any]:
     with api.run_lock(options.output):  # one job per output folder; an earlier killed run's temporaries go
         import bpy
 
-        job = api.prepare_highlight_job(options, timer)
-        render_info = blender_stage(job.scene, job.plan, job.engine, options.query, job.outputs, options.format,
-                                    timer, render_threads=options.render_threads)
+        job = api.prepare_highlight_job(options, timer)  # holds the scene's lock shared until released
+        try:
+            render_info = blender_stage(job.scene, job.plan, job.engine, options.query, job.outputs, options.format,
+                                        timer, render_threads=options.render_threads)
+        finally:
+            job.release()
         return api.finish_highlight_job(job, render_info, timer, versions={"blender": bpy.app.version_string})
 
 

@@ -209,6 +209,8 @@ def resolve_data(text: str | None, size: str, work: Path) -> tuple[str | None, s
         if not (path / "train_meta.json").is_file():
             raise InputError("is not a capture (no train_meta.json); build it with `fourlegs bench device-data`",
                              file=path, field="--data")
+        from fourlegs_engine.fit.dataset import Capture
+        Capture(path)  # its metadata as `fourlegs fit` checks it, before the machine's time is spent
         return str(path), f"{path} (given)"
     if text is None and size == "full":
         if (Path(DEFAULT_OUT) / "train_meta.json").is_file():
@@ -335,13 +337,13 @@ def run_device_check(args: argparse.Namespace) -> dict[str, Any]:
     steps = _parse_steps(args.steps)
     caps = _parse_caps(args.cap)
     plans = apply_overrides(PLANS[args.size], args.set)
-    out = Path(args.out or os.environ.get("OUT") or tempfile.mkdtemp(prefix="fourlegs-device-"))
-    out.mkdir(parents=True, exist_ok=True)
     work = Path(args.work or tempfile.mkdtemp(prefix="fourlegs-device-work-"))
     work.mkdir(parents=True, exist_ok=True)
     device = resolve_device(args.device)
     data, data_note = (resolve_data(args.data, args.size, work) if NEEDS_DATA & set(steps)
                        else (None, "not needed by the selected steps"))
+    out = Path(args.out or os.environ.get("OUT") or tempfile.mkdtemp(prefix="fourlegs-device-"))
+    out.mkdir(parents=True, exist_ok=True)  # once the inputs are known to be usable
     gsplat = GsplatBuild(args.gsplat_status, args.gsplat_site, args.gsplat_log)
     wait_until = started + (args.gsplat_wait if args.gsplat_wait is not None else DEFAULT_GSPLAT_WAIT_S[args.size])
     report: dict[str, Any] = {

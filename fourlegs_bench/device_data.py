@@ -79,6 +79,8 @@ def build_device_data(source: str | Path, out: str | Path, timesteps: int = DEFA
         raise InputError(f"must be at least 1, got {timesteps}", field="--timesteps")
     if not (source / "train_meta.json").is_file():
         raise InputError("is not a Dynamic 3D Gaussians capture (no train_meta.json)", file=source)
+    from fourlegs_engine.fit.dataset import Capture
+    Capture(source)  # the metadata as `fourlegs fit` checks it: cameras, sizes, frame names inside the capture
     metas = {"train": _trimmed_meta(source / "train_meta.json", timesteps)}
     if (source / "test_meta.json").is_file():
         metas["test"] = _trimmed_meta(source / "test_meta.json", timesteps)

@@ -509,6 +509,11 @@ def run_cli(args: argparse.Namespace) -> int:
         raise InputError(f"unknown proxy {bad[0]!r} (choose from {', '.join(PROXIES)})", field="--proxies")
     if "real" in proxies and not args.real_scene:
         raise InputError("the real proxy needs a fitted scene", field="--real-scene")
+    if "real" in proxies:  # the inputs are checked before the output folder is made
+        from fourlegs_engine.scene.bundle import load_bundle
+        load_bundle(args.real_scene)
+        if not Path(args.masks).is_dir():
+            raise InputError("is not a folder of annotation masks", file=args.masks, field="--masks")
     out = Path(args.out)
     work = Path(args.work) if args.work else out / "work"
     out.mkdir(parents=True, exist_ok=True)

@@ -29,6 +29,7 @@ from .errors import InputError, OutputExistsError
 from .fileio import OUTPUTS_MARKER, claim_outputs, write_json_atomic
 from .options_json import options_from_dict, options_to_dict
 from .query.options import QueryOptions
+from .runlock import RunLock
 from .validate import check_text
 
 __all__ = ["DEFAULT_QUERY_PATH", "DEFAULT_SPATIAL", "DEMO_RESOLUTION", "HighlightJob", "HighlightJobOptions",
@@ -166,6 +167,14 @@ class HighlightJob:
     preset: Any
     engine: Any
     plan: dict[str, Any]
+    #: the scene's run lock, held shared while the job reads the scene (:meth:`release` lets it go)
+    scene_lock: Any = None
+
+    def release(self) -> None:
+        """Let go of the scene's run lock (the job reads the scene no more)."""
+        if self.scene_lock is not None:
+            self.scene_lock.release()
+            self.scene_lock = None
 
 
 def job_outputs(output_dir: str | Path, fmt: str = "MP4") -> dict[str, Path]:
@@ -186,8 +195,7 @@ def prepare_highlight_job(options: HighlightJobOptions,
     ``stage`` times each step (a :class:`StageTimer`). OutputExistsError before any work if a finished
     job's outputs (or foreign files of the same names) are there and ``options.overwrite`` is false.
     """
-    from .highlights import load_preset, plan_highlight, plan_needs
-    from .query.plots import write_scores_plot
+    from .highlights import load_preset
 
     out = job_outputs(options.output, options.format)
     # report.json marks a finished job; without it, files here are an interrupted run's, resumed
@@ -208,6 +216,21 @@ def prepare_highlight_job(options: HighlightJobOptions,
     preset = load_preset(options.preset).select_effects(options.effects, options.no_effect)
     with stage("scene"):
         scene = pipeline.open_scene(options.scene, demo=options.demo)
+    scene_lock = RunLock(scene.root, shared=True).acquire()  # no one writes the scene while the job reads it
+    try:
+        return _plan_job(options, out, scene, preset, resolution, stage, record_outputs, scene_lock)
+    except BaseException:
+        scene_lock.release()
+        raise
+
+
+def _plan_job(options: HighlightJobOptions, out: dict[str, Path], scene: Any, preset: Any, resolution: Any,
+              stage: Callable[[str], ContextManager[Any]], record_outputs: Callable[[], None],
+              scene_lock: Any) -> HighlightJob:
+    """The rest of :func:`prepare_highlight_job` once the scene is open and read-locked."""
+    from .highlights import plan_highlight, plan_needs
+    from .query.plots import write_scores_plot
+
     engine = None
     if plan_needs(preset) or preset_needs_relevancy(preset):
         encoder = pipeline.text_encoder(scene, options.encoder)
@@ -228,7 +251,7 @@ def prepare_highlight_job(options: HighlightJobOptions,
                           loc.get("segment"), loc.get("peak"), options.query)
     for msg in plan.get("messages", []):
         print(f"[fourlegs] note: {msg}", flush=True)
-    return HighlightJob(options, out, scene, preset, engine, plan)
+    return HighlightJob(options, out, scene, preset, engine, plan, scene_lock)
 
 
 #: bytes per pixel: of a frame while it renders (rasterizer buffers, relevancy, compositor passes), and of a

@@ -126,3 +126,31 @@ def load_images(root: Path, split: str, t: int) -> dict[str, np.ndarray]:
     meta = json.loads((root / f"{split}_meta.json").read_text())
     return {str(cid): np.asarray(Image.open(root / "ims" / fn), np.float64) / 255.0
             for cid, fn in zip(meta["cam_id"][t], meta["fn"][t])}
+
+
+def write_tiny_capture(root: Path, num_timesteps: int = 2, num_train: int = 3, width: int = 32,
+                       height: int = 18) -> Path:
+    """A capture small enough to fit in about a second: ``num_train`` training cameras and one test camera
+    on a ring, frames of a moving bright box over a colour ramp (no rendering), the box as the mask."""
+    yy, xx = np.mgrid[0:height, 0:width]
+    for split, count, first_id, offset in (("train", num_train, 1, 0.0), ("test", 1, 0, 0.4)):
+        cams = [Camera.look_at((3.0 * math.cos(offset + 2 * np.pi * i / count), -1.5,
+                                3.0 * math.sin(offset + 2 * np.pi * i / count)), (0.0, -0.7, 0.0), up=(0.0, -1.0, 0.0),
+                               width=width, height=height, focal=30.0, near=1.0, far=100.0, name=str(first_id + i))
+                for i in range(count)]
+        meta = {"w": width, "h": height, "k": [], "w2c": [], "fn": [], "cam_id": []}
+        for t in range(num_timesteps):
+            meta["k"].append([c.K.tolist() for c in cams])
+            meta["w2c"].append([c.w2c.tolist() for c in cams])
+            meta["fn"].append([f"{c.name}/{t:06d}.png" for c in cams])
+            meta["cam_id"].append([int(c.name) for c in cams])
+            box = (abs(xx - width / 2 - t) < 4) & (abs(yy - height / 2) < 5)
+            rgb = np.stack([xx * 7 % 256, yy * 13 % 256, np.where(box, 230, 40)], -1).astype(np.uint8)
+            for c in cams:
+                (root / "ims" / c.name).mkdir(parents=True, exist_ok=True)
+                Image.fromarray(rgb).save(root / "ims" / c.name / f"{t:06d}.png")
+                if split == "train":
+                    (root / "seg" / c.name).mkdir(parents=True, exist_ok=True)
+                    Image.fromarray((box * 255).astype(np.uint8)).save(root / "seg" / c.name / f"{t:06d}.png")
+        (root / f"{split}_meta.json").write_text(json.dumps(meta))
+    return root

@@ -20,6 +20,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from _fuzz_helpers import HOSTILE_JSON, NOT_UTF8, json_paths, replace_at
 from _language_helpers import micro_bundle
 from fourlegs_engine.commands.main import main
 from fourlegs_engine.errors import FourlegsError, InputError
@@ -32,32 +33,7 @@ from fourlegs_engine.scene.ply import write_ply_scene
 EXAMPLES = int(os.environ.get("FOURLEGS_FUZZ_EXAMPLES", "30"))
 FAST = settings(max_examples=EXAMPLES, deadline=None, derandomize=not os.environ.get("FOURLEGS_FUZZ_RANDOM"),
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
-NOT_UTF8 = b"ball \xff\xfe".decode("utf-8", "surrogateescape")
-
-HOSTILE_JSON = st.one_of(
-    st.none(), st.booleans(), st.sampled_from([0, -1, 1, 2, 10**10, 10**30, 2**63]),
-    st.sampled_from([0.0, -1.0, 0.5, 1e30, -1e300, float("nan"), float("inf")]),
-    st.sampled_from(["", "x", "/etc/hostname", "../../x.npy", "language/../../x", NOT_UTF8, "1e30"]),
-    st.lists(st.integers(-3, 3), max_size=3), st.dictionaries(st.sampled_from(["a", "K", "w"]), st.integers(), max_size=2),
-    st.just([[1, 2, 3], [4, 5, 6], [7, 8, 9]]))
-
-
-def _paths(obj, prefix=()):
-    """Every (path to a value) of a JSON document, containers included."""
-    yield prefix
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            yield from _paths(v, prefix + (k,))
-    elif isinstance(obj, list):
-        for i, v in enumerate(obj[:3]):
-            yield from _paths(v, prefix + (i,))
-
-
-def _replace(obj, path, value):
-    if not path:
-        return value
-    obj[path[0]] = _replace(obj[path[0]], path[1:], value)
-    return obj
+_paths, _replace = json_paths, replace_at
 
 
 def _loads_or_input_error(load, *args):

@@ -104,7 +104,7 @@ def scene_outputs(datasets: Sequence[str], output: str) -> list[Path]:
     return [Path(output) / n for n in names]
 
 
-def fit_one(job: tuple[str, str], *, options: Any, overwrite: bool, progress: bool) -> str:
+def fit_one(job: tuple[str, str], *, options: Any, overwrite: bool, progress: bool, check_test_frames: bool = True) -> str:
     """Fit one ``(dataset, output)`` pair; returns the scene path (a Ray task's function)."""
     from ..fit.fitter import fit_capture
 
@@ -112,7 +112,8 @@ def fit_one(job: tuple[str, str], *, options: Any, overwrite: bool, progress: bo
 
     dataset, output = job
     with run_lock(output):  # one fit per output scene
-        return str(fit_capture(dataset, output, options, overwrite=overwrite, progress=progress))
+        return str(fit_capture(dataset, output, options, overwrite=overwrite, progress=progress,
+                               check_test_frames=check_test_frames))
 
 
 def run_fit(args: argparse.Namespace) -> int:
@@ -126,10 +127,12 @@ def run_fit(args: argparse.Namespace) -> int:
             raise InputError("fit reads its dataset and writes its scene in place: the datasets and the output "
                              "must be on a filesystem every node sees", field="--ray-no-shared-fs")
         gpus = ray_options.num_gpus if ray_options.num_gpus is not None else float(args.device == "cuda")
-        task = functools.partial(fit_one, options=options, overwrite=args.overwrite, progress=False)
+        task = functools.partial(fit_one, options=options, overwrite=args.overwrite, progress=False,
+                                 check_test_frames=not args.no_test_psnr)
         written = map_on_ray(task, jobs, options=ray_options, stage="fit", num_gpus=gpus)
     else:
-        written = [fit_one(job, options=options, overwrite=args.overwrite, progress=True) for job in jobs]
+        written = [fit_one(job, options=options, overwrite=args.overwrite, progress=True,
+                           check_test_frames=not args.no_test_psnr) for job in jobs]
     for (dataset, _), path in zip(jobs, written):
         print(f"wrote {path}")
         if not args.no_test_psnr:

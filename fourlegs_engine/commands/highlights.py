@@ -56,6 +56,8 @@ def open_scene_and_localizer(scene_path: str | Path | None, *, demo: bool, encod
         raise InputError("no scene given (SCENE QUERY, or --demo QUERY)", field="scene")
     else:
         scene = pipeline.open_scene(scene_path)
+    from ..runlock import hold_run_lock
+    hold_run_lock(scene.root, shared=True)  # read while no one writes it; released when the command ends
     text_encoder = pipeline.text_encoder(scene, encoder)
     scene = pipeline.ensure_language_field(scene, text_encoder, progress=True)
     return scene, pipeline.open_query_engine(scene, text_encoder, options=options)

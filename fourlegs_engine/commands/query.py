@@ -94,6 +94,8 @@ def _open(args: argparse.Namespace, inputs: QueryInputs):
     check_text(inputs.text, "text")
     if not inputs.text or not inputs.text.strip():
         raise InputError("the query text is empty", field="text")
+    from ..runlock import hold_run_lock
+    hold_run_lock(path, shared=True)  # read while no one writes it; released when the command ends
     scene = load_bundle(path)
     if not scene.language and not (scene.metadata or {}).get("labels"):
         raise InputError("the scene has no distilled language field; run `fourlegs language` first",

@@ -14,6 +14,7 @@ and the field.
 """
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -100,17 +101,35 @@ class Capture:
         return out
 
     def check_frames(self, split: str, timesteps: Sequence[int], cams: Sequence[int], masks: bool) -> None:
-        """Raise for the first missing image (or mask) among the selected frames."""
+        """Raise for the first missing, unreadable or wrongly sized image (or mask) among the selected frames.
+
+        Each file's header is read and a PNG's chunks are checked against their checksums (no pixels are
+        decoded), so a damaged frame stops the fit before it starts rather than between timesteps.
+        """
         s = self.train if split == "train" else self.test
         for t in timesteps:
             for c in cams:
-                path = self.image_path(split, t, c)
-                if not path.is_file():
-                    raise InputError(f"missing frame (timestep {t}, camera {s.cam_ids[t][c]})", file=path)
+                where = f"timestep {t}, camera {s.cam_ids[t][c]}"
+                self._check_file(self.image_path(split, t, c), "frame", where)
                 if masks:
-                    mpath = self.mask_path(split, t, c)
-                    if not mpath.is_file():
-                        raise InputError(f"missing mask (timestep {t}, camera {s.cam_ids[t][c]})", file=mpath)
+                    self._check_file(self.mask_path(split, t, c), "mask", where)
+
+    def _check_file(self, path: Path, what: str, where: str) -> None:
+        from PIL import Image
+
+        if not path.is_file():
+            raise InputError(f"missing {what} ({where})", file=path)
+        try:
+            with Image.open(path) as im:
+                size = im.size
+                im.verify()
+        except Image.DecompressionBombError as exc:
+            raise InputError(f"is too large to be a {what} ({exc})"[:300], file=path) from None
+        except (OSError, SyntaxError, ValueError, EOFError, struct.error) as exc:
+            raise InputError(f"is not a readable image ({exc.__class__.__name__}: {str(exc)[:120]})", file=path) from None
+        if size != (self.width, self.height):
+            raise InputError(f"is {size[0]}x{size[1]} but the metadata says {self.width}x{self.height} ({where})",
+                             file=path)
 
     def image_path(self, split: str, t: int, c: int) -> Path:
         s = self.train if split == "train" else self.test
@@ -154,7 +173,7 @@ def _open_image(path: Path):
         im.load()
     except Image.DecompressionBombError as exc:
         raise InputError(f"is too large to be a frame ({exc})"[:300], file=path) from None
-    except (UnidentifiedImageError, OSError) as exc:
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as exc:
         raise InputError(f"is not a readable image ({exc.__class__.__name__})", file=path) from None
     return im
 

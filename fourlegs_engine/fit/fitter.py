@@ -112,7 +112,8 @@ def _tqdm_progress(total_timesteps: int):
 
 
 def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitOptions | None = None, *,
-                overwrite: bool = False, progress: bool | Callable[[FitEvent], None] = True) -> Path:
+                overwrite: bool = False, progress: bool | Callable[[FitEvent], None] = True,
+                check_test_frames: bool = True) -> Path:
     """Fit dynamic Gaussians to a capture and write the native bundle at ``output``.
 
     Args:
@@ -121,6 +122,8 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
         options: :class:`FitOptions`.
         overwrite: replace an existing bundle, and restart a partial fit made with other options.
         progress: True for tqdm bars, False for silence, or a callable receiving :class:`FitEvent`.
+        check_test_frames: also check the test cameras' frames before fitting (they are read afterwards to
+            measure the held-out PSNR).
     Returns:
         the bundle path. Per-Gaussian foreground flags, the per-camera colour correction and per-timestep
         training PSNR are stored in the bundle (``foreground.npy``; ``metadata.fit``).
@@ -137,6 +140,8 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
     steps = capture.timestep_range(opts.timesteps)
     cams_idx = capture.camera_indices("train", opts.cameras)
     capture.check_frames("train", steps, cams_idx, masks=capture.has_masks)
+    if check_test_frames:
+        capture.check_frames("test", steps, capture.camera_indices("test", None), masks=False)
     device = torch.device("cuda" if opts.device == "cuda" or (opts.device == "auto" and torch.cuda.is_available())
                           else "cpu")
     a = steps.start
@@ -152,7 +157,10 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
     if work.exists():
         try:
             old = read_json(work / "config.json")
-        except InputError:
+        except InputError as exc:
+            if not overwrite:
+                raise InputError(f"damaged ({exc.problem}); pass --overwrite / overwrite=True to start the fit again",
+                                 file=work / "config.json") from None
             old = None
         if old != json.loads(json.dumps(config)):
             if not overwrite:
@@ -165,6 +173,10 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
     report = progress if callable(progress) else (_tqdm_progress(len(steps)) if progress else (lambda ev: None))
     try:
         history = _run(capture, steps, cams_idx, cameras, size, opts, device, scene_radius, work, report)
+    except BaseException:
+        if not (work / "static.npz").is_file():  # nothing finished to resume from: leave nothing behind
+            shutil.rmtree(work, ignore_errors=True)
+        raise
     finally:
         if hasattr(report, "close"):
             report.close()
@@ -198,9 +210,31 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
 def _later_iterations(work: Path, steps: range, opts: FitOptions) -> dict[str, dict[str, float]]:
     """Per later timestep: its optimization steps and, with the residual-driven schedule, the forecast's
     residual on the moving pixels and their count."""
-    path = work / "effort.json"
-    effort = read_json(path) if path.is_file() else {}
+    effort = _read_effort(work / "effort.json")
     return {str(t): effort.get(str(t), {"iterations": opts.iterations}) for t in steps[1:]}
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _read_history(path: Path) -> dict[str, float | None]:
+    """``history.json`` of a work folder: timestep -> training PSNR (None: no step taken)."""
+    history = read_json(path) if path.is_file() else {}
+    if not isinstance(history, dict) or not all(k.isdigit() and (v is None or _is_number(v)) for k, v in history.items()):
+        raise InputError("must be a JSON object (timestep -> PSNR); delete it or pass --overwrite", file=path)
+    return history
+
+
+def _read_effort(path: Path) -> dict[str, dict[str, float]]:
+    """``effort.json`` of a work folder: timestep -> {residual, moving_pixels, iterations} of its schedule."""
+    effort = read_json(path) if path.is_file() else {}
+    if not isinstance(effort, dict) or not all(
+            k.isdigit() and isinstance(e, dict) and all(_is_number(e.get(f)) for f in ("residual", "iterations"))
+            for k, e in effort.items()):
+        raise InputError("must be a JSON object (timestep -> residual, moving pixels, iterations); delete it or "
+                         "pass --overwrite", file=path)
+    return effort
 
 
 def _run(capture: Capture, steps: range, cams_idx: list[int], cameras: list[Camera], size: tuple[int, int],
@@ -208,9 +242,7 @@ def _run(capture: Capture, steps: range, cams_idx: list[int], cameras: list[Came
     """Fit (or resume) every timestep of ``steps`` into ``work``; returns training PSNR per timestep."""
     a = steps.start
     history_path = work / "history.json"
-    history: dict[str, float] = read_json(history_path) if history_path.is_file() else {}
-    if not isinstance(history, dict):
-        raise InputError("must be a JSON object (timestep -> PSNR); delete it or pass --overwrite", file=history_path)
+    history = _read_history(history_path)
     static_path = work / "static.npz"
     if static_path.is_file() and (work / f"t{a:06d}.npz").is_file():
         s = _load_npz(static_path)
@@ -241,7 +273,7 @@ def _run(capture: Capture, steps: range, cams_idx: list[int], cameras: list[Came
     tracker = Tracker(model, cameras, opts, floor_y)
     prev2 = prev = (model.means, model.rotations)
     effort_path = work / "effort.json"
-    effort: dict[str, dict[str, float]] = read_json(effort_path) if effort_path.is_file() else {}
+    effort = _read_effort(effort_path)
     previous_frames: TrainingFrames | None = None
     for t in steps[1:]:
         path = work / f"t{t:06d}.npz"

@@ -101,15 +101,13 @@ def carve_visual_hull(cameras: list[Camera], masks: list[np.ndarray], images: li
         pts = (fine_idx + 0.5) * voxel - half_extent + center
         keep = _carve(pts, cameras, masks, min_views, max_misses)
         occ[tuple(fine_idx[keep].T)] = True
-    axis = (np.arange(n) + 0.5) * voxel - half_extent
-    pts = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) + center
     padded = np.pad(occ, 1)
     interior = occ.copy()
     for axis_i in range(3):
         for shift in (-1, 1):
             interior &= np.roll(padded, shift, axis=axis_i)[1:-1, 1:-1, 1:-1]
-    surface = (occ & ~interior).reshape(-1)
-    points = pts[surface]
+    # the surface voxels' centres straight from their indices (the whole grid's centres would be n^3 points)
+    points = (np.argwhere(occ & ~interior) + 0.5) * voxel - half_extent + center
     colors = np.zeros((points.shape[0], len(cameras), 3), np.float32)
     valid = np.zeros((points.shape[0], len(cameras)), bool)
     for i, (cam, image) in enumerate(zip(cameras, images)):

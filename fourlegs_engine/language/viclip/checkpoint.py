@@ -16,6 +16,7 @@ saved from a DistributedDataParallel wrapper) is removed first; nothing else is 
 from __future__ import annotations
 
 import pickle
+import warnings
 import zipfile
 from collections import OrderedDict
 from pathlib import Path
@@ -84,10 +85,12 @@ def _torch_load(path: Path):
     """``torch.load(weights_only=True)``, memory-mapped for zip archives (reading them costs nothing)."""
     mmap = zipfile.is_zipfile(path)
     safe_globals = getattr(torch.serialization, "safe_globals", None)
-    if safe_globals is None:  # torch < 2.5: no stand-ins, EasyDict entries are refused
-        return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
-    with safe_globals(_INERT_STAND_INS):
-        return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+    with warnings.catch_warnings():  # a raw pickle of another protocol is refused or read all the same
+        warnings.filterwarnings("ignore", message="Detected pickle protocol", category=UserWarning)
+        if safe_globals is None:  # torch < 2.5: no stand-ins, EasyDict entries are refused
+            return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
+        with safe_globals(_INERT_STAND_INS):
+            return torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
 
 
 def _read_torch(path: Path) -> dict[str, torch.Tensor]:
@@ -132,6 +135,8 @@ def check_state_dict(state: Mapping[str, torch.Tensor], config: ViCLIPConfig, *,
     unexpected = sorted(set(state) - set(expected))
     mismatched = sorted(f"{key} (file {tuple(state[key].shape)}, model {expected[key]})"
                         for key in set(expected) & set(state) if tuple(state[key].shape) != expected[key])
+    not_float = sorted(f"{key} ({str(state[key].dtype).removeprefix('torch.')})" for key in set(expected) & set(state)
+                       if not state[key].is_floating_point())
     problems = []
     if missing:
         problems.append(f"missing keys ({len(missing)}): {_listing(missing)}")
@@ -139,6 +144,8 @@ def check_state_dict(state: Mapping[str, torch.Tensor], config: ViCLIPConfig, *,
         problems.append(f"unexpected keys ({len(unexpected)}): {_listing(unexpected)}")
     if mismatched:
         problems.append(f"shape mismatches ({len(mismatched)}): {_listing(mismatched)}")
+    if not_float:
+        problems.append(f"not floating-point ({len(not_float)}): {_listing(not_float)}")
     if problems:
         raise InputError(f"does not match ViCLIP {config.size_name}: " + "; ".join(problems), file=file,
                          field="state dict")
@@ -183,6 +190,9 @@ def load_viclip(path: str | Path, *, size: str | ViCLIPConfig | None = "auto",
     converted = {key: value.to(device=target, dtype=dtype if value.is_floating_point() else value.dtype,
                                copy=True)
                  for key, value in state.items()}
+    not_finite = sorted(key for key, value in converted.items() if not bool(torch.isfinite(value).all()))
+    if not_finite:
+        raise InputError(f"weights contain NaN or Inf: {_listing(not_finite)}", file=file, field="state dict")
     model.load_state_dict(converted, strict=True, assign=True)
     model.requires_grad_(False)
     return model.eval()

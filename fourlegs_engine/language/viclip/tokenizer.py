@@ -31,6 +31,9 @@ START_OF_TEXT = "<|startoftext|>"
 END_OF_TEXT = "<|endoftext|>"
 END_OF_WORD = "</w>"
 MAX_MERGES = 49152 - 256 - 2
+#: a vocabulary file that unpacks to more text than this is refused before it fills memory (the published one
+#: unpacks to a few MB)
+MAX_VOCAB_BYTES = 16 << 20
 DEFAULT_CONTEXT_LENGTH = 32  # ViCLIP's text context (CLIP uses 77)
 _CONTRACTIONS = ("'s", "'t", "'re", "'ve", "'m", "'ll", "'d")
 # CLIP's \s (the regex package: Unicode White_Space) differs from Python's str.isspace() only by the
@@ -122,9 +125,14 @@ def read_merges(path: str | Path) -> list[tuple[str, str]]:
     if not path.is_file():
         raise InputError("BPE vocabulary file is missing (pass the path of bpe_simple_vocab_16e6.txt.gz)",
                          file=path)
-    raw = path.read_bytes()
     try:
-        data = gzip.decompress(raw) if raw[:2] == b"\x1f\x8b" else raw
+        with open(path, "rb") as raw:
+            compressed = raw.read(2) == b"\x1f\x8b"
+            raw.seek(0)
+            data = (gzip.GzipFile(fileobj=raw) if compressed else raw).read(MAX_VOCAB_BYTES + 1)
+        if len(data) > MAX_VOCAB_BYTES:
+            raise InputError(f"holds more than {MAX_VOCAB_BYTES >> 20} MiB of text, far more than a BPE vocabulary "
+                             "(damaged or not a vocabulary)", file=path)
         lines = data.decode("utf-8").split("\n")
     except (OSError, EOFError, UnicodeDecodeError, gzip.BadGzipFile) as exc:
         raise InputError(f"not a readable gzip'd UTF-8 BPE vocabulary ({exc})", file=path) from None

@@ -36,6 +36,7 @@ from .shot_list import PlannedShot, expand_shots, highlighted_segments
 ZOOM_ROOM = 0.6
 MAX_PULL_BACK = 0.5
 
+
 class Localizer(Protocol):
     """What the planner needs from a query engine (``fourlegs_engine.query.QueryEngine`` fits).
 
@@ -260,11 +261,10 @@ def _anchor_camera(scene, found: _Found, framing: Optional[Framing], resolution:
                    up: np.ndarray, messages: list[str]) -> tuple[Optional[Pose], Optional[float]]:
     """The best view, turned onto the action centre (§6.1) when it is known; with the action region known,
     moved to the nearest clear viewpoint, turned level (upright about the scene's up) onto the region's
-    centre and widened until the region fits, and further (down to ``MAX_PULL_BACK`` of the best view's focal
-    length in all)
-    until the subject spans at most ``ZOOM_ROOM`` of the first sized zoom's target height, so a best view
-    already tighter than the zoom's target starts wide instead of holding. (None, None) without a best
-    view."""
+    centre and widened until the region fits, and further (to at most ``MAX_PULL_BACK`` of the best view's
+    focal length in all) until the subject spans at most ``ZOOM_ROOM`` of the first sized zoom's target
+    height, so a best view already tighter than the zoom's target starts wide instead of holding. (None,
+    None) without a best view."""
     if found.best_view is None:
         return None, None
     name, centre = found.best_view, found.centre

@@ -74,7 +74,7 @@ def _relevancy_of_each(features: torch.Tensor, phrases: list[str]) -> np.ndarray
                      for p in phrases], axis=1)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=20, deadline=None)
 @given(st.sets(st.integers(0, len(PHRASES) - 1), min_size=1, max_size=5), st.floats(0.5, 1.0))
 def test_a_crop_in_overlapping_masks_is_relevant_to_each_of_them_and_to_no_other(covered, share):
     """The ball inside 'a person holding the ball' inside 'a person': each covering phrase scores above
@@ -102,7 +102,7 @@ def test_a_plain_weighted_sum_would_lose_overlapping_phrases():
     assert _relevancy_of_each(mixed, phrases).min() > 0.75
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(st.lists(st.floats(0.0, 1e6, allow_subnormal=False), min_size=3, max_size=3), st.integers(0, 2 ** 31 - 1))
 def test_mix_embeddings_matches_a_float64_reference(weights, seed):
     from fourlegs_engine.language.annotations import mix_embeddings

@@ -68,7 +68,7 @@ def test_main_job_from_scratch_on_the_tiny_scene(tmp_path):
     assert (out / "job" / "highlight.mp4").is_file() and (out / "ae_epochs.png").is_file()
     assert "| train autoencoder |" in (out / "main_job.md").read_text()
     # the cache was the job's own, so everything ran: features, autoencoder and field were made here
-    scene_dirs = list((cache / "scenes").iterdir())
+    scene_dirs = [p for p in (cache / "scenes").iterdir() if not p.name.startswith(".")]  # not the run locks
     assert len(scene_dirs) == 1 and (scene_dirs[0] / "language" / "latents.npy").is_file()
     # a second run refuses to overwrite the result, and refuses a cache that is not empty
     again = subprocess.run(cmd, capture_output=True, text=True, env=child_env(), timeout=120)

@@ -232,7 +232,7 @@ def _small_object_problem(seed: int, S: int = 30, N: int = 200, K: int = 40):
     return codes, code_scores, exact, hist, small
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(st.integers(0, 10_000))
 def test_a_small_band_scored_whole_gives_the_exact_counts(seed):
     """The real capture's ball: its codes mix members on both sides of R_avg. Scored whole, the band gives

@@ -48,7 +48,7 @@ def test_relevant_falls_back_to_the_mean_when_no_pixel_is_relevant():
     assert relevant.best == mean.best == "c1" and relevant.scores == mean.scores
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(st.lists(st.tuples(st.floats(0.0, 0.49), st.floats(0.0, 1.0)), min_size=2, max_size=6),
        st.sampled_from(["relevant", "mean"]))
 def test_confirmed_search_agrees_with_the_full_search_when_every_camera_is_confirmed(cases, score):

@@ -43,3 +43,21 @@ def remove_at(obj: Any, path: tuple) -> Any:
             parent = parent[key]
         del parent[path[-1]]
     return obj
+
+
+def run_command(argv: list[str], capsys) -> tuple[object, str]:
+    """``fourlegs ARGV`` in this process on one torch thread: (exit code, what it wrote to stderr)."""
+    import torch
+
+    from fourlegs_engine.commands.main import main
+
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        try:
+            code = main(argv)
+        except SystemExit as exc:
+            code = exc.code
+    finally:
+        torch.set_num_threads(old)
+    return code, capsys.readouterr().err

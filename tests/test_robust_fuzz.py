@@ -20,7 +20,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from _fuzz_helpers import HOSTILE_JSON, NOT_UTF8, json_paths, replace_at
+from _fuzz_helpers import HOSTILE_JSON, NOT_UTF8, json_paths, replace_at, run_command
 from _language_helpers import micro_bundle
 from fourlegs_engine.commands.main import main
 from fourlegs_engine.errors import FourlegsError, InputError
@@ -323,16 +323,7 @@ def test_every_command_on_a_field_with_one_damaged_file_is_one_line(distilled, t
     else:
         target.write_bytes(_damaged(target.read_bytes(), data))
     argv = [w.replace("{p}", str(path)) for w in data.draw(st.sampled_from(FIELD_COMMANDS))]
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        try:
-            code = main(argv)
-        except SystemExit as exc:
-            code = exc.code
-    finally:
-        torch.set_num_threads(old)
-    err = capsys.readouterr().err
+    code, err = run_command(argv, capsys)
     assert "Traceback" not in err, (argv, target.name, err)
     if code not in (0, 1, None) or (code == 1 and argv[0] != "extract"):
         lines = [line for line in err.replace("\r", "\n").splitlines() if line.strip()]

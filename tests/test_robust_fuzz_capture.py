@@ -68,8 +68,7 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from _fit_helpers import write_tiny_capture
-from _fuzz_helpers import HOSTILE_JSON, json_paths, remove_at, replace_at
-from fourlegs_engine.commands.main import main
+from _fuzz_helpers import HOSTILE_JSON, json_paths, remove_at, replace_at, run_command
 from fourlegs_engine.language.viclip.tokenizer import MAX_VOCAB_BYTES
 
 EXAMPLES = int(os.environ.get("FOURLEGS_FUZZ_EXAMPLES", "30"))
@@ -81,16 +80,7 @@ TINY_FIT = ["--first-iterations", "2", "--iterations", "1", "--max-iterations", 
 
 
 def _run(argv: list[str], capsys) -> tuple[int, list[str]]:
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        try:
-            code = main(argv)
-        except SystemExit as exc:
-            code = exc.code
-    finally:
-        torch.set_num_threads(old)
-    err = capsys.readouterr().err
+    code, err = run_command(argv, capsys)
     assert "Traceback" not in err, (argv, err)
     return code, [line for line in err.replace("\r", "\n").splitlines() if line.strip()]
 

@@ -86,8 +86,8 @@ def test_lookup_temporal_counts_equal_exact_counts_when_codes_are_exact():
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-from fourlegs_engine.query.temporal import (_sampled_r_avg, counts_from_codes_refined,  # noqa: E402
-                                            localize_counts, tied_segment_rows)
+from fourlegs_engine.query.refined_counts import _sampled_r_avg, counts_from_codes_refined  # noqa: E402
+from fourlegs_engine.query.temporal import localize_counts, tied_segment_rows  # noqa: E402
 
 
 def _coded_problem(seed: int, S: int = 6, N: int = 300, K: int = 12, noise: float = 0.03, bounded: bool = False):
@@ -253,6 +253,76 @@ def test_without_the_whole_band_rule_a_small_object_gets_estimated_counts():
         counts = _refined(code_scores, hist, codes, exact, 0.05, [], exact_band_pairs=0)[0]
         differ += not np.array_equal(counts, np.asarray(counts_from_relevancy(torch.from_numpy(exact))[0]))
     assert differ > 0
+
+
+def _flat_problem(seed: int, S: int = 24, N: int = 10_000, K: int = 60, margin: float = 0.05):
+    """A query that holds in every timestep (a person): about 40 % of each timestep's Gaussians in codes
+    near R_avg, whose members spread within ``margin`` of their code's score (most of them much closer, as
+    the real field's do), and per-timestep
+    shares of them that put some counts far from the mean and some near it."""
+    rng = np.random.default_rng(seed)
+    code_scores = np.concatenate([rng.uniform(0.0, 0.4, K // 2), rng.uniform(0.62, 0.78, K - K // 2)])
+    share = 0.4 + rng.choice([-0.1, -0.05, -0.01, -0.002, 0.0, 0.002, 0.01, 0.05, 0.1], size=(S, 1))
+    codes = np.where(rng.random((S, N)) < share, rng.integers(K // 2, K, (S, N)), rng.integers(0, K // 2, (S, N)))
+    jitter = np.clip(rng.normal(scale=0.15 * margin, size=(S, N)), -0.9 * margin, 0.9 * margin)
+    exact = np.clip(code_scores[codes] + jitter, 0, 1)
+    hist = np.stack([np.bincount(codes[t], minlength=K) for t in range(S)]).astype(np.int32)
+    return codes, code_scores, exact, hist
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.integers(0, 10_000))
+def test_a_flat_query_decides_its_far_timesteps_from_a_sample_and_agrees_with_exact_counting(seed):
+    """The real capture's "a person": most timesteps' counts are far from the mean only in units of the
+    sample's error, not of the band's size. Decided from their re-scored samples they agree with exact
+    counting (against the total returned) at a fraction of the bounds-only re-scoring."""
+    codes, code_scores, exact, hist = _flat_problem(seed)
+    S = codes.shape[0]
+    want_counts = counts_from_relevancy(torch.from_numpy(exact))[0]
+    sampled_calls, bounded_calls = [], []
+    counts, _, _, rescored, _ = _refined(code_scores, hist, codes, exact, 0.05, sampled_calls, exact_band_pairs=0)
+    bounds_only = _refined(code_scores, hist, codes, exact, 0.05, bounded_calls, exact_band_pairs=0, row_z=0.0)
+    total = int(counts.sum())
+    np.testing.assert_array_equal(counts * S > total, want_counts * S > total)
+    assert rescored < 0.8 * bounds_only[3]
+    np.testing.assert_array_equal(bounds_only[0] * S > int(bounds_only[0].sum()),
+                                  want_counts * S > int(bounds_only[0].sum()))
+
+
+def test_the_corrected_count_of_a_timestep_is_the_control_variate_estimate():
+    """One open timestep by hand: count = sure + re-scored above + pending above by code + pending x mean
+    (exact above - code above) over the re-scored; its variance uses (flips + 2) / (n + 4)."""
+    from fourlegs_engine.query.refined_counts import _Band
+    r = np.array([0.2, 0.58, 0.6, 0.62, 0.9])
+    hist = np.array([[5, 3, 3, 2, 4]])  # one timestep: 8 band members (codes 1..3), 4 sure above
+    members = np.array([1, 1, 1, 2, 2, 2, 3, 3])
+    exact = np.array([0.61, 0.55, 0.57, 0.59, 0.62, 0.58, 0.65, 0.61])
+
+    def band_members(codes, rows):
+        return np.zeros(members.size, dtype=np.int64), members, np.arange(members.size)
+
+    band = _Band(r, hist, hist[0] > 0, 0.6, (0.6, 0.6), 0.05, band_members,
+                 lambda handles, window: exact[np.asarray(handles)])
+    band.score_next(np.array([0]))
+    row = band.rows_open[0]
+    n, left = row.scores.size, row.pending_codes.size
+    assert n == 8 or 0 < n < 8  # the first chunk: max(64, 8/16) is the whole row here
+    counts, variance, pending = band.estimate(0.6)
+    if left == 0:
+        assert counts[0] == 4 + int((exact > 0.6).sum()) and variance[0] == 0.0 and pending[0] == 0
+    band2 = _Band(r, hist, hist[0] > 0, 0.6, (0.6, 0.6), 0.05, band_members,
+                  lambda handles, window: exact[np.asarray(handles)])
+    band2.open_rows(np.array([0]))
+    band2.rows_open[0].chunk = 3
+    band2.score_next(np.array([0]))
+    row = band2.rows_open[0]
+    e = (row.scores > 0.6).astype(float)
+    c = (r[row.scored_codes] > 0.6).astype(float)
+    pending_by_code = float((r[row.pending_codes] > 0.6).sum())
+    want = 4 + e.sum() + pending_by_code + 5 * float((e - c).mean())
+    counts, variance, pending = band2.estimate(0.6)
+    assert counts[0] == int(np.clip(np.rint(want), 4 + e.sum(), 4 + e.sum() + 5)) and pending[0] == 5
+    assert variance[0] == pytest.approx(8 * 5 * ((np.abs(e - c).sum() + 2) / 7) / 3)
 
 
 def test_sampled_r_avg_is_exact_with_every_pair_and_within_its_error_otherwise():

@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fourlegs_engine.errors import InputError
+from fourlegs_engine.query import rows as rows_module
 from fourlegs_engine.query.rows import RowReader
 
 T, N, D = 3, 50, 6
@@ -72,3 +73,18 @@ def test_a_file_renamed_over_is_not_read(tmp_path):
     os.replace(tmp_path / "new.npy", path)
     np.testing.assert_array_equal(reader.read(np.array([4, 9])), np.asarray(mm.reshape(-1, D)[[4, 9]]))
     np.testing.assert_array_equal(reader.read(np.array([4, 9])), np.zeros((2, D)))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.sets(st.integers(0, T * N - 1), max_size=T * N), st.integers(0, 40), st.integers(1, 12))
+def test_spans_and_batches_of_any_size_read_the_stored_rows(stored, picked, gap_rows, batch_rows):
+    # reads that merge rows across gaps, and batches smaller than one span, still give exactly the rows
+    path, values = stored
+    flat = np.array(sorted(picked), dtype=np.int64)
+    reader = RowReader(np.load(path, mmap_mode="r"))
+    row_bytes = D * values.dtype.itemsize
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(rows_module, "GAP_ROWS", gap_rows)
+        mp.setattr(rows_module, "BATCH_BYTES", batch_rows * row_bytes)
+        got = reader.read(flat)
+    np.testing.assert_array_equal(got, values.reshape(T * N, D)[flat].astype(np.float32))

@@ -4,7 +4,7 @@ The K codes of a k-means codebook of the latents are decoded once per engine; a 
 its code's, and a temporal query is a (T,K) histogram reduction. With a refine margin > 0 the temporal
 decisions are made exact where they depend on it: R_avg is corrected by exact scores of sampled
 Gaussians, and the Gaussians of codes within the margin of R_avg are re-scored exactly
-(:func:`~.temporal.counts_from_codes_refined`).
+(:func:`~.refined_counts.counts_from_codes_refined`).
 """
 from __future__ import annotations
 
@@ -20,8 +20,8 @@ from ..scene.scene import Scene
 from .codebook import Codebook, ensure_codebook
 from .lerf import l2_normalize, relevancy_of_unit_features
 from .scoring import LatentScorer
-from .temporal import (MEMBERSHIP_BAND, RELEVANT, counts_from_code_histogram, counts_from_codes_refined,
-                       tied_segment_rows, timestep_weights)
+from .refined_counts import MEMBERSHIP_BAND, counts_from_codes_refined
+from .temporal import RELEVANT, counts_from_code_histogram, tied_segment_rows, timestep_weights
 
 #: per query: counts (S,) int64 of relevant Gaussians per scored timestep, R_avg, number of relevant pairs
 TemporalCounts = tuple[np.ndarray, float, int]

@@ -35,7 +35,7 @@ class QueryOptions:
         codebook_refine: margin of the codebook path's exact re-scoring (0: lookup only): R_avg is corrected
             by exact scores of ``codebook_samples`` sampled Gaussians, and at every timestep whose decision
             (s_t > 1/T) depends on them the Gaussians of the codes within this distance of R_avg are
-            decoded exactly (see :func:`~fourlegs_engine.query.temporal.counts_from_codes_refined`); a row
+            decoded exactly (see :func:`~fourlegs_engine.query.refined_counts.counts_from_codes_refined`); a row
             whose relevancy is certainly on one side of every threshold used gets a bound instead of the
             full decode (see :meth:`~fourlegs_engine.query.head.RelevancyHead.relevancy_windowed`).
         codebook_samples: exact scores spent on R_avg per query with ``codebook_refine`` > 0.

@@ -10,7 +10,9 @@ export FOURLEGS_CACHE="${FOURLEGS_CACHE:-$PWD/.cache/fourlegs}"
 python -c "from fourlegs_addon import build; from fourlegs_engine.paths import cache_dir; \
 build.fetch_wheels(cache_dir() / 'extension-wheels', platforms=['linux-x64'])" >/dev/null
 set +e
-python -m pytest -q -p no:cacheprovider --timeout=600 "$@"
+# two worker processes, each test file kept in one of them (its module fixtures built once);
+# FOURLEGS_TEST_WORKERS=0 runs in this process
+python -m pytest -q -p no:cacheprovider --timeout=600 -n "${FOURLEGS_TEST_WORKERS:-2}" --dist loadfile "$@"
 rc=$?
 set -e
 if [ "$rc" -eq 5 ]; then

@@ -34,7 +34,7 @@ def test_exact_temporal_matches_float64_oracle(setup):
     res = eng.temporal(Q)
     ref = localize_relevancy(oracle_relevancy(field, enc, Q), dilation=0)
     np.testing.assert_allclose(res.scores, ref.scores, atol=1e-12)
-    assert res.segment == ref.segment == (1, 2) and res.peak == 1 and res.found
+    assert res.segment == ref.segment == (1, 2) and res.peak == 1 and res.found and res.undecided == []
     assert eng.stats["decoded_latents"] == scene.num_timesteps * scene.num_gaussians
     np.testing.assert_allclose(eng.gaussian_relevancy(Q, 1).numpy(), oracle_relevancy(field, enc, Q)[1],
                                atol=2e-3)

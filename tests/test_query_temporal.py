@@ -56,6 +56,14 @@ def test_segments_touching_both_ends():
     assert res.segments == [(0, 8)] and res.peak == 4
 
 
+def test_undecided_scored_rows_are_reported_as_their_timesteps():
+    counts = np.array([9, 5, 1, 1, 9])
+    res = localize_counts(counts, np.array([0, 3, 6, 9, 12]), 13, dilation=0,
+                          undecided=np.array([False, True, False, False, True]))
+    assert res.undecided == [3, 12] and res.to_dict()["undecided"] == [3, 12]
+    assert localize_counts(counts, np.arange(5), 5).undecided == []
+
+
 def test_no_relevant_gaussian_is_a_normal_answer():
     R = np.full((5, 30), 0.5)  # exactly 0.5 is not > 0.5
     res = localize_relevancy(R, query="a dragon")

@@ -259,6 +259,9 @@ def _run_one(args: argparse.Namespace, inputs: QueryInputs) -> int:
               + ", ".join(f"{x}..{y}" for x, y in tmp.segments))
     else:
         print(f"not found: {tmp.message}")
+    if tmp.undecided:
+        print(f"timesteps {', '.join(map(str, tmp.undecided))}: counts within the index's error of the mean, "
+              "so a segment end next to them may differ from --path exact's")
     if loc.best_view is not None:
         label = "relevant mass" if args.view_score == "relevant" else "mean relevancy"
         print(f"best view {loc.best_view} ({label} {loc.view_scores[loc.best_view]:.4f})")

@@ -23,8 +23,9 @@ from .scoring import LatentScorer
 from .refined_counts import MEMBERSHIP_BAND, counts_from_codes_refined
 from .temporal import RELEVANT, counts_from_code_histogram, tied_segment_rows, timestep_weights
 
-#: per query: counts (S,) int64 of relevant Gaussians per scored timestep, R_avg, number of relevant pairs
-TemporalCounts = tuple[np.ndarray, float, int]
+#: per query: counts (S,) int64 of relevant Gaussians per scored timestep, R_avg, number of relevant pairs,
+#: and (S,) bool the scored timesteps whose decision s_t > 1/T the index left open
+TemporalCounts = tuple[np.ndarray, float, int, np.ndarray]
 
 
 class CodebookPath:
@@ -102,7 +103,8 @@ class CodebookPath:
         """Relevant-Gaussian counts per scored timestep for each query (refined when ``refine`` > 0)."""
         hist = self.codebook.histogram[timesteps]
         if self.refine <= 0:
-            return [counts_from_code_histogram(self.code_scores(q).double().numpy(), hist) for q in queries]
+            return [(*counts_from_code_histogram(self.code_scores(q).double().numpy(), hist),
+                     np.zeros(len(timesteps), dtype=bool)) for q in queries]
         T = self.scene.num_timesteps
         weights = timestep_weights(timesteps, T)
         out = []
@@ -113,16 +115,16 @@ class CodebookPath:
                 report(0.0, "re-scoring the uncertain Gaussians")
                 return self.scorer.score_any(q, flat, window)
 
-            counts, r_avg, relevant, rescored, sampled = counts_from_codes_refined(
+            refined = counts_from_codes_refined(
                 self.code_scores(q).double().numpy(), hist,
                 members=lambda codes, rows: self.band_members(codes, rows, timesteps), score=rescore,
                 sample=lambda groups, sizes, q=q, rng=rng: self.sample_members(q, groups, sizes, timesteps, rng,
                                                                                 (RELEVANT, np.inf)),
                 margin=self.refine, weights=weights, samples=self.samples,
                 tied_rows=lambda positive: tied_segment_rows(positive, timesteps, T, dilation))
-            self.stats["rescored_latents"] += rescored
-            self.stats["sampled_latents"] += sampled
-            out.append((counts, r_avg, relevant))
+            self.stats["rescored_latents"] += refined.rescored
+            self.stats["sampled_latents"] += refined.sampled
+            out.append((refined.counts, refined.r_avg, refined.relevant, refined.undecided))
         return out
 
     def band_members(self, codes: np.ndarray, rows: np.ndarray,

@@ -200,13 +200,13 @@ class QueryEngine:
         T, N = self.scene.num_timesteps, self.scene.num_gaussians
         ts = sampled_timesteps(T, stride or self.temporal_stride)
         if N == 0:
-            counts = [(np.zeros(len(ts), np.int64), 0.0, 0)] * len(queries)
+            counts = [(np.zeros(len(ts), np.int64), 0.0, 0, np.zeros(len(ts), bool))] * len(queries)
         elif self.path == "codebook":
             counts = self.codebook_path.temporal_counts(queries, ts, self.dilation, self._report)
         else:
             counts = self.temporal_pass.counts(queries, ts, self._report)
         return [localize_counts(c, ts, T, dilation=self.dilation, r_avg=a, num_relevant=n, query=q,
-                                num_gaussians=N) for q, (c, a, n) in zip(queries, counts)]
+                                num_gaussians=N, undecided=u) for q, (c, a, n, u) in zip(queries, counts)]
 
     # ------------------------------------------------------------------ spatial
     def relevancy_map(self, query: str, camera: Camera, t: int, fast: Optional[bool] = None,

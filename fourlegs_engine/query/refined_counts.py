@@ -32,7 +32,7 @@ sample; the total mixes exact counts and corrected estimates.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Optional
+from typing import Callable, NamedTuple, Optional
 
 import numpy as np
 import torch
@@ -59,13 +59,24 @@ ROW_DECISION_Z = 5.0
 EXACT_BAND_PAIRS = 50_000
 
 
+class RefinedCounts(NamedTuple):
+    """What :func:`counts_from_codes_refined` returns."""
+
+    counts: np.ndarray      # (S,) int64 count above R_avg per scored timestep
+    r_avg: float
+    relevant: int           # relevant (g, t) pairs, estimated
+    rescored: int           # latents re-scored
+    sampled: int            # latents sampled for R_avg
+    undecided: np.ndarray   # (S,) bool: neither the bounds nor the sample settled the decision s_t > 1/T
+
+
 def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.ndarray, np.ndarray], tuple],
                               score: Callable[[np.ndarray], np.ndarray], sample: Callable[[list, list], list],
                               margin: float,
                               weights: Optional[np.ndarray] = None, samples: int = R_AVG_SAMPLES,
                               tied_rows: Optional[Callable[[np.ndarray], list]] = None,
                               exact_band_pairs: int = EXACT_BAND_PAIRS, row_z: float = ROW_DECISION_Z
-                              ) -> tuple[np.ndarray, float, int, int, int]:
+                              ) -> RefinedCounts:
     """:func:`counts_from_code_histogram` with exact scores where the localization's decisions need them.
 
     The steps and what they guarantee are in the module docstring.
@@ -91,14 +102,17 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
         row_z: standard errors between a timestep's corrected count and the mean count that decide it
             before its band is re-scored whole (0: never).
     Returns:
-        counts (S,), R_avg, number of relevant (g,t) pairs (estimated), latents re-scored, latents sampled.
+        counts (S,), R_avg, number of relevant (g,t) pairs (estimated), latents re-scored, latents sampled,
+        and the timesteps left undecided: every band member re-scored, R_avg's sample at its largest,
+        and still their bounds straddle the mean count (their counts lie within R_avg's error of it:
+        only the exact path decides them).
     """
     r = np.asarray(code_scores.double().numpy() if isinstance(code_scores, torch.Tensor) else code_scores,
                    dtype=np.float64)
     hist = np.asarray(histogram)
     if margin <= 0:
         counts, r_avg, n_rel = counts_from_code_histogram(r, hist)
-        return counts, r_avg, n_rel, 0, 0
+        return RefinedCounts(counts, r_avg, n_rel, 0, 0, np.zeros(hist.shape[0], dtype=bool))
     S = hist.shape[0]
     w = np.ones(S, dtype=np.int64) if weights is None else np.asarray(weights, dtype=np.int64)
     T = int(w.sum())
@@ -108,7 +122,7 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
     size = int(samples)
     r_avg, r_se, n_rel, sampled = _sampled_r_avg(r, per_code, held, sample, margin, size)
     if n_rel == 0:
-        return np.zeros(S, dtype=np.int64), 0.0, 0, 0, sampled
+        return RefinedCounts(np.zeros(S, dtype=np.int64), 0.0, 0, 0, sampled, np.zeros(S, dtype=bool))
     r_low, r_high = r_avg - R_AVG_Z * r_se, r_avg + R_AVG_Z * r_se
     first = (r_low, r_high)
     # 2. counts above R_avg: by code outside the band, bounded inside it until re-scored
@@ -142,8 +156,9 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
         counts = band.estimate(r_avg)[0]
     if counts.sum() == 0:  # every relevant score equal (see counts_from_relevancy): count the relevant
         band.rescore_without_window()
+        undecided = np.zeros(S, dtype=bool)
         counts = (hist @ (band.outside & (r > RELEVANT)).astype(hist.dtype)).astype(np.int64) + band.above(RELEVANT)[0]
-    return counts, r_avg, n_rel, band.rescored, sampled
+    return RefinedCounts(counts, r_avg, n_rel, band.rescored, sampled, undecided)
 
 
 def _narrowed_interval(estimate: float, r_se: float, first: tuple[float, float]) -> tuple[float, float, float]:

@@ -23,6 +23,9 @@ class TemporalResult:
         r_avg: the mean relevancy of the relevant (R > 0.5) Gaussians (0 when there are none).
         num_relevant: how many (Gaussian, timestep) pairs have R > 0.5 (on the sampled timesteps).
         timesteps: the timesteps actually scored (all, or every k-th with a temporal stride).
+        undecided: scored timesteps whose decision s_t > 1/T the codebook path left open: their counts lie
+            within R_avg's error of the mean count, so the exact path (``path="exact"``) may decide them,
+            and the segment ends next to them, otherwise (always empty on the exact path).
     """
 
     scores: np.ndarray
@@ -35,6 +38,7 @@ class TemporalResult:
     r_avg: float = 0.0
     num_relevant: int = 0
     timesteps: Optional[np.ndarray] = None
+    undecided: list[int] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -46,6 +50,7 @@ class TemporalResult:
             "positive": [bool(p) for p in self.positive],
             "r_avg": float(self.r_avg), "num_relevant": int(self.num_relevant),
             "timesteps": None if self.timesteps is None else [int(t) for t in self.timesteps],
+            "undecided": [int(t) for t in self.undecided],
         }
 
 

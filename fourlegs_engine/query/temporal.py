@@ -140,7 +140,8 @@ def pick_segment(segments: Sequence[tuple[int, int]], scores: np.ndarray) -> Opt
 
 
 def localize_counts(counts, timesteps, num_timesteps: int, *, dilation: int = 1, r_avg: float = 0.0,
-                    num_relevant: int = 0, query: str = "", num_gaussians: Optional[int] = None) -> TemporalResult:
+                    num_relevant: int = 0, query: str = "", num_gaussians: Optional[int] = None,
+                    undecided: Optional[np.ndarray] = None) -> TemporalResult:
     """s_t, positives, segments, the longest segment and its peak from per-timestep counts.
 
     Args:
@@ -148,6 +149,8 @@ def localize_counts(counts, timesteps, num_timesteps: int, *, dilation: int = 1,
         timesteps: (S,) which timesteps were scored (sorted).
         num_timesteps: T of the scene.
         dilation: radius (timesteps) of the binary dilation applied before extracting runs.
+        undecided: (S,) bool, the scored timesteps whose decision the counts leave open (see
+            :class:`TemporalResult`).
     """
     T = int(num_timesteps)
     full = expand_counts(counts, timesteps, T)
@@ -175,7 +178,9 @@ def localize_counts(counts, timesteps, num_timesteps: int, *, dilation: int = 1,
     return TemporalResult(scores=scores.astype(np.float64), positive=positive, segments=segments,
                           segment=segment, peak=peak, found=segment is not None, message=message,
                           r_avg=float(r_avg), num_relevant=int(num_relevant),
-                          timesteps=np.asarray(timesteps, dtype=np.int64))
+                          timesteps=np.asarray(timesteps, dtype=np.int64),
+                          undecided=[] if undecided is None else
+                          [int(t) for t in np.asarray(timesteps, dtype=np.int64)[np.asarray(undecided, dtype=bool)]])
 
 
 def localize_relevancy(scores, *, timesteps=None, num_timesteps: Optional[int] = None, dilation: int = 1,

@@ -64,7 +64,7 @@ class ExactTemporalPass:
             self._scores[q] = {int(t): scores[j, i] for i, t in enumerate(timesteps)}
             while len(self._scores) * per_query > TEMPORAL_SCORE_BYTES:
                 self._scores.pop(next(iter(self._scores)))
-        return [counts_from_relevancy(scores[j]) for j in range(Q)]
+        return [(*counts_from_relevancy(scores[j]), np.zeros(len(timesteps), dtype=bool)) for j in range(Q)]
 
     def scores_at(self, query: str, t: int) -> Optional[np.ndarray]:
         """(N,) scores of ``query`` at ``t`` if a pass computed them, else None."""

@@ -229,6 +229,37 @@ def test_segments_all_gives_a_replay_per_segment(people, mode):
         assert full and a - 1e-9 <= min(full) and max(full) <= b + 1e-9
 
 
+def test_a_replay_of_a_subject_standing_near_the_view_widens_its_lens_to_show_it(people):
+    """The real capture's "a person": a replay of another segment frames the person found there, who may
+    stand much nearer the best view than the person the shots were planned for. Its lens is widened (at
+    most to half) so the person fits; the picked segment's replay keeps the anchor's lens."""
+    scene, relevant, big, small = people
+    means = scene.gaussians.means.copy()
+    near = means[:, big].copy()
+    near[..., 0] += 3.3 + 1.4          # the larger person at (3.3, 1.37): 1.6 m from cam00, for t < 8
+    near[..., 1] += 1.37
+    means[:8, big] = near[:8]
+    g = scene.gaussians
+    moving = Scene(gaussians=GaussianSequence(means=means, rotations=g.rotations, log_scales=g.log_scales,
+                                              opacity_logits=g.opacity_logits, colors=g.colors),
+                   cameras=scene.cameras, name="two-people-moving", fps=30.0)
+    localizer = PeopleLocalizer(moving, relevant, segment=(10, 20), centre=(0.0, 0.0, 0.9), best_view="cam00",
+                                segments=[(3, 6), (10, 20)])
+    plan = plan_highlight(moving, localizer, QUERY, _preset(segments="all"))
+    context = next(s for s in plan.shots if s.name == "context")
+    replays = [s for s in plan.shots if s.effect == "desaturate_background"]
+    assert len(replays) == 2
+    early, picked = replays
+    anchor_focal = context.camera_keys[0].focal_px
+    assert picked.camera_keys[-1].focal_px == pytest.approx(anchor_focal)
+    widened = early.camera_keys[-1].focal_px
+    assert 0.5 * anchor_focal - 1e-6 <= widened < anchor_focal
+    assert any("its lens is widened" in m and "stands" in m for m in plan.messages)
+    key = next(k for k in early.camera_keys if plan.desaturation_weight(k.frame) == 1.0)
+    q = _subject_height(moving, plan, key, key.frame, big)
+    assert q["in_frame"] and q["height"] <= 0.9, q
+
+
 def test_blur_background_needs_relevancy_only_where_it_blurs(people):
     scene, relevant, big, small = people
     plan = plan_highlight(scene, _localizer(people), QUERY, _preset(replay_effect="blur_background"))

@@ -35,6 +35,7 @@ from ..errors import InputError
 from . import timing
 from .camera_paths import Pose, aim, dolly_path, hold_path, interpolate_poses, orbit_path, slerp_rotations
 from .framed_moves import follow_subject, framed_orbit, framed_zoom, upright
+from .framing import MAX_PULL_BACK
 from .shot_context import ShotContext, ShotPath
 
 TIME_ANCHORS = ("start", "end", "segment_start", "segment_end", "peak")
@@ -176,6 +177,24 @@ def shot_times(p: dict[str, Any], ctx: ShotContext) -> tuple[np.ndarray, dict[st
     return times, facts
 
 
+def _lens_fitting_subject(ctx: ShotContext, label: str) -> float:
+    """The anchor's focal length (output px), widened (to at most ``MAX_PULL_BACK`` of it) until this shot's
+    subject fits the frame: a replay of another segment frames the subject found there, which may stand
+    nearer the anchor than the one the anchor was chosen for."""
+    focal = float(ctx.anchor_focal)
+    if ctx.framing is None:
+        return focal
+    distance = float(np.linalg.norm(ctx.anchor.position - ctx.framing.centre))
+    fit = ctx.framing.fitting_focal(distance, ctx.resolution)
+    if fit >= focal:
+        return focal
+    wider = max(fit, MAX_PULL_BACK * focal)
+    ctx.messages.append(f"{label}: the subject of this shot stands {distance:.2f} m from the view; its lens is "
+                        f"widened x{wider / focal:.2f}" + ("" if wider == fit else " (the most allowed)")
+                        + " to show it")
+    return wider
+
+
 def _camera_move(p: dict[str, Any], ctx: ShotContext, n: int) -> tuple[list[Pose], np.ndarray]:
     """Poses/focals of a shot that films from a chosen camera, swinging there from the previous one."""
     cam = p["camera"]
@@ -185,7 +204,7 @@ def _camera_move(p: dict[str, Any], ctx: ShotContext, n: int) -> tuple[list[Pose
     if cam == "best_view":
         if ctx.anchor is None:
             raise InputError("camera 'best_view' needs the best view", field="camera")
-        target, target_focal = ctx.anchor, float(ctx.anchor_focal)
+        target, target_focal = ctx.anchor, _lens_fitting_subject(ctx, p["camera"])
     else:
         if ctx.camera_pose is None:
             raise InputError(f"no scene cameras to resolve {cam!r}", field="camera")

@@ -44,6 +44,9 @@ MAX_OCCLUSION = 0.25
 NEAR_CONE_SLOPE = 1.5
 #: Mahalanobis radius of a Gaussian's extent (3 sigma).
 SIGMAS = 3.0
+#: a lens is widened to fit a subject at most to this share of its focal length (a wider lens shows what
+#: the capture's cameras never saw)
+MAX_PULL_BACK = 0.5
 
 _CANONICAL_AXES = np.eye(3)
 

@@ -23,7 +23,7 @@ import numpy as np
 from ..errors import InputError
 from .camera_paths import Pose, aim, look_at_rotation
 from .effects import LOCALIZATION_NEEDS, NEED_ACTION_CENTRE, NEED_BEST_VIEW, NEED_TEMPORAL, get_effect
-from .framing import Framing, scene_up
+from .framing import MAX_PULL_BACK, Framing, scene_up
 from .plan import CameraKey, HighlightPlan, Shot, TimeKey, merge_ranges
 from .presets import MAX_FPS, MAX_SIDE, MIN_SIDE, Preset, ShotSpec
 from .rig_volume import RigVolume
@@ -31,10 +31,9 @@ from .shot_context import ShotContext
 from .shot_list import PlannedShot, expand_shots, highlighted_segments
 
 #: the anchor (context) shot shows the subject at most at this share of the first sized zoom's target
-#: height, so that zoom has something to grow; the best view's lens is widened to it, but at most to this
-#: share of its focal length (a wider lens shows what the capture's cameras never saw)
+#: height, so that zoom has something to grow; the best view's lens is widened to it, but at most to
+#: ``MAX_PULL_BACK`` of its focal length
 ZOOM_ROOM = 0.6
-MAX_PULL_BACK = 0.5
 
 
 class Localizer(Protocol):

@@ -87,6 +87,49 @@ def test_extract_and_lift_on_ray_give_the_single_process_bytes(reference, ray_cl
         assert not list((Path(tempfile.gettempdir()) / "fourlegs-cluster").glob("*/bundle"))
 
 
+STRIDE_2 = ["--timestep-stride", "2"]
+
+
+@pytest.fixture(scope="module", params=["latents", "interpolate"])
+def strided_reference(request, tmp_path_factory) -> tuple[Path, str]:
+    """A micro bundle (5 timesteps) extracted every 2nd timestep with ``--fill FILL``, autoencoder-trained
+    and lifted in one process (timesteps 1 and 3 filled from their neighbours: features, or with
+    ``latents`` the lifted latents); ``.parent / "prepared"`` is the same before the extraction."""
+    fill = request.param
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    root = tmp_path_factory.mktemp(f"cluster_{fill}")
+    prepared = micro_bundle(root / "prepared", T=5, cameras=2)
+    reference = root / "reference"
+    shutil.copytree(prepared, reference)
+    assert main(["extract", str(reference), "--no-progress", *STRIDE_2, "--fill", fill]) == 0
+    assert main(["train-ae", str(reference), *AE_ARGS]) == 0
+    result = distill_scene(load_bundle(reference), mode="lift")
+    assert result.filled == ([1, 3] if fill == "latents" else [])
+    torch.set_num_threads(old)
+    return reference, fill
+
+
+@pytest.mark.cluster
+@pytest.mark.parametrize("shared", [True, False], ids=["shared-fs", "object-store"])
+def test_a_strided_plan_on_ray_gives_the_single_process_bytes(strided_reference, ray_cluster, tmp_path, shared):
+    # the tasks encode each grid timestep once and lift what has features; the driver fills the rest
+    reference, fill = strided_reference
+    path = tmp_path / "bundle"
+    shutil.copytree(reference.parent / "prepared", path)
+    flags = ["--no-progress"] + ([] if shared else ["--ray-no-shared-fs"])
+    assert main(["extract", "--ray", str(path), *flags, *STRIDE_2, "--fill", fill, "--ray-chunk", "2"]) == 0
+    stored = ["t000000.npy", "t000002.npy", "t000004.npy"]
+    if fill == "interpolate":
+        stored = sorted(stored + ["t000001.npy", "t000003.npy"])
+    assert _same_files(reference / "features", path / "features", "t*.npy") == stored
+    (path / "language").mkdir(exist_ok=True)
+    for name in ("autoencoder.json", "encoder.pt", "decoder.pt"):   # the same autoencoder as the reference's
+        shutil.copy(reference / "language" / name, path / "language")
+    assert main(["distill", str(path), *flags, "--ray"]) == 0
+    assert (path / "language" / "latents.npy").read_bytes() == (reference / "language" / "latents.npy").read_bytes()
+
+
 def test_plan_chunks_splits_at_gaps_and_size():
     assert cluster.plan_chunks([5, 0, 1, 2, 3, 9, 6], 3) == [(0, 1, 2), (3,), (5, 6), (9,)]
     assert cluster.plan_chunks([], 4) == []

@@ -74,7 +74,9 @@ def extract_on_ray(scene: "Scene", encoder_factory: Callable[["Scene"], Any], co
 
     ``encoder_factory(scene)`` builds the encoder inside each worker (once per worker process); it
     must be picklable (a module-level function or a ``functools.partial`` of one). The driver never
-    builds the encoder: the features' configuration comes from one small task first.
+    builds the encoder: the features' configuration comes from one small task first. With a timestep
+    stride the tasks encode the stride's grid timesteps the selection needs, each exactly once, and the
+    driver fills the ones in between from them (nothing for ``fill="latents"``: the lift fills those).
     """
     from ..language.extract import ExtractOptions
     from ..language.store import select_timesteps
@@ -98,14 +100,20 @@ def extract_on_ray(scene: "Scene", encoder_factory: Callable[["Scene"], Any], co
 
 def _extract_on_ray(ray: Any, scene: "Scene", job: ExtractJob, steps: list[int], gpus: float, overwrite: bool,
                     progress: bool, options: RayOptions) -> tuple["ExtractReport", ClusterReport]:
-    from ..language.extract import ExtractReport, feature_store
+    from ..language.extract import ExtractReport, feature_store, fill_timesteps
+    from ..language.skipping import LATENT_FILLS, encoded_timesteps, timestep_work
     root = Path(scene.root)
     configs: list[dict[str, Any]] = []
     probe = run_chunks(extract_config_task, job, [()], options=options, stage="extract-config", num_gpus=gpus,
                        progress=False, on_result=lambda chunk, value: configs.append(value))
     probe.raise_failures()
     store = feature_store(scene, configs[0]).open(overwrite=overwrite)
-    todo = [t for t in steps if not store.is_done(t)]
+    stride, fill = job.config.timestep_stride, job.config.fill
+    encode, to_fill = timestep_work(scene.num_timesteps, steps, stride, fill)
+    if fill in LATENT_FILLS:
+        to_fill = []
+    # a task given only grid timesteps encodes exactly those: no two tasks write the same file
+    todo = [t for t in encode if not store.is_done(t)]
     slots = worker_slots(ray, options, gpus)
     chunks = plan_chunks(todo, options.chunk or auto_chunk(len(todo), slots, configs[0]["input_kind"]))
     stats = {"render": 0.0, "encode": 0.0, "crops": 0, "done": []}
@@ -121,11 +129,13 @@ def _extract_on_ray(ray: Any, scene: "Scene", job: ExtractJob, steps: list[int],
     start = time.perf_counter()
     tasks = run_chunks(_extract_chunk, job, chunks, options=options, stage="extract", num_gpus=gpus,
                        progress=progress, on_result=collect)
-    tasks.skipped = [t for t in steps if t not in set(todo)]
+    tasks.skipped = [t for t in sorted(encode + to_fill) if t not in set(todo) and store.is_done(t)]
     tasks.setup = probe
     tasks.raise_failures()
+    filled = fill_timesteps(store, [t for t in to_fill if not store.is_done(t)],
+                            encoded_timesteps(scene.num_timesteps, stride), fill)
     report = ExtractReport(sorted(stats["done"]), tasks.skipped, time.perf_counter() - start, stats["render"],
-                           stats["encode"], stats["crops"])
+                           stats["encode"], stats["crops"], timesteps_filled=filled)
     return report, tasks
 
 
@@ -160,21 +170,25 @@ def distill_on_ray(scene: "Scene", config: "DistillOptions", *, timesteps: Any =
     ``options.chunk`` timesteps (default 1); the latents are merged here once every timestep is done.
 
     Without a shared filesystem each task also receives the teacher features of its own timesteps.
+    With a ``fill="latents"`` extraction the tasks lift the encoded timesteps only; the in-between ones
+    are filled here from their lifted neighbours (they have no features to send).
     """
     from ..language.autoencoder import AE_REPORT, ENCODER_FILE
     from ..language.distill import distill_scene
-    from ..language.extract import FEATURES_DIR
-    from ..language.store import MANIFEST, StepStore, select_timesteps, step_file_names
+    from ..language.extract import FEATURES_DIR, feature_store
+    from ..language.latent_fill import latent_fill_of, lift_and_fill_work
+    from ..language.store import MANIFEST, StepStore, step_file_names
     options = (options or RayOptions()).check()
     config.check()
     ray = connect(options)
     # opens the per-timestep store (refusing or, with overwrite, discarding another configuration's
     # results) without distilling anything; returns at once when the merged latents are current
     opened = distill_scene(scene, config=config, timesteps=[], overwrite=overwrite, merge=False)
-    steps = select_timesteps(scene.num_timesteps, timesteps, shard)
+    stride = latent_fill_of(feature_store(scene).config)
+    steps, to_fill = lift_and_fill_work(scene.num_timesteps, stride, timesteps, shard)
     if opened.latents is not None:
-        opened.skipped = steps
-        return opened, ClusterReport("distill", skipped=steps)
+        opened.skipped = sorted(steps + to_fill)
+        return opened, ClusterReport("distill", skipped=opened.skipped)
     store = StepStore(Path(opened.out_dir) / "steps", "latents", opened.config, scene.num_timesteps)
     todo = [t for t in steps if not store.is_done(t)]
     gpus = float(options.num_gpus or 0.0)
@@ -199,7 +213,8 @@ def distill_on_ray(scene: "Scene", config: "DistillOptions", *, timesteps: Any =
         release_bundle(ray, ref)
     tasks.skipped = [t for t in steps if t not in set(todo)]
     tasks.raise_failures()
-    result = distill_scene(scene, config=config, timesteps=[], merge=True)   # merges when every timestep is done
+    # fills the in-between timesteps (their neighbours are lifted) and merges when every timestep is done
+    result = distill_scene(scene, config=config, timesteps=to_fill, merge=True)
     result.timings = sorted(timings, key=lambda t: t.t)
     result.skipped = tasks.skipped
     return result, tasks

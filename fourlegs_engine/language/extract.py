@@ -263,13 +263,13 @@ def extract_features(scene: Scene, encoder: Any, config: ExtractOptions | None =
                 on_timestep(t)
     finally:
         steps.close()
-    filled = _fill_timesteps(store, [t for t in fill_steps if not store.is_done(t)], grid, config.fill, on_timestep)
+    filled = fill_timesteps(store, [t for t in fill_steps if not store.is_done(t)], grid, config.fill, on_timestep)
     return ExtractReport(todo, skipped, time.perf_counter() - start, source.render_seconds, steps.seconds,
                          crops_per_t, steps.encoded, steps.copied, filled, time.process_time() - cpu_start)
 
 
-def _fill_timesteps(store: StepStore, to_fill: Sequence[int], grid: Sequence[int], fill: str,
-                    on_timestep: Callable[[int], None] | None) -> list[int]:
+def fill_timesteps(store: StepStore, to_fill: Sequence[int], grid: Sequence[int], fill: str,
+                   on_timestep: Callable[[int], None] | None = None) -> list[int]:
     """Write the features of the timesteps off the stride's grid whose encoded neighbours are finished."""
     filled = []
     for t in to_fill:

@@ -289,6 +289,33 @@ def test_a_flat_query_decides_its_far_timesteps_from_a_sample_and_agrees_with_ex
                                   want_counts * S > int(bounds_only[0].sum()))
 
 
+@settings(max_examples=15, deadline=None)
+@given(st.integers(0, 10_000))
+def test_a_band_narrower_than_the_codes_errors_is_widened_to_them(seed):
+    """Members spread 0.06 around their code's score, the band asked for 0.01 (a codebook coarse for the
+    query, as the demo field's "a person walking" with errors up to 0.28): R_avg's sample shows the spread
+    and the band widens to it, so every timestep is decided as exact counting decides it; kept at 0.01
+    (``margin_quantile=0``) members outside the band flip and decisions differ."""
+    codes, code_scores, exact, hist = _coded_problem(seed, S=8, N=3000, K=40, noise=0.06, bounded=True)
+    S = codes.shape[0]
+    want_counts = counts_from_relevancy(torch.from_numpy(exact))[0]
+    adapted = _refined(code_scores, hist, codes, exact, 0.01, [])
+    total = int(adapted.counts.sum())
+    np.testing.assert_array_equal(adapted.counts * S > total, want_counts * S > total)
+
+
+def test_without_the_widening_a_coarse_index_misjudges_timesteps():
+    differ = 0
+    for seed in range(10):
+        codes, code_scores, exact, hist = _coded_problem(seed, S=8, N=3000, K=40, noise=0.06, bounded=True)
+        S = codes.shape[0]
+        fixed = _refined(code_scores, hist, codes, exact, 0.01, [], margin_quantile=0.0)
+        want_counts = counts_from_relevancy(torch.from_numpy(exact))[0]
+        total = int(fixed.counts.sum())
+        differ += bool(np.any((fixed.counts * S > total) != (want_counts * S > total)))
+    assert differ >= 5
+
+
 def test_timesteps_left_undecided_hold_every_decision_that_differs_from_exact_counting():
     """With R_avg from a sample, the timesteps whose counts lie within its error of the mean cannot be
     decided from the index; they are reported, and every decision that differs from exact counting is
@@ -353,7 +380,7 @@ def test_sampled_r_avg_is_exact_with_every_pair_and_within_its_error_otherwise()
     assert full[0] == pytest.approx(want, abs=1e-12) and full[1] == 0.0 and full[2] == int((exact > 0.5).sum())
     errors = []
     for seed in range(20):
-        r_avg, se, n_rel, sampled = _sampled_r_avg(code_scores, per_code, per_code > 0,
+        r_avg, se, n_rel, sampled, _, _ = _sampled_r_avg(code_scores, per_code, per_code > 0,
                                                    _callbacks(codes, exact, [], seed)[2], 0.01, 400)
         assert sampled <= 400 and se > 0
         errors.append((r_avg - want) / se)

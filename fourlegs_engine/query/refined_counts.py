@@ -11,7 +11,8 @@ mean, s_t > 1/T) come nearly right from the codes:
    max(``MEMBERSHIP_BAND``, 2·margin) below 0.5 are taken as not relevant. Its standard error gives
    an interval of ±``R_AVG_Z`` errors.
 2. Per timestep, the count above R_avg is taken from the codes, except for the members of the codes
-   within ``margin`` of that interval; those bound it from below and above. While a timestep's bounds
+   within ``margin`` of that interval (``margin`` widened to the 99th percentile of the deviations
+   |exact − code| that step 1's sample shows near R_avg, :func:`adapted_margin`); those bound it from below and above. While a timestep's bounds
    straddle the mean count (the total of the current counts / T), its band members are re-scored
    exactly in random order, a chunk at a time (the first ``RESCORE_FIRST_FRACTION`` of them, each
    next one ``RESCORE_GROWTH`` times larger), each chunk narrowing the bounds. The re-scored members
@@ -51,6 +52,13 @@ R_AVG_MAX_SAMPLES_FACTOR = 16  # the sample grows 4x at a time up to this many t
 RESCORE_FIRST_FRACTION = 1 / 16
 RESCORE_MIN_CHUNK = 64
 RESCORE_GROWTH = 3
+#: the band's margin is widened to this quantile of |exact − code| of R_avg's sampled pairs whose code lies
+#: within ``ADAPT_WINDOW`` of R_avg (when at least ``ADAPT_MIN_PAIRS`` are), up to ``MAX_MARGIN``: a field
+#: whose codes are coarse for the query gets the band its members need
+ADAPT_QUANTILE = 0.99
+ADAPT_WINDOW = 0.15
+ADAPT_MIN_PAIRS = 100
+MAX_MARGIN = 0.25
 #: a timestep's decision is taken from its re-scored sample once its count is this many standard errors
 #: from the mean count (a wrong decision then has a probability below 1e-6 per timestep)
 ROW_DECISION_Z = 5.0
@@ -75,8 +83,8 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
                               margin: float,
                               weights: Optional[np.ndarray] = None, samples: int = R_AVG_SAMPLES,
                               tied_rows: Optional[Callable[[np.ndarray], list]] = None,
-                              exact_band_pairs: int = EXACT_BAND_PAIRS, row_z: float = ROW_DECISION_Z
-                              ) -> RefinedCounts:
+                              exact_band_pairs: int = EXACT_BAND_PAIRS, row_z: float = ROW_DECISION_Z,
+                              margin_quantile: float = ADAPT_QUANTILE) -> RefinedCounts:
     """:func:`counts_from_code_histogram` with exact scores where the localization's decisions need them.
 
     The steps and what they guarantee are in the module docstring.
@@ -101,6 +109,8 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
         exact_band_pairs: a band with at most this many members is re-scored whole (0: never).
         row_z: standard errors between a timestep's corrected count and the mean count that decide it
             before its band is re-scored whole (0: never).
+        margin_quantile: the band is widened to this quantile of the sampled deviations (see
+            :func:`adapted_margin`; 0: ``margin`` as given).
     Returns:
         counts (S,), R_avg, number of relevant (g,t) pairs (estimated), latents re-scored, latents sampled,
         and the timesteps left undecided: every band member re-scored, R_avg's sample at its largest,
@@ -120,7 +130,9 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
     held = per_code > 0
     # 1. R_avg with a confidence interval; widened samples narrow it while a decision depends on it
     size = int(samples)
-    r_avg, r_se, n_rel, sampled = _sampled_r_avg(r, per_code, held, sample, margin, size)
+    estimate = _sampled_r_avg(r, per_code, held, sample, margin, size)
+    r_avg, r_se, n_rel, sampled = estimate[:4]
+    margin = adapted_margin(margin, estimate, margin_quantile)
     if n_rel == 0:
         return RefinedCounts(np.zeros(S, dtype=np.int64), 0.0, 0, 0, sampled, np.zeros(S, dtype=bool))
     r_low, r_high = r_avg - R_AVG_Z * r_se, r_avg + R_AVG_Z * r_se
@@ -142,7 +154,7 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
             # those rows are exact: only R_avg's interval leaves them open, so estimate it again from a
             # 4x larger sample, keeping the interval inside the first one (the band was built for it)
             size *= 4
-            estimate, r_se, n_rel, more = _sampled_r_avg(r, per_code, held, sample, margin, size)
+            estimate, r_se, n_rel, more = _sampled_r_avg(r, per_code, held, sample, margin, size)[:4]
             sampled += more
             r_avg, r_low, r_high = _narrowed_interval(estimate, r_se, first)
         else:
@@ -325,14 +337,19 @@ class _Band:
                 self.rescored += int(row.scored_handles.size)
 
 
-def _sampled_r_avg(r: np.ndarray, per_code: np.ndarray, held: np.ndarray, sample: Callable, margin: float,
-                   samples: int) -> tuple[float, float, int, int]:
-    """R_avg = F / G over Rel from the code relevancies, corrected by the exact-minus-code differences of a
-    stratified sample (a control variate), with its standard error (linearized ratio estimator).
+class _RAvgEstimate(NamedTuple):
+    r_avg: float          # 0 when no pair is relevant
+    se: float             # its standard error
+    relevant: int         # estimated |Rel|
+    sampled: int          # latents sampled
+    deviations: np.ndarray  # (M,) exact - code of the sampled pairs relevant by both, their codes' scores (M,)
+    codes: np.ndarray
 
-    Returns:
-        R_avg (0 when no pair is relevant), its standard error, estimated |Rel|, latents sampled.
-    """
+
+def _sampled_r_avg(r: np.ndarray, per_code: np.ndarray, held: np.ndarray, sample: Callable, margin: float,
+                   samples: int) -> _RAvgEstimate:
+    """R_avg = F / G over Rel from the code relevancies, corrected by the exact-minus-code differences of a
+    stratified sample (a control variate), with its standard error (linearized ratio estimator)."""
     rel = r > RELEVANT
     F, G = float(per_code[rel] @ r[rel]), float(per_code[rel].sum())
     # strata by distance from 0.5, finest where membership flips most (water-filled: small ones whole)
@@ -348,7 +365,7 @@ def _sampled_r_avg(r: np.ndarray, per_code: np.ndarray, held: np.ndarray, sample
         size = max(1, min(populations[i], budget // max(left, 1)))
         budget -= size
         requests.append((int(i), size))
-    drawn = []
+    drawn, deviations, deviation_codes = [], [], []
     answers = sample([np.nonzero(strata[i])[0] for i, _ in requests], [size for _, size in requests]) \
         if requests else []
     for (i, _), (codes, exact) in zip(requests, answers):
@@ -361,10 +378,27 @@ def _sampled_r_avg(r: np.ndarray, per_code: np.ndarray, held: np.ndarray, sample
         F += populations[i] * float(f.mean())
         G += populations[i] * float(g.mean())
         drawn.append((populations[i], f, g))
+        both = (exact > RELEVANT) & (coded > RELEVANT)
+        deviations.append(exact[both] - coded[both])
+        deviation_codes.append(coded[both])
     sampled = sum(f.size for _, f, _ in drawn)
+    dev = np.concatenate(deviations) if deviations else np.zeros(0)
+    dev_codes = np.concatenate(deviation_codes) if deviation_codes else np.zeros(0)
     if not G >= 0.5:  # not one relevant pair (to the sample's resolution)
-        return 0.0, 0.0, 0, sampled
+        return _RAvgEstimate(0.0, 0.0, 0, sampled, dev, dev_codes)
     r_avg = F / G
     var = sum(P * P * max(0.0, 1.0 - f.size / P) * float(np.var(f - r_avg * g, ddof=1)) / f.size
               for P, f, g in drawn if f.size > 1)
-    return float(np.clip(r_avg, RELEVANT, 1.0)), float(np.sqrt(var)) / G, int(round(G)), sampled
+    return _RAvgEstimate(float(np.clip(r_avg, RELEVANT, 1.0)), float(np.sqrt(var)) / G, int(round(G)), sampled,
+                         dev, dev_codes)
+
+
+def adapted_margin(margin: float, estimate: _RAvgEstimate, quantile: float) -> float:
+    """The band's half-width: ``margin``, widened to the ``quantile`` of |exact − code| over the sampled
+    pairs whose code lies within ``ADAPT_WINDOW`` of R_avg (the members whose side of R_avg a coarse code
+    misjudges), at most ``MAX_MARGIN``; ``margin`` when ``quantile`` is 0 or fewer than
+    ``ADAPT_MIN_PAIRS`` such pairs were sampled."""
+    near = np.abs(estimate.codes - estimate.r_avg) < ADAPT_WINDOW
+    if quantile <= 0 or int(near.sum()) < ADAPT_MIN_PAIRS:
+        return float(margin)
+    return float(max(margin, min(np.quantile(np.abs(estimate.deviations[near]), quantile), MAX_MARGIN)))

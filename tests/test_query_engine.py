@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from fourlegs_engine.errors import InputError
+from fourlegs_engine.query import maps as maps_module
 from fourlegs_engine.query.engine import QueryEngine, QueryOptions
 from fourlegs_engine.query.lerf import relevancy_reference
 from fourlegs_engine.query.temporal import localize_relevancy
@@ -378,3 +379,45 @@ def test_temporal_on_concurrent_streams_equals_one_stream(setup, chunk):
     for q in queries:
         for t in range(scene.num_timesteps):
             np.testing.assert_array_equal(engines[1].temporal_pass.scores_at(q, t), engines[2].temporal_pass.scores_at(q, t))
+
+
+@pytest.mark.parametrize("t", [0, 1])
+def test_relevant_only_maps_give_the_full_maps_relevant_part_and_the_same_best_view(setup, t, monkeypatch):
+    """Only the Gaussians touching the relevant ones' box are rendered: above 0.5 the map is the full
+    map's (the same Gaussians, blended in the same order), elsewhere both stay at most 0.5; so the best
+    view and its relevant-mass scores equal the full maps'. At t = 0 nothing is relevant: the views'
+    scores are all 0 and the search falls back to the whole maps' mean. (Half of this scene's Gaussians
+    are the subject: the share above which the whole frame is rendered is lifted for the test.)"""
+    scene, field, enc, _ = setup
+    if t == 1:
+        whole = QueryEngine(scene, field, enc, QueryOptions.exact(spatial="fast"))
+        whole.maps.relevancy_maps([Q], scene.cameras.cameras(t, "all")[0], t, outputs=("relevancy",),
+                                  relevant_only=True)
+        assert whole.stats["relevant_only_maps"] == 0   # a subject of half the Gaussians: the whole frame
+    monkeypatch.setattr(maps_module, "REGION_MAX_SHARE", 1.0)
+    eng = QueryEngine(scene, field, enc, QueryOptions.exact(spatial="fast"))
+    for cam in scene.cameras.cameras(t, "all"):
+        full = eng.maps.relevancy_maps([Q], cam, t, outputs=("relevancy",))["relevancy"][0]
+        part = eng.maps.relevancy_maps([Q], cam, t, outputs=("relevancy",), relevant_only=True)["relevancy"][0]
+        np.testing.assert_allclose(np.clip(part - 0.5, 0, None), np.clip(full - 0.5, 0, None), atol=1e-6)
+        assert part.max() <= 1.0 and (part[full <= 0.5] <= 0.5 + 1e-6).all()
+    assert eng.stats["relevant_only_maps"] == len(scene.cameras.cameras(t, "all"))
+    view = eng.best_view(Q, t)
+    full_maps = {c.name: eng.maps.relevancy_maps([Q], c, t, outputs=("relevancy",))["relevancy"][0]
+                 for c in scene.cameras.cameras(t, "all")}
+    score = "relevant" if t == 1 else "mean"
+    want = {n: float(np.clip(m.astype(np.float64) - 0.5, 0, None).mean()) if score == "relevant"
+            else float(m.astype(np.float64).mean()) for n, m in full_maps.items()}
+    assert view.best == max(want, key=want.get)
+    assert view.scores == pytest.approx(want, abs=1e-7)
+
+
+def test_relevant_only_maps_skip_the_gaussians_away_from_the_relevant_region(setup):
+    scene, field, enc, _ = setup
+    eng = QueryEngine(scene, field, enc, QueryOptions.exact(spatial="fast"))
+    wide = scene.cameras.cameras(1, "all")[0]
+    relevant = eng.gaussian_relevancy(Q, 1) > 0.5
+    touching = eng.maps.touching_relevant(1, wide, relevant)
+    n = scene.num_gaussians // 2
+    assert bool(relevant[:n].all()) and not bool(relevant[n:].any())   # blob A is the ball at t = 1
+    assert bool(touching[:n].all()) and int(touching[n:].sum()) < n // 4  # blob B, 1.2 m away, left out

@@ -243,21 +243,38 @@ class QueryEngine:
         ``view_scale`` of the map resolution, the ``view_confirm`` best re-scored at the map resolution."""
         self.stats["best_view"] += 1
         cams = list(cameras) if cameras is not None else self.cameras_at(t)
+        # the relevant mass needs only the pixels above 0.5: fast maps of the relevant region give it
+        # exactly; when no view has any, the score falls back to the mean, which needs the whole maps
+        region = self.options.view_score == "relevant" and self.spatial == "fast"
+        result, relevant_seen = self._best_view(query, t, cams, relevant_only=region)
+        if region and not relevant_seen:
+            result, _ = self._best_view(query, t, cams, relevant_only=False)
+        return result
+
+    def _best_view(self, query: str, t: int, cams: list[Camera], *, relevant_only: bool) -> tuple[ViewResult, bool]:
+        """The best view from maps (``relevant_only``: see :meth:`.SpatialMaps.relevancy_maps`), and whether
+        any map had a pixel above 0.5."""
         coarse = self.options.view_scale < 1.0 and len(cams) > self.options.view_confirm
         steps = len(cams) + (self.options.view_confirm if coarse else 0)
-        seen = [0]
+        seen, relevant_seen = [0], [False]
 
         def relevancy_of(cam: Camera, reduced: bool) -> np.ndarray:
             self._report(seen[0] / max(1, steps), "scoring the views at reduced size" if reduced else "rendering the views")
             seen[0] += 1
             scale = self.maps.resolution_scale * (self.options.view_scale if reduced else 1.0)
             self.stats["view_maps_reduced" if reduced else "view_maps"] += 1
-            return self.relevancy_map(query, cam, t, outputs=("relevancy",), scale=scale)["relevancy"]
+            self.stats["relevancy_map"] += 1
+            m = self.maps.relevancy_maps([query], cam, t, outputs=("relevancy",), scale=scale,
+                                         relevant_only=relevant_only)["relevancy"][0]
+            relevant_seen[0] = relevant_seen[0] or bool(m.size and m.max() > 0.5)
+            return m
 
         if not coarse:
-            return viewpoint.best_view(cams, lambda cam: relevancy_of(cam, False), t, self.options.view_score)
-        return viewpoint.best_view_confirmed(cams, relevancy_of, t, self.options.view_confirm,
-                                             self.options.view_score)
+            result = viewpoint.best_view(cams, lambda cam: relevancy_of(cam, False), t, self.options.view_score)
+        else:
+            result = viewpoint.best_view_confirmed(cams, relevancy_of, t, self.options.view_confirm,
+                                                   self.options.view_score)
+        return result, relevant_seen[0]
 
     def action_centre(self, query: str, t: int, camera: Camera) -> CentreResult:
         """Centre of mass of the best relevant component of the relevancy map, lifted to 3D with the rendered

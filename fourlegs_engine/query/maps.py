@@ -3,6 +3,13 @@
 Exact (paper §3.2): render the (N,d) latents, decode every pixel, score it. Fast: render the (N,1)
 per-Gaussian relevancy; empty pixels take the exact path's background value, so
 ``map = Σ w_i R_i + (1 − alpha) R_bg``. ``resolution_scale`` renders at a fraction of the camera's size.
+
+A fast map asked for ``relevant_only`` (what the best view's relevant mass needs) of a small subject (at
+most ``REGION_MAX_SHARE`` of the Gaussians relevant) renders only the Gaussians that touch the box around
+the relevant ones' footprints (R > 0.5, α ≥ alpha_min): inside the
+box every pixel is blended from the same Gaussians in the same order as in the full map, and outside it
+no relevant Gaussian reaches, so the map is at most 0.5 there in both (when R_bg ≤ 0.5) and
+``max(R − 0.5, 0)`` is the full map's everywhere.
 """
 from __future__ import annotations
 
@@ -13,7 +20,9 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..render import rasterize
+from ..render import RasterOptions, rasterize
+from ..render.kernel_projection import numba as _numba, project_gaussians_fused
+from ..render.projection import project_gaussians
 from ..scene.camera import Camera
 from ..scene.scene import Scene
 from . import spatial
@@ -21,6 +30,14 @@ from .results import CentreResult
 from .scoring import LatentScorer
 
 MAP_OUTPUTS = ("relevancy", "depth", "alpha")
+RELEVANT = 0.5
+#: pixels added on each side of the relevant Gaussians' box (projection implementations round bounds
+#: differently by at most a pixel)
+REGION_PAD = 2
+#: a relevant-only map renders the relevant region alone when at most this share of the Gaussians is
+#: relevant (a small subject); a larger subject's box holds most of the frame, and finding it costs a
+#: projection of every Gaussian more than it saves
+REGION_MAX_SHARE = 0.1
 
 
 class SpatialMaps:
@@ -53,17 +70,43 @@ class SpatialMaps:
         s = self.resolution_scale if scale is None else float(scale)
         return camera if s == 1.0 else camera.scaled(s)
 
-    def rasterize(self, t: int, camera: Camera, features: torch.Tensor, outputs: tuple[str, ...]) -> dict:
-        """The scene at ``t`` rendered with per-Gaussian ``features`` (N,C)."""
+    def rasterize(self, t: int, camera: Camera, features: torch.Tensor, outputs: tuple[str, ...],
+                  subset: Optional[torch.Tensor] = None) -> dict:
+        """The scene at ``t`` (its Gaussians in ``subset`` (N,) bool, default all) rendered with their
+        per-Gaussian ``features`` (N,C), or (M,C) for the subset's M."""
         frame = self.scene.gaussians.at(t)
+        g = (frame.means, frame.rotations, frame.log_scales, frame.opacity_logits)
+        if subset is not None:
+            g = tuple(x[subset] for x in g)
         with torch.inference_mode():
-            return rasterize(frame.means, frame.rotations, frame.log_scales, frame.opacity_logits, camera,
-                             features=features, outputs=outputs, options=self.render_options,
+            return rasterize(*g, camera, features=features, outputs=outputs, options=self.render_options,
                              backend=self.render_backend)
 
+    def touching_relevant(self, t: int, camera: Camera, relevant: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: the Gaussians whose footprint touches the box (padded by ``REGION_PAD``) around the
+        footprints of the ``relevant`` (N,) bool ones seen from ``camera`` at ``t`` (none when no relevant
+        Gaussian is in view)."""
+        frame = self.scene.gaussians.at(t)
+        options = self.render_options or RasterOptions()
+        project = project_gaussians_fused if _numba is not None and frame.means.device.type == "cpu" \
+            else project_gaussians
+        with torch.inference_mode():
+            proj = project(frame.means, frame.rotations, frame.log_scales, frame.opacity_logits, camera, options,
+                           torch.float32)
+        seen = proj.visible & relevant.to(proj.visible.device)
+        if not bool(seen.any()):
+            return torch.zeros_like(proj.visible)
+        b = proj.bounds
+        x0, x1 = int(b[seen, 0].min()) - REGION_PAD, int(b[seen, 1].max()) + REGION_PAD
+        y0, y1 = int(b[seen, 2].min()) - REGION_PAD, int(b[seen, 3].max()) + REGION_PAD
+        return proj.visible & (b[:, 1] >= x0) & (b[:, 0] <= x1) & (b[:, 3] >= y0) & (b[:, 2] <= y1)
+
     def relevancy_maps(self, queries: Sequence[str], camera: Camera, t: int, fast: Optional[bool] = None,
-                       outputs: Iterable[str] = MAP_OUTPUTS, *, scale: Optional[float] = None) -> dict[str, np.ndarray]:
-        """Maps of several queries with one render and one per-pixel decode.
+                       outputs: Iterable[str] = MAP_OUTPUTS, *, scale: Optional[float] = None,
+                       relevant_only: bool = False) -> dict[str, np.ndarray]:
+        """Maps of several queries with one render and one per-pixel decode (``relevant_only``: fast maps
+        whose values above 0.5 are the full map's and the rest at most 0.5, see the module docstring;
+        ignored on the exact path and where R_bg > 0.5).
 
         Returns:
             "relevancy" (Q,H,W), "depth" (H,W), "alpha" (H,W) float32 (the requested ones).
@@ -84,7 +127,19 @@ class SpatialMaps:
             return {k: empty[k] for k in outputs}
         render_outputs = ("features", "alpha") + (("depth",) if "depth" in outputs else ())
         if fast:
-            out = self.rasterize(t, cam, self.gaussian_relevancy_many(list(queries), t), render_outputs)
+            per_gaussian = self.gaussian_relevancy_many(list(queries), t)
+            subset = None
+            relevant = (per_gaussian > RELEVANT).any(dim=1) if Q else None
+            if relevant_only and Q and bool((r_bg <= RELEVANT).all()) and \
+                    float(relevant.float().mean()) <= REGION_MAX_SHARE:
+                subset = self.touching_relevant(t, cam, relevant)
+                self.stats["relevant_only_maps"] += 1
+            if subset is not None and not bool(subset.any()):   # nothing relevant in view: the background
+                out = {"features": r_bg.new_zeros(H * W, Q), "alpha": r_bg.new_zeros(H, W),
+                       "depth": r_bg.new_zeros(H, W)}
+            else:
+                out = self.rasterize(t, cam, per_gaussian if subset is None else per_gaussian[subset],
+                                     render_outputs, subset)
             self.stats["render_relevancy"] += 1
             alpha = out["alpha"].reshape(H, W)
             rel = out["features"].reshape(H, W, Q).permute(2, 0, 1) + \

@@ -124,4 +124,6 @@ def test_cli_flag_sets_the_clean_plate_samples():
 
     args = build_parser().parse_args(["fit", "ds", "-o", "out", "--clean-plate-samples", "5"])
     assert options_from_args(args).clean_plate_samples == 5
-    assert options_from_args(build_parser().parse_args(["fit", "ds", "-o", "out"])).clean_plate_samples == 0
+    assert options_from_args(build_parser().parse_args(["fit", "ds", "-o", "out"])).clean_plate_samples == 8
+    args = build_parser().parse_args(["fit", "ds", "-o", "out", "--clean-plate-samples", "0"])
+    assert options_from_args(args).clean_plate_samples == 0   # off

@@ -44,7 +44,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--timesteps", type=str, default=None, help="half-open range a:b (default: all)")
     p.add_argument("--cameras", type=str, default=None, help="training camera ids, comma separated (default: all)")
     p.add_argument("--preset", choices=tuple(FIT_PRESETS), default="default",
-                   help="knob set: default (320x180, about 15 CPU minutes for 150 timesteps) or accurate (640x360, "
+                   help="knob set: default (320x180, about 18 CPU minutes for 150 timesteps) or accurate (640x360, "
                    "hours); the options below override it")
     p.add_argument("--resolution-scale", type=float, default=None,
                    help="image scale for fitting (default: the preset's, 0.5 for default)")
@@ -64,7 +64,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--no-densify", action="store_true", help="no clone/split/prune in the first timestep")
     p.add_argument("--clean-plate-samples", type=int, default=None,
                    help="timesteps whose background pixels make each camera's clean plate, the first timestep's "
-                   "background target (default 0: none)")
+                   "background target (default 8; 0: none)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--overwrite", action="store_true", help="replace SCENE / restart a partial fit with other options")

@@ -34,8 +34,8 @@ class FitOptions:
         densify: clone/split/prune during the first timestep.
         clean_plate_samples: timesteps (spread over the fitted range) whose background pixels make each
             training camera's clean plate, the target of the background-only render at the first
-            timestep and the source of background points hidden by the people there (0: neither; off by
-            default: no gain measured on the Panoptic capture, docs/benchmarks_fit.md).
+            timestep and the source of background points hidden by the people there (0: neither;
+            docs/benchmarks_fit.md measures the default with them).
         grad_threshold: densify Gaussians whose mean screen-space gradient (NDC units, as in 3DGS)
             exceeds this.
         knn: neighbours per foreground Gaussian for the priors.
@@ -51,9 +51,9 @@ class FitOptions:
     resolution_scale: float = 0.5
     timesteps: tuple[int, int] | None = None
     cameras: tuple[str, ...] | None = None
-    first_iterations: int = 600
-    iterations: int = 32
-    max_iterations: int = 96
+    first_iterations: int = 400
+    iterations: int = 38
+    max_iterations: int = 114
     min_iterations: int = 12
     max_gaussians: int = 60_000
     init: str = "hull"
@@ -62,7 +62,7 @@ class FitOptions:
     voxel: float = 0.02
     background_stride: int = 6
     densify: bool = True
-    clean_plate_samples: int = 0
+    clean_plate_samples: int = 8
     grad_threshold: float = 0.0002
     knn: int = 20
     knn_lambda: float = 2000.0

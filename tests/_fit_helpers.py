@@ -100,16 +100,21 @@ def render(g, t, cam, subset=None):
     return out["rgb"].numpy(), out["alpha"][..., 0].numpy()
 
 
+def capture_meta(cams, num_timesteps: int, width: int, height: int) -> dict:
+    """A Dynamic 3D Gaussians ``*_meta.json`` for static ``cams``: intrinsics, poses, frame names
+    (``CAM/TTTTTT.png``) and camera ids per timestep."""
+    return {"w": width, "h": height, "k": [[c.K.tolist() for c in cams]] * num_timesteps,
+            "w2c": [[c.w2c.tolist() for c in cams]] * num_timesteps,
+            "fn": [[f"{c.name}/{t:06d}.png" for c in cams] for t in range(num_timesteps)],
+            "cam_id": [[int(c.name) for c in cams]] * num_timesteps}
+
+
 def write_capture(root: Path, num_timesteps: int = 3, seed: int = 0) -> Path:
     g = scene_gaussians(seed)
     train, test = cameras()
     for split, cams in (("train", train), ("test", test)):
-        meta = {"w": WIDTH, "h": HEIGHT, "k": [], "w2c": [], "fn": [], "cam_id": []}
+        meta = capture_meta(cams, num_timesteps, WIDTH, HEIGHT)
         for t in range(num_timesteps):
-            meta["k"].append([c.K.tolist() for c in cams])
-            meta["w2c"].append([c.w2c.tolist() for c in cams])
-            meta["fn"].append([f"{c.name}/{t:06d}.png" for c in cams])
-            meta["cam_id"].append([int(c.name) for c in cams])
             for c in cams:
                 rgb, _ = render(g, t, c)
                 (root / "ims" / c.name).mkdir(parents=True, exist_ok=True)
@@ -138,12 +143,8 @@ def write_tiny_capture(root: Path, num_timesteps: int = 2, num_train: int = 3, w
                                 3.0 * math.sin(offset + 2 * np.pi * i / count)), (0.0, -0.7, 0.0), up=(0.0, -1.0, 0.0),
                                width=width, height=height, focal=30.0, near=1.0, far=100.0, name=str(first_id + i))
                 for i in range(count)]
-        meta = {"w": width, "h": height, "k": [], "w2c": [], "fn": [], "cam_id": []}
+        meta = capture_meta(cams, num_timesteps, width, height)
         for t in range(num_timesteps):
-            meta["k"].append([c.K.tolist() for c in cams])
-            meta["w2c"].append([c.w2c.tolist() for c in cams])
-            meta["fn"].append([f"{c.name}/{t:06d}.png" for c in cams])
-            meta["cam_id"].append([int(c.name) for c in cams])
             box = (abs(xx - width / 2 - t) < 4) & (abs(yy - height / 2) < 5)
             rgb = np.stack([xx * 7 % 256, yy * 13 % 256, np.where(box, 230, 40)], -1).astype(np.uint8)
             for c in cams:

@@ -48,11 +48,11 @@ def test_best_view_confirmed_rescoring_the_reduced_best_at_full_size():
     full = {"c0": 0.31, "c1": 0.40, "c2": 0.45, "c3": 0.90, "c4": 0.44}
     calls = []
 
-    def relevancy_of(cam, is_reduced):
-        calls.append((cam.name, is_reduced))
-        return np.full((3, 4) if is_reduced else (6, 8), (reduced if is_reduced else full)[cam.name])
+    def maps_of(batch, is_reduced):
+        calls.extend((cam.name, is_reduced) for cam in batch)
+        return [np.full((3, 4) if is_reduced else (6, 8), (reduced if is_reduced else full)[cam.name]) for cam in batch]
 
-    res = best_view_confirmed(cams, relevancy_of, 7, confirm=3)
+    res = best_view_confirmed(cams, maps_of, 7, confirm=3)
     # c3 is best at full size but ranked last at reduced size: only the 3 best reduced ones are confirmed
     assert res.best == "c2" and res.index == 2 and res.t == 7
     assert [c for c, r in calls if not r] == ["c1", "c2", "c4"] and sum(r for _, r in calls) == 5
@@ -70,6 +70,58 @@ def test_engine_best_view_renders_every_camera_reduced_and_the_confirmed_at_map_
     assert full.stats["view_maps"] == 2 and full.stats["view_maps_reduced"] == 0
     assert b.scores["close"] == pytest.approx(a.scores["close"], abs=1e-6)  # the confirmed one: full size
     assert b.confirmed == ["close"] and a.confirmed == []
+
+
+def _ring_of_views(scene, n: int) -> list:
+    from fourlegs_engine.scene import Camera
+
+    return [Camera.look_at((3.5 * np.sin(a), -3.5 * np.cos(a), 0.4), (0.3, 0, 0), width=40, height=30, fov_y=0.7,
+                           name=f"v{i}") for i, a in enumerate(np.linspace(-1.2, 1.2, n))]
+
+
+def test_views_rendered_on_several_threads_score_as_rendered_one_at_a_time():
+    from fourlegs_engine.threads import kernel_threads
+
+    scene, field, enc, _ = two_cluster_scene(T=4, active=(1, 2), size=(64, 40))
+    cams = _ring_of_views(scene, 7)
+    results, stats = [], []
+    for threads in (1, 2, 3):
+        eng = QueryEngine(scene, field, enc, QueryOptions.exact(spatial="fast", view_scale=0.5, view_confirm=2))
+        with kernel_threads(threads):
+            results.append(eng.best_view(Q, 1, cams))
+        stats.append((eng.stats["view_maps_reduced"], eng.stats["view_maps"], eng.stats["render_relevancy"]))
+    assert results[0].scores == results[1].scores == results[2].scores  # bit for bit: the same renders
+    assert results[0].best == results[1].best == results[2].best and results[0].confirmed == results[2].confirmed
+    assert len(set(results[0].scores.values())) > 3  # the views differ: the order of the maps matters
+    assert stats[0] == stats[1] == stats[2] == (7, 2, 9)
+
+
+def test_cancelling_while_views_render_on_threads_stops_the_search_and_leaves_the_engine_usable():
+    from fourlegs_engine.errors import Cancelled
+    from fourlegs_engine.threads import kernel_threads
+
+    from fourlegs_engine.scene import CameraRig, Scene
+
+    clusters, field, enc, _ = two_cluster_scene(T=4, active=(1, 2), size=(64, 40))
+    cams = _ring_of_views(clusters, 12)
+    scene = Scene(gaussians=clusters.gaussians, cameras=CameraRig.static(cams, [], 4), name="ring")
+    eng = QueryEngine(scene, field, enc, QueryOptions.exact(spatial="fast", view_scale=0.5, view_confirm=2))
+    stages = []
+
+    def progress(fraction, stage):
+        stages.append(stage)
+        if stage.startswith("scoring the views") and len(stages) > 3:
+            raise Cancelled("stopped by the test")
+
+    with kernel_threads(2):
+        with pytest.raises(Cancelled):
+            eng.localize(Q, ("best_view",), t=1, progress=progress)
+        rendered = eng.stats["render_relevancy"]
+        assert rendered <= len(stages) + 2 < len(cams)  # the views queued behind the two in flight were dropped
+        again = eng.best_view(Q, 1, cams)
+    with kernel_threads(1):
+        assert QueryEngine(scene, field, enc, QueryOptions.exact(spatial="fast", view_scale=0.5, view_confirm=2)
+                           ).best_view(Q, 1, cams).scores == again.scores
 
 
 def test_codebook_maps_score_the_gaussians_near_or_above_relevant_exactly(tmp_path):

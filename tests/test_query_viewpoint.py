@@ -56,8 +56,9 @@ def test_confirmed_search_agrees_with_the_full_search_when_every_camera_is_confi
     maps = _maps([b for b, _ in cases], [s for _, s in cases])
     by_id = {id(c): m for c, m in zip(cams, maps)}
     full = best_view(cams, lambda c: by_id[id(c)], 0, score)
-    confirmed = best_view_confirmed(cams, lambda c, reduced: by_id[id(c)][::2, ::2] if reduced else by_id[id(c)],
-                                    0, len(cams), score)
+    confirmed = best_view_confirmed(
+        cams, lambda batch, reduced: [by_id[id(c)][::2, ::2] if reduced else by_id[id(c)] for c in batch],
+        0, len(cams), score)
     assert confirmed.best == full.best
     assert all(np.isfinite(v) and v >= 0 for v in confirmed.scores.values())
 

@@ -23,7 +23,9 @@ from __future__ import annotations
 import time
 from collections import Counter
 from pathlib import Path
-from typing import Any, Callable, Iterable, Optional, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import closing
+from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
 
 import numpy as np
 import torch
@@ -31,6 +33,7 @@ import torch
 from ..errors import InputError
 from ..scene.camera import Camera
 from ..scene.scene import Scene
+from ..threads import kernel_thread_count, kernel_threads, torch_threads
 from ..validate import check_number
 from . import viewpoint
 from .codebook import Codebook
@@ -258,23 +261,52 @@ class QueryEngine:
         steps = len(cams) + (self.options.view_confirm if coarse else 0)
         seen, relevant_seen = [0], [False]
 
-        def relevancy_of(cam: Camera, reduced: bool) -> np.ndarray:
-            self._report(seen[0] / max(1, steps), "scoring the views at reduced size" if reduced else "rendering the views")
-            seen[0] += 1
+        def maps_of(batch: Sequence[Camera], reduced: bool) -> list[np.ndarray]:
             scale = self.maps.resolution_scale * (self.options.view_scale if reduced else 1.0)
-            self.stats["view_maps_reduced" if reduced else "view_maps"] += 1
-            self.stats["relevancy_map"] += 1
-            m = self.maps.relevancy_maps([query], cam, t, outputs=("relevancy",), scale=scale,
-                                         relevant_only=relevant_only)["relevancy"][0]
-            relevant_seen[0] = relevant_seen[0] or bool(m.size and m.max() > 0.5)
-            return m
+
+            def render(cam: Camera) -> np.ndarray:
+                return self.maps.relevancy_maps([query], cam, t, outputs=("relevancy",), scale=scale,
+                                                relevant_only=relevant_only)["relevancy"][0]
+
+            if self.maps.fast:  # scored once here, read by every render
+                self._gaussian_relevancy_many([query], t)
+            maps = []
+            with closing(self._map_in_threads(render, batch)) as views:  # closed (queue dropped) on a cancel
+                for m in views:
+                    self._report(seen[0] / max(1, steps), "scoring the views at reduced size" if reduced
+                                 else "rendering the views")
+                    seen[0] += 1
+                    self.stats["view_maps_reduced" if reduced else "view_maps"] += 1
+                    self.stats["relevancy_map"] += 1
+                    relevant_seen[0] = relevant_seen[0] or bool(m.size and m.max() > 0.5)
+                    maps.append(m)
+            return maps
 
         if not coarse:
-            result = viewpoint.best_view(cams, lambda cam: relevancy_of(cam, False), t, self.options.view_score)
+            result = viewpoint.best_view_of_maps(cams, maps_of(cams, False), t, self.options.view_score)
         else:
-            result = viewpoint.best_view_confirmed(cams, relevancy_of, t, self.options.view_confirm,
+            result = viewpoint.best_view_confirmed(cams, maps_of, t, self.options.view_confirm,
                                                    self.options.view_score)
         return result, relevant_seen[0]
+
+    def _map_in_threads(self, render: Callable[[Camera], np.ndarray], cams: Sequence[Camera]) -> Iterator[np.ndarray]:
+        """``render(camera)`` of each camera, yielded in order in the calling thread (which reports progress
+        and may cancel between them). With fast maps the views are rendered concurrently on the
+        kernels' worker threads, each render single-threaded: a reduced view is too small for its own
+        tiles to keep several threads busy. Queued renders are dropped when the caller stops early."""
+        workers = min(kernel_thread_count(), len(cams))
+        if workers < 2 or not self.maps.fast:
+            for cam in cams:
+                yield render(cam)
+            return
+        pool = ThreadPoolExecutor(workers)
+        try:
+            with torch_threads(1), kernel_threads(1):
+                futures = [pool.submit(render, cam) for cam in cams]
+                for future in futures:
+                    yield future.result()
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
 
     def action_centre(self, query: str, t: int, camera: Camera) -> CentreResult:
         """Centre of mass of the best relevant component of the relevancy map, lifted to 3D with the rendered

@@ -13,6 +13,7 @@ no relevant Gaussian reaches, so the map is at most 0.5 there in both (when R_bg
 """
 from __future__ import annotations
 
+import threading
 from collections import Counter
 from typing import Any, Callable, Iterable, Optional, Sequence
 
@@ -64,6 +65,11 @@ class SpatialMaps:
         self.render_options = render_options
         self.render_backend = render_backend
         self.stats = stats
+        self._stats_lock = threading.Lock()  # fast maps of several views may be rendered concurrently
+
+    def _count(self, key: str) -> None:
+        with self._stats_lock:
+            self.stats[key] += 1
 
     def camera(self, camera: Camera, scale: Optional[float]) -> Camera:
         """``camera`` at the map resolution (``scale``, default :attr:`resolution_scale`)."""
@@ -133,14 +139,14 @@ class SpatialMaps:
             if relevant_only and Q and bool((r_bg <= RELEVANT).all()) and \
                     float(relevant.float().mean()) <= REGION_MAX_SHARE:
                 subset = self.touching_relevant(t, cam, relevant)
-                self.stats["relevant_only_maps"] += 1
+                self._count("relevant_only_maps")
             if subset is not None and not bool(subset.any()):   # nothing relevant in view: the background
                 out = {"features": r_bg.new_zeros(H * W, Q), "alpha": r_bg.new_zeros(H, W),
                        "depth": r_bg.new_zeros(H, W)}
             else:
                 out = self.rasterize(t, cam, per_gaussian if subset is None else per_gaussian[subset],
                                      render_outputs, subset)
-            self.stats["render_relevancy"] += 1
+            self._count("render_relevancy")
             alpha = out["alpha"].reshape(H, W)
             rel = out["features"].reshape(H, W, Q).permute(2, 0, 1) + \
                 (1.0 - alpha).clamp(0.0, 1.0)[None] * r_bg[:, None, None]

@@ -9,7 +9,8 @@ the subject they show. When no camera has a pixel above 0.5, "relevant" falls ba
 
 :func:`best_view_confirmed` finds it coarse to fine: every camera's map at reduced resolution, then the few
 best again at full resolution (the mean of a map changes little with its resolution, so the reduced maps
-rank the cameras and the full ones decide among the close ones)."""
+rank the cameras and the full ones decide among the close ones). It asks for maps a batch at a time (all
+cameras reduced, then the confirmed ones), so the caller may render a batch's maps concurrently."""
 from __future__ import annotations
 
 from typing import Callable, Sequence
@@ -45,7 +46,13 @@ def best_view(cameras: Sequence[Camera], relevancy_of: Callable[[Camera], np.nda
 
     Ties go to the earlier camera; an empty camera list gives ``best=None``.
     """
-    maps = [np.asarray(relevancy_of(cam), dtype=np.float64) for cam in cameras]
+    return best_view_of_maps(cameras, [relevancy_of(cam) for cam in cameras], t, score)
+
+
+def best_view_of_maps(cameras: Sequence[Camera], maps: Sequence[np.ndarray], t: int,
+                      score: str = "mean") -> ViewResult:
+    """:func:`best_view` of already rendered maps, ``maps[i]`` the (H,W) relevancy of ``cameras[i]``."""
+    maps = [np.asarray(m, dtype=np.float64) for m in maps]
     score = _usable_score(maps, score)
     scores = {camera_name(cam, i): view_score(m, score) for i, (cam, m) in enumerate(zip(cameras, maps))}
     if not scores:
@@ -55,22 +62,19 @@ def best_view(cameras: Sequence[Camera], relevancy_of: Callable[[Camera], np.nda
     return ViewResult(best=names[idx], index=idx, scores=scores, t=int(t))
 
 
-def best_view_confirmed(cameras: Sequence[Camera], relevancy_of: Callable[[Camera, bool], np.ndarray], t: int,
+def best_view_confirmed(cameras: Sequence[Camera],
+                        maps_of: Callable[[Sequence[Camera], bool], Sequence[np.ndarray]], t: int,
                         confirm: int, score: str = "mean") -> ViewResult:
-    """:func:`best_view` from reduced maps (``relevancy_of(camera, True)``), then the ``confirm`` best cameras
-    (ties to the earlier) re-scored from full maps (``relevancy_of(camera, False)``); the best of those wins.
+    """:func:`best_view` from reduced maps (``maps_of(cameras, True)``: one (H,W) map per camera, in order),
+    then the ``confirm`` best cameras (ties to the earlier) re-scored from full maps (``maps_of(those,
+    False)``); the best of those wins.
 
     Returns:
         the result whose ``scores`` hold the full-resolution score of the confirmed cameras and the
         reduced one of the others; ``confirmed`` lists the names of the cameras scored at full resolution.
     """
-    reduced_maps: list[np.ndarray] = []
-
-    def reduced_of(cam: Camera) -> np.ndarray:
-        reduced_maps.append(np.asarray(relevancy_of(cam, True), dtype=np.float64))
-        return reduced_maps[-1]
-
-    reduced = best_view(cameras, reduced_of, t, score)
+    reduced_maps = [np.asarray(m, dtype=np.float64) for m in maps_of(list(cameras), True)]
+    reduced = best_view_of_maps(cameras, reduced_maps, t, score)
     if reduced.best is None:
         return reduced
     score = _usable_score(reduced_maps, score)
@@ -78,8 +82,8 @@ def best_view_confirmed(cameras: Sequence[Camera], relevancy_of: Callable[[Camer
     order = sorted(range(len(names)), key=lambda i: (-reduced.scores[names[i]], i))[:max(1, int(confirm))]
     order.sort()  # full-resolution ties go to the earlier camera, as in best_view
     scores = dict(reduced.scores)
-    for i in order:
-        scores[names[i]] = view_score(relevancy_of(cameras[i], False), score)
+    for i, full in zip(order, maps_of([cameras[i] for i in order], False)):
+        scores[names[i]] = view_score(full, score)
     idx = max(order, key=lambda i: (scores[names[i]], -i))
     return ViewResult(best=names[idx], index=idx, scores=scores, t=int(t), confirmed=[names[i] for i in order])
 

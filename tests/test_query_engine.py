@@ -219,10 +219,11 @@ def test_codebook_refine_samples_at_the_scored_timesteps_only(setup, tmp_path):
     T, N = scene.num_timesteps, scene.num_gaussians
     ts = np.arange(0, T, 2)
     seen = []
-    score_pairs = eng.scorer.score_pairs
-    eng.scorer.score_pairs = lambda q, flat, window=None: seen.append(flat) or score_pairs(q, flat, window)
-    (codes_a, scores_a), (codes_b, scores_b) = eng.codebook_path.sample_members(Q, [np.array([0]), np.array([1])], [7, 5], ts,
-                                                                   np.random.default_rng(0))
+    score_any_rows = eng.scorer.score_any_rows
+    eng.scorer.score_any_rows = lambda q, flat, window=None: seen.append(flat) or score_any_rows(q, flat, window)
+    (codes_a, scores_a, controls_a), (codes_b, scores_b, _) = eng.codebook_path.sample_members(
+        Q, [np.array([0]), np.array([1])], [7, 5], ts, np.random.default_rng(0))
+    assert controls_a is None  # strided: a code is its members' mean over every timestep, not the scored ones
     assert len(seen) == 1  # both groups decoded in one batch
     flat = np.sort(seen[0])
     assert len(scores_a) == len(codes_a) == 7 and len(scores_b) == len(codes_b) == 5 and len(np.unique(flat)) == 12
@@ -236,7 +237,7 @@ def test_codebook_refine_samples_at_the_scored_timesteps_only(setup, tmp_path):
     flat, _ = eng.codebook.sample_members(np.arange(2), 10 ** 9, np.random.default_rng(1))
     np.testing.assert_array_equal(np.sort(flat), np.arange(T * N))  # every member when they fit
     seen.clear()
-    [(codes_all, _)] = eng.codebook_path.sample_members(Q, [np.arange(2)], [len(ts) * N], ts, np.random.default_rng(2))
+    [(codes_all, _, _)] = eng.codebook_path.sample_members(Q, [np.arange(2)], [len(ts) * N], ts, np.random.default_rng(2))
     np.testing.assert_array_equal(np.sort(seen[0]), np.flatnonzero(np.isin(np.arange(T * N) // N, ts)))
     with pytest.raises(InputError, match="samples"):
         QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_refine=0.1, codebook_samples=1))

@@ -215,10 +215,32 @@ def test_codebook_refine_with_norm_bounds_answers_as_the_exact_path(tmp_path):
     assert got.segment == want.segment and got.r_avg == pytest.approx(want.r_avg, abs=1e-6)
     # the same engine scoring every re-scored row exactly returns the very same counts
     unbounded = QueryEngine(scene, DecoderField(lat, dec), enc, QueryOptions(path="codebook", codebook_size=6, codebook_refine=1.0, codebook_samples=10 ** 9), codebook_dir=tmp_path)
-    score_any = unbounded.scorer.score_any
-    unbounded.scorer.score_any = lambda q, flat, window=None: score_any(q, flat, None)
+    score_any_rows = unbounded.scorer.score_any_rows
+    unbounded.scorer.score_any_rows = lambda q, flat, window=None: score_any_rows(q, flat, None)
     plain = unbounded.temporal("a ball flying")
     np.testing.assert_array_equal(got.scores, plain.scores)
     assert got.r_avg == plain.r_avg and unbounded.stats["bounded_latents"] == 0
     assert refined.stats["rescored_latents"] == unbounded.stats["rescored_latents"] > 0
     assert refined.stats["bounded_latents"] > 0  # some re-scored rows were decided by their bounds alone
+
+
+def test_relevancy_gradient_matches_central_differences_of_the_float64_reference():
+    dec = trained_like_decoder(seed=5)
+    head = RelevancyHead.from_decoder(dec)
+    rng = np.random.default_rng(7)
+    z = rng.normal(size=(12, 16)) * rng.uniform(0.2, 2.0, size=(12, 1))
+    query, refs = unit(rng, 1, 48), unit(rng, 4, 48)
+    with torch.inference_mode():  # callers score inside inference mode; the gradient must still work
+        grad = head.relevancy_gradient(torch.from_numpy(z).float(), torch.from_numpy(query[0]).float(),
+                                       torch.from_numpy(refs).float(), scale=10.0).numpy()
+    h = 1e-6
+    numeric = np.zeros_like(z)
+    for j in range(z.shape[1]):
+        step = np.zeros_like(z)
+        step[:, j] = h
+        numeric[:, j] = (reference(dec, z + step, query, refs)[:, 0] - reference(dec, z - step, query, refs)[:, 0]) / (2 * h)
+    assert grad.dtype == np.float64 and np.abs(numeric).max() > 1e-3  # a gradient worth checking
+    np.testing.assert_allclose(grad, numeric, rtol=1e-4, atol=1e-7)
+    bad = head.relevancy_gradient(torch.tensor([[np.nan] * 16, [np.inf] * 16]), torch.from_numpy(query[0]).float(),
+                                  torch.from_numpy(refs).float(), scale=10.0)
+    assert torch.isfinite(bad).all()

@@ -117,7 +117,7 @@ def test_cancelling_while_views_render_on_threads_stops_the_search_and_leaves_th
         with pytest.raises(Cancelled):
             eng.localize(Q, ("best_view",), t=1, progress=progress)
         rendered = eng.stats["render_relevancy"]
-        assert rendered <= len(stages) + 2 < len(cams)  # the views queued behind the two in flight were dropped
+        assert rendered <= len(stages) + 2 < len(cams)  # at most two renders run ahead of the progress reports
         again = eng.best_view(Q, 1, cams)
     with kernel_threads(1):
         assert QueryEngine(scene, field, enc, QueryOptions.exact(spatial="fast", view_scale=0.5, view_confirm=2)

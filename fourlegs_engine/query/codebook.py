@@ -13,7 +13,8 @@ query), scores them, and
 K-means stays feasible on a CPU for 300k x 150 latents by training on a sample and, for large K, a
 two-level (coarse K1 x fine K2 = K) quantizer: a point is assigned to its nearest coarse centroid, then
 to the nearest fine code inside that cell. Assignment streams over timesteps in chunks with torch
-matmuls. Files (inside the bundle's ``language/`` directory, each written atomically)::
+matmuls. Each stored code is the mean of the latents assigned to it (over every timestep). Files (inside the
+bundle's ``language/`` directory, each written atomically)::
 
     codebook_K.npz   centroids (K,d) float32, histogram (T,K) int32, coarse (K1,d), meta (json string)
     codes_K.npy      (T,N) uint16 (K <= 65536) or int32 code index of every Gaussian at every timestep
@@ -35,7 +36,7 @@ import torch
 from ..errors import InputError
 from ..fileio import atomic_path, load_npy, save_npy_atomic
 
-CODEBOOK_VERSION = 1
+CODEBOOK_VERSION = 2  # 2: each code is the mean of its members
 SINGLE_LEVEL_WORK = 4e9  # points x codes below which a flat k-means is affordable
 ASSIGN_CHUNK = 1 << 18
 
@@ -261,6 +262,18 @@ def assign(x: torch.Tensor, coarse: torch.Tensor, fine: torch.Tensor) -> torch.T
 
 
 # ----------------------------------------------------------------------------- build / load
+def member_means(centroids: torch.Tensor, sums: torch.Tensor, counts: np.ndarray) -> torch.Tensor:
+    """(K,d) each code moved to the mean of its members (``sums`` (K,d) float64 of their latents, ``counts``
+    (K,) of them); a code without members keeps its centroid. Then Σ over a code's members of (z − c_k)
+    is 0, which :mod:`.refined_counts` uses: a first-order expansion of the relevancy around each code sums,
+    over the code's members, to the code's own relevancy times their count."""
+    n = torch.as_tensor(counts, dtype=torch.float64)
+    held = n > 0
+    out = centroids.double().clone()
+    out[held] = sums[held] / n[held, None]
+    return out.to(centroids.dtype)
+
+
 def member_index(codes) -> np.ndarray:
     """(T,N) codes -> (T*N,) flat indices t*N+g ordered by code (stable: by t, then g, within a code)."""
     flat = np.asarray(codes).reshape(-1)
@@ -336,10 +349,13 @@ def build_codebook(latents, k: int, *, out_dir: Optional[Path] = None, seed: int
         from tqdm import tqdm
         steps = tqdm(steps, desc=f"codebook K={k}: assigning", unit="t")
     per_chunk = max(1, ASSIGN_CHUNK * 4 // max(N, 1))
+    member_sums = torch.zeros(k, d, dtype=torch.float64)
     for t0 in range(0, T, per_chunk):
         t1 = min(T, t0 + per_chunk)
         x = torch.from_numpy(np.array(latents[t0:t1], dtype=np.float32).reshape(-1, d))
-        c = assign(x, coarse, fine).numpy().reshape(t1 - t0, N)
+        assigned = assign(x, coarse, fine)
+        member_sums.index_add_(0, assigned, x.double())
+        c = assigned.numpy().reshape(t1 - t0, N)
         codes[t0:t1] = c.astype(code_dtype)
         for i, t in enumerate(range(t0, t1)):
             hist[t] = np.bincount(c[i], minlength=k)
@@ -348,6 +364,7 @@ def build_codebook(latents, k: int, *, out_dir: Optional[Path] = None, seed: int
         report(0.3 + 0.7 * t1 / T, f"codebook K={k}: assigned {t1}/{T} timesteps")
     if progress:
         steps.close()  # type: ignore[attr-defined]
+    fine = member_means(fine, member_sums, hist.sum(axis=0, dtype=np.int64))
     meta = {"version": CODEBOOK_VERSION, "k": k, "levels": [int(coarse.shape[0]), k // int(coarse.shape[0])],
             "seed": seed, "sample_size": int(sample_size), "iters": iters, "latents": fingerprint(latents)}
     book = Codebook(centroids=fine.numpy().astype(np.float32), codes=codes, histogram=hist,

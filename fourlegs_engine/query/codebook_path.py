@@ -53,6 +53,7 @@ class CodebookPath:
         self._codebook = codebook
         self._decoded_codes: Optional[torch.Tensor] = None
         self._code_scores: dict[str, torch.Tensor] = {}
+        self._code_gradients: dict[str, np.ndarray] = {}  # (K,d) float64 ∇r at each code, per query
 
     def load(self, progress: Optional[Callable[[float, str], None]] = None) -> Codebook:
         """The codebook, loaded or (first use) built and stored; a build calls ``progress(fraction,
@@ -96,6 +97,7 @@ class CodebookPath:
     def forget(self, query: str) -> None:
         """Drop the code relevancies cached for ``query``."""
         self._code_scores.pop(query, None)
+        self._code_gradients.pop(query, None)
 
     # ------------------------------------------------------------------ temporal
     def temporal_counts(self, queries: Sequence[str], timesteps: np.ndarray, dilation: int,
@@ -151,7 +153,9 @@ class CodebookPath:
         :meth:`LatentScorer.score_latents`).
 
         Returns:
-            per group: their codes (M_j,) int64, scores (M_j,) float64.
+            per group: their codes (M_j,) int64, scores (M_j,) float64, and their first-order relevancies
+            around their codes (M_j,) float64 (:meth:`first_order`; None with a temporal stride or without
+            a head).
         """
         N, T = self.scene.num_gaussians, self.scene.num_timesteps
         timesteps = np.asarray(timesteps, dtype=np.int64)
@@ -169,6 +173,28 @@ class CodebookPath:
                 flat, code_of = flat[keep][:size], code_of[keep][:size]
             flats.append(flat)
             code_ofs.append(code_of)
-        scores = self.scorer.score_any(query, np.concatenate(flats) if flats else np.zeros(0, dtype=np.int64), window)
+        flat = np.concatenate(flats) if flats else np.zeros(0, dtype=np.int64)
+        scores, latents = self.scorer.score_any_rows(query, flat, window)
+        # a code is the mean of its members over every timestep: with every timestep scored, the members'
+        # first-order relevancies sum to the code's (see refined_counts), so they can stand in as the control
+        controls = None if strided else self.first_order(query, np.concatenate(code_ofs) if code_ofs else
+                                                         np.zeros(0, dtype=np.int64), latents)
         bounds = np.cumsum([0] + [f.shape[0] for f in flats])
-        return [(c, scores[a:b]) for c, a, b in zip(code_ofs, bounds[:-1], bounds[1:])]
+        return [(c, scores[a:b], None if controls is None else controls[a:b])
+                for c, a, b in zip(code_ofs, bounds[:-1], bounds[1:])]
+
+    def first_order(self, query: str, codes: np.ndarray, latents: np.ndarray) -> Optional[np.ndarray]:
+        """(M,) float64 r_k + ∇r(c_k)·(z − c_k) of latents ``latents`` (M,d) holding ``codes`` (M,): their
+        relevancy expanded to first order around their codes; None when the field's decoder has no
+        :class:`~.head.RelevancyHead` to differentiate."""
+        head = self.scorer.head
+        if head is None:
+            return None
+        if query not in self._code_gradients:
+            self._code_gradients[query] = head.relevancy_gradient(
+                torch.from_numpy(np.asarray(self.codebook.centroids)), self.scorer.embed_query(query),
+                self.scorer.references(), scale=self.scorer.relevancy_scale).numpy()
+        codes = np.asarray(codes, dtype=np.int64)
+        offset = latents.astype(np.float64) - np.asarray(self.codebook.centroids, dtype=np.float64)[codes]
+        return (self.code_scores(query).double().numpy()[codes]
+                + np.einsum("md,md->m", offset, self._code_gradients[query][codes]))

@@ -21,7 +21,7 @@ for; ``localize(query, need)`` computes only the parts named in ``need``.
 from __future__ import annotations
 
 import time
-from collections import Counter
+from collections import Counter, deque
 from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import closing
@@ -293,18 +293,23 @@ class QueryEngine:
         """``render(camera)`` of each camera, yielded in order in the calling thread (which reports progress
         and may cancel between them). With fast maps the views are rendered concurrently on the
         kernels' worker threads, each render single-threaded: a reduced view is too small for its own
-        tiles to keep several threads busy. Queued renders are dropped when the caller stops early."""
+        tiles to keep several threads busy. At most ``workers`` renders run ahead of the caller; those
+        are dropped or finished when it stops early."""
         workers = min(kernel_thread_count(), len(cams))
         if workers < 2 or not self.maps.fast:
             for cam in cams:
                 yield render(cam)
             return
         pool = ThreadPoolExecutor(workers)
+        queued: deque = deque()
         try:
             with torch_threads(1), kernel_threads(1):
-                futures = [pool.submit(render, cam) for cam in cams]
-                for future in futures:
-                    yield future.result()
+                for cam in cams:  # at most ``workers`` renders ahead of the caller
+                    queued.append(pool.submit(render, cam))
+                    if len(queued) > workers:
+                        yield queued.popleft().result()
+                while queued:
+                    yield queued.popleft().result()
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
 

@@ -262,6 +262,30 @@ class RelevancyHead:
             out[rows] = torch.exp(F.logsigmoid(margin.min(dim=1).values))
         return out, exact
 
+    def relevancy_gradient(self, latents: torch.Tensor, query: torch.Tensor, refs: torch.Tensor, *,
+                           scale: float) -> torch.Tensor:
+        """(M,d) gradient of each latent's relevancy ``min_c sigmoid(scale φ(z)·(q − c))`` with respect to
+        the latent, in float64 (the first-order term of the relevancy around a code; at a kink of a ReLU
+        or of the min, the gradient of the side taken). Non-finite latents count as 0 and get a zero
+        gradient.
+
+        Args:
+            latents: (M,d); query: (D,) unit; refs: (K,D) unit references.
+        """
+        with torch.inference_mode(False), torch.enable_grad():
+            z = torch.nan_to_num(torch.as_tensor(latents).detach().to(self.device, torch.float64).clone(),
+                                 nan=0.0, posinf=0.0, neginf=0.0).requires_grad_(True)
+            diffs = query.to(self.device, torch.float64).clone()[None, :] - refs.to(self.device, torch.float64).clone()
+            h = z
+            for w, b in self.hidden:
+                h = torch.relu(h @ w.double().clone().T + b.double().clone())
+            u = h @ self.r64.clone().T + self.beta64.clone()
+            norm = torch.sqrt((u * u).sum(1) + self.perp_sq).clamp_min(NORM_EPS)
+            numer = u @ (self.q64.clone().T @ diffs.T) + diffs @ self.b_perp64.clone()
+            margin = (scale * numer / norm[:, None]).min(dim=1).values
+            (grad,) = torch.autograd.grad(torch.sigmoid(margin).sum(), z)
+        return torch.nan_to_num(grad.detach(), nan=0.0, posinf=0.0, neginf=0.0)
+
     def relevancy_many(self, latents: torch.Tensor, queries: torch.Tensor, refs: torch.Tensor, *,
                        scale: float) -> torch.Tensor:
         """(M,d) latents, (Q,D) unit queries, (K,D) unit references -> (M,Q) relevancy

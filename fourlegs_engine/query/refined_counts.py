@@ -5,7 +5,8 @@ where the localization's decisions need them. R_avg and each timestep's decision
 mean, s_t > 1/T) come nearly right from the codes:
 
 1. R_avg from the code relevancies r_k, corrected by the exact scores of a uniform sample of (g, t)
-   pairs: a control variate, stratified by the code's distance from 0.5 (finest near 0.5, where
+   pairs: a control variate (each sampled pair's first-order relevancy around its code when the caller
+   gives it, else its code's), stratified by the code's distance from 0.5 (finest near 0.5, where
    membership of Rel flips), the ``samples`` water-filled so that a stratum no larger than its share is
    scored whole (a small relevant set gets its exact R_avg). Pairs whose code is more than
    max(``MEMBERSHIP_BAND``, 2·margin) below 0.5 are taken as not relevant. Its standard error gives
@@ -19,7 +20,8 @@ mean, s_t > 1/T) come nearly right from the codes:
    are a uniform sample of the timestep's band: their exact-minus-code differences correct the
    count of the members still pending (a control variate, as for R_avg), and a timestep whose
    corrected count lies more than ``row_z`` standard errors from the mean count is decided by it
-   (``row_z`` = 0: by the bounds only). A fully re-scored timestep still open because of R_avg's
+   (``row_z`` = 0: by the bounds only); both tests hold over R_avg's whole interval, checked piece by
+   piece (a row's count at a piece's upper end against the total at its lower end and the reverse). A fully re-scored timestep still open because of R_avg's
    interval gets a 4x larger sample (up to ``R_AVG_MAX_SAMPLES_FACTOR`` x). A band of at most
    ``exact_band_pairs`` members is re-scored whole first.
 3. If ``tied_rows`` finds equally long longest segments, their s_t sums decide: from the bounds when
@@ -59,6 +61,8 @@ ADAPT_QUANTILE = 0.99
 ADAPT_WINDOW = 0.15
 ADAPT_MIN_PAIRS = 100
 MAX_MARGIN = 0.25
+#: R_avg's interval is cut into this many pieces when checking that a decision holds over all of it
+INTERVAL_STEPS = 8
 #: a timestep's decision is taken from its re-scored sample once its count is this many standard errors
 #: from the mean count (a wrong decision then has a probability below 1e-6 per timestep)
 ROW_DECISION_Z = 5.0
@@ -97,10 +101,14 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
         score: (handles (M,), window) -> (M,) their exact relevancy; with a window (low, high) a member
             whose relevancy is certainly <= low (> high) may get any value <= low (> high) instead: every
             threshold the band's decisions use lies in the window it is given (R_avg's first interval).
-        sample: (list of codes (C_j,), list of sizes) -> list of (codes (M_j,), scores (M_j,)): for each
-            group of codes, exact relevancy of a uniform sample without replacement of that many of its
-            members at the scored timesteps (all of them when fewer); one call for every stratum. Only
-            relevant scores (> 0.5) are used as values: an irrelevant one may be any value <= 0.5.
+        sample: (list of codes (C_j,), list of sizes) -> list of (codes (M_j,), scores (M_j,)[, controls
+            (M_j,)]): for each group of codes, exact relevancy of a uniform sample without replacement of
+            that many of its members at the scored timesteps (all of them when fewer); one call for every
+            stratum. Only relevant scores (> 0.5) are used as values: an irrelevant one may be any value
+            <= 0.5. ``controls``, when given, are each member's first-order relevancy around its code,
+            r_k + ∇r(c_k)·(z − c_k), whose sum over every member of a code (the code being the mean of its
+            members) is r_k times their count: the control variate of R_avg then leaves only the
+            second-order part of each deviation.
         margin: half-width of the band of codes around R_avg whose members are re-scored (0 = lookup).
         weights: (S,) timesteps each scored timestep stands for after stride expansion (default 1 each).
         samples: exact scores spent on R_avg.
@@ -141,12 +149,8 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
     band = _Band(r, hist, held, r_avg, first, margin, members, score)
     band.score_whole_if_at_most(exact_band_pairs)
     while True:  # the total is the estimate's; each row's own count is decided from its bounds or sample
-        low, high = band.bounds(r_low, r_high)
-        counts, variance, pending = band.estimate(r_avg)
-        total = int(w @ counts)
-        undecided = (low * T <= total) & (high * T > total)
-        if row_z > 0:
-            undecided &= ~_settled_by_sample(counts, variance, pending, total, w, row_z)
+        undecided = _open_over_interval(band, r_low, r_high, w, row_z)
+        pending = band.above(r_avg)[1]
         todo = undecided & (pending > 0)
         if todo.any():
             band.score_next(np.nonzero(todo)[0])
@@ -184,16 +188,47 @@ def _narrowed_interval(estimate: float, r_se: float, first: tuple[float, float])
     return r_avg, r_low, r_high
 
 
-def _settled_by_sample(counts: np.ndarray, variance: np.ndarray, pending: np.ndarray, total: int,
-                       weights: np.ndarray, z: float) -> np.ndarray:
-    """(S,) bool: rows with pending members whose corrected count is more than ``z`` standard errors of
-    the difference count·T − total from the mean count (the total's own error, the sum of every row's,
-    included)."""
+def _open_over_interval(band: "_Band", r_low: float, r_high: float, weights: np.ndarray, z: float) -> np.ndarray:
+    """(S,) bool: rows whose decision (count above the mean count) may differ somewhere in R_avg's interval.
+
+    The interval is cut at ``INTERVAL_STEPS`` + 1 thresholds. Every count, and so the total, falls as the
+    threshold rises: between two cuts a row's count lies between its counts at them, and so does the total
+    (so ``count·T − total`` lies between the row's count at the upper cut against the total at the lower
+    one and the reverse). In each piece a row is settled above or below the mean count by its bounds
+    (pending members either way) against the total as estimated, or by its corrected count ``z`` standard
+    errors of the difference away (``z`` = 0: bounds only). A row is open where some piece leaves it open
+    or two pieces settle it on different sides."""
+    T = int(weights.sum())
+    cuts = np.unique(np.linspace(r_low, r_high, INTERVAL_STEPS + 1)) if r_high > r_low else np.array([r_low])
+    estimates = [band.estimate(float(c)) for c in cuts]        # counts fall along the cuts
+    totals = [int(weights @ counts) for counts, _, _ in estimates]
+    pending = estimates[0][2]
+    open_rows = np.zeros(pending.shape[0], dtype=bool)
+    above_somewhere, below_somewhere = open_rows.copy(), open_rows.copy()
+    for i in range(max(1, cuts.size - 1)):
+        j = min(i + 1, cuts.size - 1)
+        (counts_lo, variance_lo, _), (counts_hi, variance_hi, _) = estimates[i], estimates[j]
+        low, high = band.bounds(float(cuts[i]), float(cuts[j]))
+        above = low * T > totals[i]
+        below = high * T <= totals[j]
+        if z > 0:
+            above |= _beyond(counts_hi * T - totals[i], variance_hi, pending, weights, z)
+            below |= _beyond(totals[j] - counts_lo * T, variance_lo, pending, weights, z)
+        open_rows |= ~(above | below)
+        above_somewhere |= above
+        below_somewhere |= below
+    return open_rows | (above_somewhere & below_somewhere)
+
+
+def _beyond(margin: np.ndarray, variance: np.ndarray, pending: np.ndarray, weights: np.ndarray,
+            z: float) -> np.ndarray:
+    """(S,) bool: rows with pending members whose ``margin`` (count·T − total, signed) exceeds ``z``
+    standard errors of it (the total's own error, the sum of every row's, included)."""
     T = int(weights.sum())
     finite = np.isfinite(variance)
     total_var = float(weights[finite].astype(np.float64) ** 2 @ variance[finite])
     se = np.sqrt(T * T * np.where(finite, variance, 0.0) + total_var)
-    return finite & (pending > 0) & (np.abs(counts * T - total) > z * se)
+    return finite & (pending > 0) & (margin > z * se)
 
 
 def _ties_need_exact_counts(band: "_Band", tied: list[np.ndarray], r_low: float, r_high: float) -> bool:
@@ -368,12 +403,15 @@ def _sampled_r_avg(r: np.ndarray, per_code: np.ndarray, held: np.ndarray, sample
     drawn, deviations, deviation_codes = [], [], []
     answers = sample([np.nonzero(strata[i])[0] for i, _ in requests], [size for _, size in requests]) \
         if requests else []
-    for (i, _), (codes, exact) in zip(requests, answers):
-        exact = np.asarray(exact, dtype=np.float64)
+    for (i, _), answer in zip(requests, answers):
+        codes, exact = answer[0], np.asarray(answer[1], dtype=np.float64)
         if exact.size == 0:
             continue
         coded = r[np.asarray(codes, dtype=np.int64)]
-        f = np.where(exact > RELEVANT, exact, 0.0) - np.where(coded > RELEVANT, coded, 0.0)
+        # the control: each pair's first-order value around its code where the sample has it (it sums over
+        # a code's members to the code's relevancy times their count, as the code's own value does)
+        control = coded if len(answer) < 3 or answer[2] is None else np.asarray(answer[2], dtype=np.float64)
+        f = np.where(exact > RELEVANT, exact, 0.0) - np.where(coded > RELEVANT, control, 0.0)
         g = (exact > RELEVANT).astype(np.float64) - (coded > RELEVANT)
         F += populations[i] * float(f.mean())
         G += populations[i] * float(g.mean())

@@ -165,11 +165,20 @@ class LatentScorer:
     def score_any(self, query: str, flat: np.ndarray, window: Optional[tuple[float, float]] = None) -> np.ndarray:
         """(M,) float64 exact relevancy of the Gaussians at flat indices t*N+g, in any order (with a
         ``window``: bounds where certainly outside it, see :meth:`score_latents`)."""
+        return self.score_any_rows(query, flat, window)[0]
+
+    def score_any_rows(self, query: str, flat: np.ndarray, window: Optional[tuple[float, float]] = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`score_any` and the (M,d) float32 latents it scored, both in the order of ``flat``."""
         flat = np.asarray(flat, dtype=np.int64)
         order = np.argsort(flat, kind="stable")  # reads in file order
+        lat = self.rows().read(flat[order], dtype=self.latent_dtype or np.float32)
         scores = np.empty(flat.shape[0], dtype=np.float64)
-        scores[order] = self.score_pairs(query, flat[order], window)
-        return scores
+        latents = np.empty((flat.shape[0], int(self.latents.shape[-1])), dtype=np.float32)
+        if flat.size:
+            scores[order] = self.score_latents(lat, self.embed_query(query), window).double().numpy()
+            latents[order] = lat
+        return scores, latents
 
     def background_relevancy(self, query: str) -> float:
         """Relevancy of an empty pixel on the exact path (its rendered latent is 0)."""

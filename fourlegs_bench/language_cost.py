@@ -71,6 +71,10 @@ def knob_rows(num_cameras: int) -> list[tuple[str, str, ExtractPlan]]:
     rows += [("combined", f"stride {s} + crop stride 0.75 + early exit, latents",
               full.with_(timestep_stride=s, crop_stride=0.75, early_exit="foreground", fill="latents"))
              for s in (5, 6, 8)]
+    # the cheapest plans without a timestep stride above 2: every knob that keeps the labels of each timestep
+    rows += [("combined", "early exit + crop stride 0.75", full.with_(crop_stride=0.75, early_exit="foreground")),
+             ("combined", "stride 2 + crop stride 0.75 + levels 1-4 + early exit",
+              full.with_(timestep_stride=2, crop_stride=0.75, levels=(1, 2, 3, 4), early_exit="foreground"))]
     rows.append(("default", "default plan", PLANS["default"]))
     return rows
 

@@ -68,6 +68,22 @@ def test_build_store_load_and_histogram(tmp_path):
     assert cb.load_codebook(tmp_path, 8, np.load(tmp_path / "latents.npy", mmap_mode="r")) is None
 
 
+def test_each_code_is_the_mean_of_its_members_over_every_timestep(tmp_path):
+    rng = np.random.default_rng(3)
+    protos = rng.normal(size=(10, 8))
+    lat = (protos[rng.integers(0, 10, size=(4, 500))] + rng.normal(scale=0.3, size=(4, 500, 8))).astype(np.float32)
+    book = cb.build_codebook(lat, 16, out_dir=tmp_path, seed=1, sample_size=300)  # trained on a sample
+    codes = np.asarray(book.codes).reshape(-1)
+    flat = lat.reshape(-1, 8).astype(np.float64)
+    held = np.unique(codes)
+    means = np.stack([flat[codes == k].mean(0) for k in held])
+    np.testing.assert_allclose(book.centroids[held], means, rtol=0, atol=2e-6)
+    sums = np.stack([(flat[codes == k] - book.centroids[k]).sum(0) for k in held])
+    assert np.abs(sums).max() < 1e-3  # what the first-order control of R_avg relies on
+    assert book.meta["centroids"] == cb.MEMBER_MEANS
+    assert cb.load_codebook(tmp_path, 16, lat).meta["centroids"] == cb.MEMBER_MEANS
+
+
 def test_lookup_temporal_counts_equal_exact_counts_when_codes_are_exact():
     rng = np.random.default_rng(4)
     protos = rng.normal(size=(10, 8)).astype(np.float32)

@@ -244,3 +244,31 @@ def test_relevancy_gradient_matches_central_differences_of_the_float64_reference
     bad = head.relevancy_gradient(torch.tensor([[np.nan] * 16, [np.inf] * 16]), torch.from_numpy(query[0]).float(),
                                   torch.from_numpy(refs).float(), scale=10.0)
     assert torch.isfinite(bad).all()
+
+
+def test_the_engine_samples_r_avg_with_first_order_controls_closer_to_exact_than_the_codes(tmp_path):
+    from _query_helpers import TableTextEncoder
+
+    scene, field, _, _ = two_cluster_scene(T=6, active=(2, 3), D=128)
+    T, N, d = field.latents.shape
+    dec = decaying_decoder((d, 24, 48, 128), seed=7)
+    rng = np.random.default_rng(0)
+    lat = (np.asarray(field.latents) + rng.normal(scale=0.1, size=(T, N, d))).astype(np.float32)
+    with torch.no_grad():
+        at = dec(torch.from_numpy(lat[2, :N // 2].mean(0, keepdims=True))).numpy()[0]
+    enc = TableTextEncoder(dict({"a ball flying": at}, **{c: rng.normal(size=128) for c in CANON}), 128)
+    eng = QueryEngine(scene, DecoderField(lat, dec), enc,  # soft scores: relevancies spread below saturation
+                      QueryOptions(path="codebook", codebook_size=8, relevancy_scale=1.0), codebook_dir=tmp_path)
+    held = np.flatnonzero(eng.codebook.histogram.sum(0))
+    [(codes, exact, controls)] = eng.codebook_path.sample_members("a ball flying", [held], [T * N], np.arange(T),
+                                                                  np.random.default_rng(1))
+    coded = eng.codebook_path.code_scores("a ball flying").double().numpy()[codes]
+    assert controls is not None and np.abs(exact - coded).mean() > 1e-4
+    assert np.abs(exact - controls).mean() * 3 < np.abs(exact - coded).mean()  # first order: much closer
+    # every member sampled: the controls sum, code by code, to the code's relevancy times its count
+    np.testing.assert_allclose(np.bincount(codes, controls, minlength=8)[held],
+                               (np.bincount(codes, minlength=8) * eng.codebook_path.code_scores("a ball flying")
+                                .double().numpy())[held], rtol=0, atol=1e-4)
+    [(_, _, strided)] = eng.codebook_path.sample_members("a ball flying", [held], [10], np.arange(0, T, 2),
+                                                         np.random.default_rng(1))
+    assert strided is None  # a code is the mean of its members over every timestep, not over a stride

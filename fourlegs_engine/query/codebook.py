@@ -37,6 +37,7 @@ from ..errors import InputError
 from ..fileio import atomic_path, load_npy, save_npy_atomic
 
 CODEBOOK_VERSION = 2  # 2: each code is the mean of its members
+MEMBER_MEANS = "member means"  # meta["centroids"] of a codebook whose codes are their members' means
 SINGLE_LEVEL_WORK = 4e9  # points x codes below which a flat k-means is affordable
 ASSIGN_CHUNK = 1 << 18
 
@@ -366,7 +367,8 @@ def build_codebook(latents, k: int, *, out_dir: Optional[Path] = None, seed: int
         steps.close()  # type: ignore[attr-defined]
     fine = member_means(fine, member_sums, hist.sum(axis=0, dtype=np.int64))
     meta = {"version": CODEBOOK_VERSION, "k": k, "levels": [int(coarse.shape[0]), k // int(coarse.shape[0])],
-            "seed": seed, "sample_size": int(sample_size), "iters": iters, "latents": fingerprint(latents)}
+            "seed": seed, "sample_size": int(sample_size), "iters": iters, "latents": fingerprint(latents),
+            "centroids": MEMBER_MEANS}
     book = Codebook(centroids=fine.numpy().astype(np.float32), codes=codes, histogram=hist,
                     coarse=coarse.numpy().astype(np.float32), meta=meta, members=member_index(codes))
     if out_dir is not None:

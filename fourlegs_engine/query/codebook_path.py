@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..scene.scene import Scene
-from .codebook import Codebook, ensure_codebook
+from .codebook import MEMBER_MEANS, Codebook, ensure_codebook
 from .lerf import l2_normalize, relevancy_of_unit_features
 from .scoring import LatentScorer
 from .refined_counts import MEMBERSHIP_BAND, counts_from_codes_refined
@@ -186,9 +186,9 @@ class CodebookPath:
     def first_order(self, query: str, codes: np.ndarray, latents: np.ndarray) -> Optional[np.ndarray]:
         """(M,) float64 r_k + ∇r(c_k)·(z − c_k) of latents ``latents`` (M,d) holding ``codes`` (M,): their
         relevancy expanded to first order around their codes; None when the field's decoder has no
-        :class:`~.head.RelevancyHead` to differentiate."""
+        :class:`~.head.RelevancyHead` to differentiate, or the codes are not their members' means."""
         head = self.scorer.head
-        if head is None:
+        if head is None or self.codebook.meta.get("centroids") != MEMBER_MEANS:
             return None
         if query not in self._code_gradients:
             self._code_gradients[query] = head.relevancy_gradient(

@@ -20,8 +20,7 @@ mean, s_t > 1/T) come nearly right from the codes:
    are a uniform sample of the timestep's band: their exact-minus-code differences correct the
    count of the members still pending (a control variate, as for R_avg), and a timestep whose
    corrected count lies more than ``row_z`` standard errors from the mean count is decided by it
-   (``row_z`` = 0: by the bounds only); both tests hold over R_avg's whole interval, checked piece by
-   piece (a row's count at a piece's upper end against the total at its lower end and the reverse). A fully re-scored timestep still open because of R_avg's
+   (``row_z`` = 0: by the bounds only). A fully re-scored timestep still open because of R_avg's
    interval gets a 4x larger sample (up to ``R_AVG_MAX_SAMPLES_FACTOR`` x). A band of at most
    ``exact_band_pairs`` members is re-scored whole first.
 3. If ``tied_rows`` finds equally long longest segments, their s_t sums decide: from the bounds when
@@ -61,8 +60,6 @@ ADAPT_QUANTILE = 0.99
 ADAPT_WINDOW = 0.15
 ADAPT_MIN_PAIRS = 100
 MAX_MARGIN = 0.25
-#: R_avg's interval is cut into this many pieces when checking that a decision holds over all of it
-INTERVAL_STEPS = 8
 #: a timestep's decision is taken from its re-scored sample once its count is this many standard errors
 #: from the mean count (a wrong decision then has a probability below 1e-6 per timestep)
 ROW_DECISION_Z = 5.0
@@ -149,8 +146,12 @@ def counts_from_codes_refined(code_scores, histogram, *, members: Callable[[np.n
     band = _Band(r, hist, held, r_avg, first, margin, members, score)
     band.score_whole_if_at_most(exact_band_pairs)
     while True:  # the total is the estimate's; each row's own count is decided from its bounds or sample
-        undecided = _open_over_interval(band, r_low, r_high, w, row_z)
-        pending = band.above(r_avg)[1]
+        low, high = band.bounds(r_low, r_high)
+        counts, variance, pending = band.estimate(r_avg)
+        total = int(w @ counts)
+        undecided = (low * T <= total) & (high * T > total)
+        if row_z > 0:
+            undecided &= ~_settled_by_sample(counts, variance, pending, total, w, row_z)
         todo = undecided & (pending > 0)
         if todo.any():
             band.score_next(np.nonzero(todo)[0])
@@ -188,47 +189,16 @@ def _narrowed_interval(estimate: float, r_se: float, first: tuple[float, float])
     return r_avg, r_low, r_high
 
 
-def _open_over_interval(band: "_Band", r_low: float, r_high: float, weights: np.ndarray, z: float) -> np.ndarray:
-    """(S,) bool: rows whose decision (count above the mean count) may differ somewhere in R_avg's interval.
-
-    The interval is cut at ``INTERVAL_STEPS`` + 1 thresholds. Every count, and so the total, falls as the
-    threshold rises: between two cuts a row's count lies between its counts at them, and so does the total
-    (so ``count·T − total`` lies between the row's count at the upper cut against the total at the lower
-    one and the reverse). In each piece a row is settled above or below the mean count by its bounds
-    (pending members either way) against the total as estimated, or by its corrected count ``z`` standard
-    errors of the difference away (``z`` = 0: bounds only). A row is open where some piece leaves it open
-    or two pieces settle it on different sides."""
-    T = int(weights.sum())
-    cuts = np.unique(np.linspace(r_low, r_high, INTERVAL_STEPS + 1)) if r_high > r_low else np.array([r_low])
-    estimates = [band.estimate(float(c)) for c in cuts]        # counts fall along the cuts
-    totals = [int(weights @ counts) for counts, _, _ in estimates]
-    pending = estimates[0][2]
-    open_rows = np.zeros(pending.shape[0], dtype=bool)
-    above_somewhere, below_somewhere = open_rows.copy(), open_rows.copy()
-    for i in range(max(1, cuts.size - 1)):
-        j = min(i + 1, cuts.size - 1)
-        (counts_lo, variance_lo, _), (counts_hi, variance_hi, _) = estimates[i], estimates[j]
-        low, high = band.bounds(float(cuts[i]), float(cuts[j]))
-        above = low * T > totals[i]
-        below = high * T <= totals[j]
-        if z > 0:
-            above |= _beyond(counts_hi * T - totals[i], variance_hi, pending, weights, z)
-            below |= _beyond(totals[j] - counts_lo * T, variance_lo, pending, weights, z)
-        open_rows |= ~(above | below)
-        above_somewhere |= above
-        below_somewhere |= below
-    return open_rows | (above_somewhere & below_somewhere)
-
-
-def _beyond(margin: np.ndarray, variance: np.ndarray, pending: np.ndarray, weights: np.ndarray,
-            z: float) -> np.ndarray:
-    """(S,) bool: rows with pending members whose ``margin`` (count·T − total, signed) exceeds ``z``
-    standard errors of it (the total's own error, the sum of every row's, included)."""
+def _settled_by_sample(counts: np.ndarray, variance: np.ndarray, pending: np.ndarray, total: int,
+                       weights: np.ndarray, z: float) -> np.ndarray:
+    """(S,) bool: rows with pending members whose corrected count is more than ``z`` standard errors of
+    the difference count·T − total from the mean count (the total's own error, the sum of every row's,
+    included)."""
     T = int(weights.sum())
     finite = np.isfinite(variance)
     total_var = float(weights[finite].astype(np.float64) ** 2 @ variance[finite])
     se = np.sqrt(T * T * np.where(finite, variance, 0.0) + total_var)
-    return finite & (pending > 0) & (margin > z * se)
+    return finite & (pending > 0) & (np.abs(counts * T - total) > z * se)
 
 
 def _ties_need_exact_counts(band: "_Band", tied: list[np.ndarray], r_low: float, r_high: float) -> bool:

@@ -34,7 +34,7 @@ INT_KNOBS = ("first_iterations", "iterations", "max_iterations", "min_iterations
              "background_stride", "knn", "seed", "clean_plate_samples")
 STR_KNOBS = ("init",)
 FLOAT_KNOBS = ("resolution_scale", "lr_means", "lr_means_later", "lr_colors", "lr_scales", "lr_opacities",
-               "lr_rotations", "lr_rotations_later", "lr_camera", "voxel", "grad_threshold")
+               "lr_rotations", "lr_rotations_later", "lr_camera", "voxel", "grad_threshold", "motion_step_range")
 
 
 def register_bench(bench_sub: Any) -> None:
@@ -80,6 +80,8 @@ def parse_runs(text: str) -> list[tuple[str, dict[str, Any]]]:
         for item in (s.strip() for s in knobs.split(",") if s.strip()):
             key, _, value = item.partition("=")
             key = key.strip().replace("-", "_")
+            if key not in INT_KNOBS + FLOAT_KNOBS + STR_KNOBS + ("densify",):
+                raise InputError(f"unknown knob {key!r}", field="--runs")
             try:
                 if key in INT_KNOBS:
                     kw[key] = int(value)
@@ -87,10 +89,8 @@ def parse_runs(text: str) -> list[tuple[str, dict[str, Any]]]:
                     kw[key] = float(value)
                 elif key in STR_KNOBS:
                     kw[key] = value.strip()
-                elif key == "densify":
-                    kw[key] = value.strip().lower() in ("1", "true", "yes")
                 else:
-                    raise InputError(f"unknown knob {key!r}", field="--runs")
+                    kw[key] = value.strip().lower() in ("1", "true", "yes")
             except ValueError:
                 raise InputError(f"bad value for {key}: {value!r}", field="--runs") from None
         runs.append((name.strip(), kw))

@@ -72,6 +72,49 @@ def test_iterations_stay_within_floor_and_cap_and_grow_with_the_residual(residua
     assert iterations_for(residual * 2 + 0.01, earlier, base=base, floor=floor, cap=cap) >= n
 
 
+def test_motion_step_scale_follows_each_centres_speed_within_its_range():
+    from fourlegs_engine.fit.optimize import motion_step_scale
+
+    prev2 = torch.zeros(5, 3, dtype=torch.float64)
+    prev = torch.tensor([[0.01, 0, 0], [0.02, 0, 0], [0, 0.02, 0], [0.2, 0, 0], [0.001, 0, 0]], dtype=torch.float64)
+    np.testing.assert_allclose(motion_step_scale(prev, prev2, 4.0).numpy(), [0.5, 1.0, 1.0, 4.0, 0.25])
+    np.testing.assert_allclose(motion_step_scale(prev, prev2, 2.0).numpy(), [0.5, 1.0, 1.0, 2.0, 0.5])
+    assert torch.equal(motion_step_scale(prev, prev2, 1.0), torch.ones(5, dtype=torch.float64))  # off
+    assert torch.equal(motion_step_scale(prev2, prev2, 4.0), torch.ones(5, dtype=torch.float64))  # nothing moved
+    assert motion_step_scale(prev[:0], prev2[:0], 4.0).shape == (0,)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(-1e6, 1e6, allow_nan=False), min_size=3, max_size=30), st.floats(1.0, 50.0))
+def test_motion_step_scale_is_finite_and_within_its_range_for_any_motion(coords, step_range):
+    from fourlegs_engine.fit.optimize import motion_step_scale
+
+    moved = torch.tensor(coords, dtype=torch.float64)[:, None].expand(-1, 3).clone()
+    moved[0] = float("nan")  # a diverged centre
+    scale = motion_step_scale(moved, torch.zeros_like(moved), step_range)
+    assert torch.isfinite(scale).all()
+    assert (scale >= 1.0 / step_range - 1e-12).all() and (scale <= step_range + 1e-12).all()
+
+
+def test_bench_runs_take_the_motion_knob_and_name_an_unknown_one():
+    from fourlegs_bench.fit import parse_runs
+
+    assert parse_runs("m:lr_means_later=0.0008,motion_step_range=2") == [
+        ("m", {"lr_means_later": 0.0008, "motion_step_range": 2.0})]
+    with pytest.raises(InputError, match="unknown knob 'step_range'"):
+        parse_runs("m:step_range=2")
+    with pytest.raises(InputError, match="bad value for motion_step_range"):
+        parse_runs("m:motion_step_range=fast")
+
+
+def test_motion_step_option_is_checked_and_left_out_of_the_fingerprint_when_off():
+    assert "motion_step_range" not in FitOptions().fingerprint()  # fits started before the knob still resume
+    assert FitOptions(motion_step_range=3.0).fingerprint()["motion_step_range"] == 3.0
+    for bad in (0.5, 0.0, 1000.0, float("nan")):
+        with pytest.raises(InputError, match="motion_step_range"):
+            FitOptions(motion_step_range=bad).check()
+
+
 def test_schedule_options_are_checked_and_left_out_of_the_fingerprint_when_off():
     fixed = FitOptions(max_iterations=0).fingerprint()
     assert "max_iterations" not in fixed and "min_iterations" not in fixed

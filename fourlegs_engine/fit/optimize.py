@@ -217,6 +217,20 @@ def forecast_residual(model: GaussianModel, tracker: Tracker, frames: TrainingFr
     return moving_residual(renders, frames.images, previous.images)
 
 
+def motion_step_scale(prev_means: torch.Tensor, prev2_means: torch.Tensor, step_range: float) -> torch.Tensor:
+    """(F,) each foreground centre's step scale: its speed (F,3 displacement between the two previous
+    timesteps) over the median speed, clamped to [1 / ``step_range``, ``step_range``]; all ones when
+    ``step_range`` is 1 or nothing moved."""
+    ones = torch.ones(prev_means.shape[0], dtype=prev_means.dtype, device=prev_means.device)
+    if step_range <= 1.0 or prev_means.shape[0] == 0:
+        return ones
+    speed = torch.linalg.vector_norm(prev_means - prev2_means, dim=1)
+    typical = float(speed.median())
+    if not typical > 0.0 or not np.isfinite(typical):
+        return ones
+    return torch.nan_to_num(speed / typical, nan=1.0).clamp(1.0 / step_range, step_range)
+
+
 def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingFrames, cameras: list[Camera], opts: FitOptions,
                scene_radius: float, prev: tuple[torch.Tensor, torch.Tensor], prev2: tuple[torch.Tensor, torch.Tensor],
                generator: torch.Generator, progress: Callable[[FitEvent], None], t: int, iterations: int
@@ -227,9 +241,12 @@ def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingF
     fi = tracker.fg_idx
     prev_m, prev_r = prev[0][fi], prev[1][fi]
     forecast_m, forecast_r = _forecast(fi, prev, prev2)
-    means = forecast_m.clone().requires_grad_(True)
+    # the centres are the forecast plus a per-Gaussian step scale times what Adam moves: Adam's steps are
+    # about its learning rate whatever the gradient's size, so the scale sets each centre's step
+    step = motion_step_scale(prev_m, prev2[0][fi], opts.motion_step_range)[:, None]
+    offset = torch.zeros_like(forecast_m).requires_grad_(True)
     rots = forecast_r.clone().requires_grad_(True)
-    optimizer = torch.optim.Adam([{"params": [means], "lr": opts.lr_means_later * scene_radius},
+    optimizer = torch.optim.Adam([{"params": [offset], "lr": opts.lr_means_later * scene_radius},
                                   {"params": [rots], "lr": opts.lr_rotations_later}], lr=0.0, eps=1e-15)
     order: list[int] = []
     last_psnr = float("nan")
@@ -237,6 +254,7 @@ def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingF
         if not order:
             order = torch.randperm(len(cameras), generator=generator).tolist()
         c = order.pop()
+        means = forecast_m + step * offset
         unit = torch.nn.functional.normalize(rots, dim=-1)
         rgb, seg = _composite(model, tracker, cameras, c, means, unit)
         loss = w["im"] * image_loss(rgb, frames.images[c])
@@ -256,6 +274,6 @@ def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingF
     with torch.no_grad():
         full_m = prev[0].clone()
         full_r = prev[1].clone()
-        full_m[fi] = means.detach()
+        full_m[fi] = forecast_m + step * offset.detach()
         full_r[fi] = torch.nn.functional.normalize(rots.detach(), dim=-1)
     return full_m, full_r, last_psnr

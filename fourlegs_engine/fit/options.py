@@ -43,6 +43,10 @@ class FitOptions:
         weights: loss weights (im, seg, rigid, rot, iso, floor, plate).
         lr_means: centre learning rate as a fraction of the scene radius (first timestep).
         lr_means_later: the same for later timesteps (fewer steps than the paper, so larger).
+        motion_step_range: later timesteps move each foreground centre by steps scaled with its speed
+            (its displacement between the two previous timesteps) against the median speed, the scale
+            clamped to [1 / range, range]: a fast ball takes larger steps than the slower people
+            (1: the same step for all).
         lr_colors, lr_rotations, lr_opacities, lr_scales, lr_camera: Adam learning rates.
         seed: every random choice derives from it.
         device: "auto" (CUDA when available), "cpu" or "cuda".
@@ -70,6 +74,7 @@ class FitOptions:
         "im": 1.0, "seg": 3.0, "rigid": 4.0, "rot": 4.0, "iso": 2.0, "floor": 2.0, "plate": 1.0})
     lr_means: float = 0.00016
     lr_means_later: float = 0.0016
+    motion_step_range: float = 1.0
     lr_colors: float = 0.01
     lr_rotations: float = 0.001
     lr_rotations_later: float = 0.004
@@ -99,6 +104,8 @@ class FitOptions:
             from .features import require_cv2
 
             require_cv2()
+        if not 1.0 <= float(self.motion_step_range) <= 100.0:
+            raise InputError(f"must be in [1, 100], got {self.motion_step_range}", field="motion_step_range")
         if self.device not in ("auto", "cpu", "cuda"):
             raise InputError(f"must be auto, cpu or cuda, got {self.device!r}", field="device")
         if self.device == "cuda" and not torch.cuda.is_available():
@@ -115,6 +122,8 @@ class FitOptions:
             d.pop("min_iterations")
         if d["init"] == "hull":
             d.pop("init")
+        if d["motion_step_range"] == 1.0:
+            d.pop("motion_step_range")
         if d["clean_plate_samples"] == 0:
             d.pop("clean_plate_samples")
             d["weights"] = {k: v for k, v in d["weights"].items() if k != "plate"}

@@ -215,7 +215,8 @@ def test_codebook_refine_with_norm_bounds_answers_as_the_exact_path(tmp_path):
     assert got.segment == want.segment and got.r_avg == pytest.approx(want.r_avg, abs=1e-6)
     # the same engine scoring every re-scored row exactly returns the very same counts
     unbounded = QueryEngine(scene, DecoderField(lat, dec), enc, QueryOptions(path="codebook", codebook_size=6, codebook_refine=1.0, codebook_samples=10 ** 9), codebook_dir=tmp_path)
-    score_any_rows = unbounded.scorer.score_any_rows
+    score_any, score_any_rows = unbounded.scorer.score_any, unbounded.scorer.score_any_rows
+    unbounded.scorer.score_any = lambda q, flat, window=None: score_any(q, flat, None)
     unbounded.scorer.score_any_rows = lambda q, flat, window=None: score_any_rows(q, flat, None)
     plain = unbounded.temporal("a ball flying")
     np.testing.assert_array_equal(got.scores, plain.scores)

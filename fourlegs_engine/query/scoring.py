@@ -165,7 +165,11 @@ class LatentScorer:
     def score_any(self, query: str, flat: np.ndarray, window: Optional[tuple[float, float]] = None) -> np.ndarray:
         """(M,) float64 exact relevancy of the Gaussians at flat indices t*N+g, in any order (with a
         ``window``: bounds where certainly outside it, see :meth:`score_latents`)."""
-        return self.score_any_rows(query, flat, window)[0]
+        flat = np.asarray(flat, dtype=np.int64)
+        order = np.argsort(flat, kind="stable")  # reads in file order
+        scores = np.empty(flat.shape[0], dtype=np.float64)
+        scores[order] = self.score_pairs(query, flat[order], window)
+        return scores
 
     def score_any_rows(self, query: str, flat: np.ndarray, window: Optional[tuple[float, float]] = None
                        ) -> tuple[np.ndarray, np.ndarray]:

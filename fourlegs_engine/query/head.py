@@ -266,8 +266,8 @@ class RelevancyHead:
                            scale: float) -> torch.Tensor:
         """(M,d) gradient of each latent's relevancy ``min_c sigmoid(scale φ(z)·(q − c))`` with respect to
         the latent, in float64 (the first-order term of the relevancy around a code; at a kink of a ReLU
-        or of the min, the gradient of the side taken). Non-finite latents count as 0 and get a zero
-        gradient.
+        or of the min, the gradient of the side taken). Non-finite latents count as 0 (as in
+        :meth:`margins`) and get the gradient there; the result is always finite.
 
         Args:
             latents: (M,d); query: (D,) unit; refs: (K,D) unit references.

@@ -19,9 +19,10 @@ from fourlegs_engine.render import RasterOptions, rasterize
 from fourlegs_engine.scene.bundle import load_bundle
 
 BASKETBALL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "panoptic-basketball"
-#: small but enough for the synthetic scene: 64×48, 8 cameras
+#: small but enough for the synthetic scene: 64×48, 8 cameras; the box moves 4 cm per timestep, which 12
+#: steps cover at twice the default centre step (sized for the capture's ~38 steps per timestep)
 SYNTH_OPTIONS = FitOptions(resolution_scale=1.0, first_iterations=80, iterations=12, init_background=1500,
-                           background_stride=4, voxel=0.04, max_gaussians=4000)
+                           background_stride=4, voxel=0.04, max_gaussians=4000, lr_means_later=0.0016)
 
 
 @pytest.fixture(scope="module")

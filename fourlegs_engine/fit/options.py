@@ -42,7 +42,8 @@ class FitOptions:
         knn_lambda: neighbour weight exp(−λ d²) (d in metres).
         weights: loss weights (im, seg, rigid, rot, iso, floor, plate).
         lr_means: centre learning rate as a fraction of the scene radius (first timestep).
-        lr_means_later: the same for later timesteps (fewer steps than the paper, so larger).
+        lr_means_later: the same for later timesteps (fewer steps than the paper, so larger), for a centre
+            moving at the median speed (see ``motion_step_range``).
         motion_step_range: later timesteps move each foreground centre by steps scaled with its speed
             (its displacement between the two previous timesteps) against the median speed, the scale
             clamped to [1 / range, range]: a fast ball takes larger steps than the slower people
@@ -73,8 +74,8 @@ class FitOptions:
     weights: dict[str, float] = field(default_factory=lambda: {
         "im": 1.0, "seg": 3.0, "rigid": 4.0, "rot": 4.0, "iso": 2.0, "floor": 2.0, "plate": 1.0})
     lr_means: float = 0.00016
-    lr_means_later: float = 0.0016
-    motion_step_range: float = 1.0
+    lr_means_later: float = 0.0008
+    motion_step_range: float = 4.0
     lr_colors: float = 0.01
     lr_rotations: float = 0.001
     lr_rotations_later: float = 0.004

@@ -302,3 +302,4 @@ def test_cli_preset_sets_the_knobs_and_explicit_options_override_it():
     assert accurate.first_iterations == FIT_PRESETS["accurate"]["first_iterations"]
     default = parse("--max-iterations", "0")
     assert default.resolution_scale == 0.5 and default.max_iterations == 0 and default == FitOptions(max_iterations=0)
+    assert parse().motion_step_range == 4.0 and parse("--motion-step-range", "1").motion_step_range == 1.0

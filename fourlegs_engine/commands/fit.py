@@ -56,6 +56,9 @@ def register(subparsers: Any) -> None:
                    "misses the moving pixels (0: every later timestep gets --iterations)")
     p.add_argument("--min-iterations", type=int, default=None, help="floor of the residual-driven schedule")
     p.add_argument("--max-gaussians", type=int, default=None, help="cap on the number of Gaussians")
+    p.add_argument("--motion-step-range", type=float, default=None,
+                   help="later timesteps scale each centre's steps by its speed over the median, within "
+                        "[1/range, range] (default 4; 1: the same step for all)")
     p.add_argument("--init", choices=("hull", "features", "hull+features"), default=None,
                    help="initial Gaussians: visual hull + background proxy (hull), triangulated SIFT matches "
                    "(features, needs OpenCV: pip install 'fourlegs[fit-features]') or both (default: hull)")
@@ -86,7 +89,7 @@ def options_from_args(args: argparse.Namespace):
     if args.cameras is not None:
         kw["cameras"] = parse_cameras(args.cameras)
     for name in ("first_iterations", "iterations", "max_iterations", "min_iterations", "max_gaussians", "init",
-                 "init_foreground", "init_background", "clean_plate_samples"):
+                 "init_foreground", "init_background", "clean_plate_samples", "motion_step_range"):
         if getattr(args, name) is not None:
             kw[name] = getattr(args, name)
     return preset_options(args.preset, **kw)

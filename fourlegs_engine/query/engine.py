@@ -268,8 +268,9 @@ class QueryEngine:
                 return self.maps.relevancy_maps([query], cam, t, outputs=("relevancy",), scale=scale,
                                                 relevant_only=relevant_only)["relevancy"][0]
 
-            if self.maps.fast:  # scored once here, read by every render
+            if self.maps.fast:  # scored and cached here, only read by the renders on the worker threads
                 self._gaussian_relevancy_many([query], t)
+                self.scorer.background_relevancy(query)
             maps = []
             with closing(self._map_in_threads(render, batch)) as views:  # closed (queue dropped) on a cancel
                 for m in views:

@@ -228,8 +228,7 @@ def open_query_engine(scene: "Scene", encoder: Any = None, *, options: Optional[
     engine = QueryEngine(scene, LanguageField.open(scene.root), encoder, options, **engine_kwargs)
     progress(0.5, "embedding the reference phrases")
     engine.reference_embeddings()
-    if engine.path == "codebook":
-        engine.load_codebook(progress=lambda f, stage: progress(0.6 + 0.4 * f, stage))
+    engine.load_index(progress=lambda f, stage: progress(0.6 + 0.4 * f, stage))
     progress(1.0, "engine ready")
     return engine
 

@@ -10,6 +10,7 @@ from .options import (add_demo_argument, add_effect_arguments, add_encoder_argum
                       encoder_options_from_args, parse_resolution)
 from ..errors import InputError
 from ..pipeline import EncoderOptions, QueryOptions
+from ..query.options import QUERY_PATHS
 
 
 def register(subparsers: Any) -> None:
@@ -33,7 +34,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--per-shot", type=bounded(int, 1, 64), default=4, help="preview frames per shot (1..64)")
     p.add_argument("--fps", type=bounded(float, 0, 240, low_open=True), help="override the preset's output frame rate")
     p.add_argument("--resolution", metavar="WxH", help="override the preset's output resolution")
-    p.add_argument("--query-path", choices=("exact", "codebook"), default="exact",
+    p.add_argument("--query-path", choices=QUERY_PATHS, default="exact",
                    help="per-Gaussian relevancy path of the query engine (default: exact)")
     p.add_argument("--spatial", choices=("exact", "fast"), default="fast",
                    help="relevancy maps for the best view / action centre: exact (128-channel render, "

@@ -16,6 +16,7 @@ from ..errors import InputError
 from ..highlight_job import DEFAULT_QUERY_PATH, DEFAULT_SPATIAL, VIDEO_FORMATS, HighlightJobOptions
 from ..language.encoders import DTYPES, encoder_names
 from ..pipeline import EncoderOptions
+from ..query.options import QUERY_PATHS
 from ..validate import check_number
 
 
@@ -143,7 +144,7 @@ def add_highlight_arguments(parser: argparse.ArgumentParser) -> None:
                         "extra threads mostly wait; 0 = torch's default)")
     p.add_argument("--format", default="MP4", choices=VIDEO_FORMATS, help="video or image sequence")
     add_effect_arguments(p)
-    p.add_argument("--query-path", default=DEFAULT_QUERY_PATH, choices=("exact", "codebook"),
+    p.add_argument("--query-path", default=DEFAULT_QUERY_PATH, choices=QUERY_PATHS,
                    help="per-Gaussian relevancy path of the query engine (default %(default)s; see "
                         "`fourlegs bench accuracy-time` for what each costs and scores)")
     p.add_argument("--spatial", default=DEFAULT_SPATIAL, choices=("exact", "fast"),

@@ -10,7 +10,8 @@ from typing import Any, Callable, Iterator, Optional
 
 def register(subparsers: Any) -> None:
     from .options import add_demo_argument, bounded
-    from ..query.options import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_TIMESTEP_ARGUMENT, QueryOptions
+    from ..query.options import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_SKETCH_RANK, MAX_TIMESTEP_ARGUMENT, \
+        QUERY_PATHS, QueryOptions
 
     p = subparsers.add_parser(
         "query", help="when and where a text query happens in a scene (segment, peak, maps)",
@@ -30,10 +31,13 @@ def register(subparsers: Any) -> None:
     p.add_argument("--frames", nargs="+", metavar="T",
                    help="timesteps for the EXR maps: integers, python slices (0:150 = every timestep of 150, "
                         "0:150:10 every 10th), a,b,c lists, or 'peak' (default: peak)")
-    p.add_argument("--path", choices=("exact", "codebook"), default=QueryOptions.path,
-                   help="per-Gaussian relevancy: the codebook (built once per field, stored beside it) with "
-                        "exact re-scoring where a decision depends on it, or every latent decoded (default "
-                        "%(default)s)")
+    p.add_argument("--path", choices=QUERY_PATHS, default=QueryOptions.path,
+                   help="temporal localization: the sketch (a per-pair sketch of the relevancy built once per "
+                        "field, stored beside it; the Gaussians it cannot decide are scored exactly), the "
+                        "codebook (K codes, exact re-scoring where a decision depends on it), or every latent "
+                        "decoded (default %(default)s)")
+    p.add_argument("--sketch-rank", type=bounded(int, 1, MAX_SKETCH_RANK), default=QueryOptions.sketch_rank,
+                   help="rank of --path sketch's per-pair sketch (default %(default)s)")
     p.add_argument("--codebook-size", type=bounded(int, 1, MAX_CODEBOOK_SIZE), default=QueryOptions.codebook_size,
                    help="K of --path codebook (default %(default)s)")
     p.add_argument("--codebook-refine", type=float, default=QueryOptions.codebook_refine, metavar="MARGIN",
@@ -104,6 +108,7 @@ def _open(args: argparse.Namespace, inputs: QueryInputs):
     encoder = text_encoder(scene, encoder_options_from_args(args))
     scene = ensure_language_field(scene, encoder, progress=True)
     options = QueryOptions(path=args.path, codebook_size=args.codebook_size, codebook_refine=args.codebook_refine,
+                           sketch_rank=args.sketch_rank,
                            negatives=tuple(args.negatives), temporal_stride=args.stride, spatial=args.spatial,
                            resolution_scale=args.scale, dilation=args.dilation, view_scale=args.view_scale,
                            view_confirm=args.view_confirm, view_score=args.view_score)

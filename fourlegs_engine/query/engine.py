@@ -38,9 +38,11 @@ from ..validate import check_number
 from . import viewpoint
 from .codebook import Codebook
 from .codebook_path import CodebookPath
+from .sketch_path import SketchPath
 from .head import RelevancyHead
 from .maps import MAP_OUTPUTS, SpatialMaps
-from .options import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_TIMESTEP_ARGUMENT, QueryOptions
+from .options import MAX_CODEBOOK_SIZE, MAX_RESOLUTION_SCALE, MAX_SKETCH_RANK, MAX_TIMESTEP_ARGUMENT, QUERY_PATHS, \
+    QueryOptions
 from .results import CentreResult, Localization, TemporalResult, ViewResult
 from .scoring import LatentScorer
 from .temporal import localize_counts, sampled_timesteps
@@ -98,6 +100,10 @@ class QueryEngine:
             samples=options.codebook_samples, codebook=codebook, stats=self.stats,
             directory=codebook_dir if codebook_dir is not None else (
                 Path(scene.root) / "language" if scene.root is not None else None))
+        self.sketch_path = SketchPath(scene, self.scorer, rank=options.sketch_rank, samples=options.codebook_samples,
+                                      directory=codebook_dir if codebook_dir is not None else (
+                                          Path(scene.root) / "language" if scene.root is not None else None),
+                                      stats=self.stats)
         self.temporal_pass = ExactTemporalPass(self.scorer, N, self.stats)
         self.maps = SpatialMaps(scene, self.scorer, self._gaussian_relevancy_many, fast=options.spatial == "fast",
                                 resolution_scale=options.resolution_scale, render_options=options.render_options,
@@ -143,6 +149,15 @@ class QueryEngine:
     def load_codebook(self, progress: Optional[Callable[[float, str], None]] = None) -> Codebook:
         """The codebook, loaded or (first use) built and stored (see :meth:`CodebookPath.load`)."""
         return self.codebook_path.load(progress)
+
+    def load_index(self, progress: Optional[Callable[[float, str], None]] = None) -> None:
+        """Load (or on first use build and store) the index the query path answers from: the sketch on the
+        sketch path (the codebook when the field has no relevancy head), the codebook on the codebook path,
+        nothing on the exact path."""
+        if self.path == "sketch" and self.sketch_path.available:
+            self.sketch_path.load(progress)
+        elif self.path in ("codebook", "sketch"):
+            self.codebook_path.load(progress)
 
     # ------------------------------------------------------------------ per Gaussian
     def gaussian_relevancy(self, query: str, t: int) -> torch.Tensor:
@@ -204,7 +219,9 @@ class QueryEngine:
         ts = sampled_timesteps(T, stride or self.temporal_stride)
         if N == 0:
             counts = [(np.zeros(len(ts), np.int64), 0.0, 0, np.zeros(len(ts), bool))] * len(queries)
-        elif self.path == "codebook":
+        elif self.path == "sketch" and self.sketch_path.available:
+            counts = self.sketch_path.temporal_counts(queries, ts, self._report)
+        elif self.path in ("codebook", "sketch"):
             counts = self.codebook_path.temporal_counts(queries, ts, self.dilation, self._report)
         else:
             counts = self.temporal_pass.counts(queries, ts, self._report)
@@ -402,8 +419,9 @@ class QueryEngine:
 
 def _check_options(options: QueryOptions) -> None:
     """InputError for an option out of its range, before any work."""
-    if options.path not in ("exact", "codebook"):
-        raise InputError(f"unknown query path {options.path!r} (exact, codebook)", field="path")
+    if options.path not in QUERY_PATHS:
+        raise InputError(f"unknown query path {options.path!r} ({', '.join(QUERY_PATHS)})", field="path")
+    check_number(options.sketch_rank, "sketch_rank", low=1, high=MAX_SKETCH_RANK, integer=True)
     if options.spatial not in ("exact", "fast"):
         raise InputError(f"unknown spatial path {options.spatial!r} (exact, fast)", field="spatial")
     check_number(options.resolution_scale, "resolution_scale", low=0, high=MAX_RESOLUTION_SCALE, low_open=True)

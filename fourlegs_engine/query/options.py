@@ -14,9 +14,14 @@ DEFAULT_VIEW_SCALE = 0.25
 DEFAULT_VIEW_CONFIRM = 3
 #: exact scores sampled per query to correct the codebook's R_avg (``codebook_refine`` > 0)
 R_AVG_SAMPLES = 4096
+#: the rank of the sketch path's per-pair sketch
+DEFAULT_SKETCH_RANK = 32
 #: the multiplier of LERF's pairwise softmax relevancy
 RELEVANCY_SCALE = 10.0
 MAX_CODEBOOK_SIZE = 1 << 20
+MAX_SKETCH_RANK = 512
+#: the query engine's paths (see :class:`QueryOptions`)
+QUERY_PATHS = ("exact", "codebook", "sketch")
 MAX_RESOLUTION_SCALE = 8.0  # of the camera resolution; Camera.scaled also bounds the image size
 MAX_TIMESTEP_ARGUMENT = 1 << 20  # strides and dilation radii beyond any scene's length
 
@@ -30,7 +35,11 @@ class QueryOptions:
     scored at reduced resolution then confirmed. :meth:`exact` is the paper's path everywhere.
 
     Attributes:
-        path: "exact" or "codebook" (per-Gaussian relevancy and temporal localization).
+        path: "exact", "codebook" or "sketch" (temporal localization; per-Gaussian relevancy is the
+            codebook's on the codebook path, exact on the others). "sketch" decides every pair from a
+            per-pair sketch of the relevancy head, stored beside the field, and scores exactly the pairs
+            it leaves open (see :mod:`~fourlegs_engine.query.sketch_path`); a field whose decoder has no
+            such head uses the codebook path.
         codebook_size: K of the codebook path.
         codebook_refine: margin of the codebook path's exact re-scoring (0: lookup only): R_avg is corrected
             by exact scores of ``codebook_samples`` sampled Gaussians, and at every timestep whose decision
@@ -38,7 +47,9 @@ class QueryOptions:
             decoded exactly (see :func:`~fourlegs_engine.query.refined_counts.counts_from_codes_refined`); a row
             whose relevancy is certainly on one side of every threshold used gets a bound instead of the
             full decode (see :meth:`~fourlegs_engine.query.head.RelevancyHead.relevancy_windowed`).
-        codebook_samples: exact scores spent on R_avg per query with ``codebook_refine`` > 0.
+        codebook_samples: exact scores spent on R_avg per query with ``codebook_refine`` > 0 (the sketch
+            path spends as many).
+        sketch_rank: the rank of the sketch path's per-pair sketch.
         negatives: scene-specific negative phrases added to the canonical set.
         temporal_stride: score every k-th timestep.
         spatial: "exact" (128-channel render, per-pixel decode) or "fast" (1-channel relevancy render).
@@ -63,6 +74,7 @@ class QueryOptions:
     codebook_size: int = DEFAULT_CODEBOOK_SIZE
     codebook_refine: float = DEFAULT_CODEBOOK_REFINE
     codebook_samples: int = R_AVG_SAMPLES
+    sketch_rank: int = DEFAULT_SKETCH_RANK
     negatives: Sequence[str] = ()
     temporal_stride: int = 1
     spatial: str = "fast"

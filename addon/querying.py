@@ -29,7 +29,8 @@ def encoder_config(props: Any = None) -> Any:
 
 def default_options() -> Any:
     """The query options of the panel: the engine's defaults (those of ``fourlegs query`` and ``fourlegs
-    highlight``: the codebook path with exact re-scoring, fast maps, the best view confirmed)."""
+    highlight``: the sketch path with exact scoring where it cannot decide, fast maps, the best view
+    confirmed)."""
     from fourlegs_engine import api
 
     return api.QueryOptions()

@@ -175,12 +175,12 @@ def _add_query(bench_subparsers: Any) -> None:
     i = bench_subparsers.add_parser(
         "query-interactive", help="the default query path on one scene: index build, first and later answer, "
                                   "and the exact path's segments, peak and best view beside them",
-        description="Time the one-time index build (the codebook stored with the field), each query's first and "
+        description="Time the one-time index build (the sketch, or the codebook, stored with the field), each query's first and "
                     "later answer on the default path in one engine (wall and CPU seconds), then the exact path's "
                     "answers, and report whether segments, peak and best view agree.")
     i.add_argument("scene", help="bundle directory with a language field")
     i.add_argument("queries", nargs="+", help="query texts")
-    i.add_argument("--rebuild-index", action="store_true", help="delete the stored codebook first (times the build)")
+    i.add_argument("--rebuild-index", action="store_true", help="delete the stored index first (times the build)")
     i.add_argument("--no-exact", action="store_true", help="skip the exact path's comparison")
     i.add_argument("--json", metavar="PATH", help="write the report as JSON")
     i.set_defaults(func=_bench_query_interactive)

@@ -1,6 +1,7 @@
 """``fourlegs bench query-interactive SCENE``: the default query path against the exact one on one scene.
 
-For a bundle with a language field: the one-time index build (the codebook, stored beside the field), then
+For a bundle with a language field: the one-time index build (the default path's: the per-pair sketch, or
+the codebook for a field without a relevancy head; stored beside the field), then
 each query on the default path twice in one engine (its first and a later answer, the panel's case), then
 the same queries on the exact path; per query the segments, peak and best view of both paths and whether
 they agree. Seconds are wall and CPU (``time.process_time``) of this process: on a shared machine the CPU
@@ -50,16 +51,18 @@ def run_query_interactive(bundle: str, queries: Sequence[str], *, exact: bool = 
     language_dir = Path(scene.root) / "language"
     if rebuild_index:
         for name in (f"codebook_{options.codebook_size}.npz", f"codes_{options.codebook_size}.npy",
-                     f"members_{options.codebook_size}.npy"):
+                     f"members_{options.codebook_size}.npy", f"sketch_{options.sketch_rank}.npz",
+                     f"sketch_coords_{options.sketch_rank}.npy", f"sketch_scalars_{options.sketch_rank}.npy"):
             (language_dir / name).unlink(missing_ok=True)
     report: dict[str, Any] = {"scene": str(bundle), "T": scene.num_timesteps, "N": scene.num_gaussians,
-                              "options": {"path": options.path, "codebook_size": options.codebook_size,
+                              "options": {"path": options.path, "sketch_rank": options.sketch_rank,
+                                          "codebook_size": options.codebook_size,
                                           "codebook_refine": options.codebook_refine, "spatial": options.spatial,
                                           "view_scale": options.view_scale, "view_confirm": options.view_confirm},
                               "queries": {}}
     with _Clock() as c:
         engine = open_query_engine(scene, encoder, options=options)
-        engine.load_codebook()
+        engine.load_index()
     report["index_s"], report["index_cpu_s"] = c.wall, c.cpu
     for q in queries:
         row: dict[str, Any] = {}

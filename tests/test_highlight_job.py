@@ -68,7 +68,7 @@ def test_prepare_and_finish_write_plan_plot_and_report(tmp_path):
     assert report["localization"] == plan["localization"] and report["render"] == {"frames_rendered": 0}
     assert set(report["timings_s"]) == set(report["cpu_timings_s"]) == set(timer.timings)
     assert report["versions"]["blender"] == "x" and "torch" in report["versions"]
-    assert report["query_paths"] == {"temporal": "codebook", "spatial": "fast"}  # the engine's defaults
+    assert report["query_paths"] == {"temporal": "sketch", "spatial": "fast"}  # the engine's defaults
     assert set(report["outputs"]) == {"plan", "plot", "report"}  # the renderer wrote no video or .blend here
     with pytest.raises(api.OutputExistsError):  # a finished job is not overwritten
         api.prepare_highlight_job(options, api.StageTimer())

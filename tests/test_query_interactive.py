@@ -26,12 +26,13 @@ def test_defaults_are_the_interactive_path_in_every_front_end():
     from fourlegs_engine.commands.main import build_parser
 
     o = QueryOptions()
-    assert (o.path, o.spatial) == ("codebook", "fast") and o.codebook_refine > 0 and 0 < o.view_scale < 1
+    assert (o.path, o.spatial) == ("sketch", "fast") and o.codebook_refine > 0 and 0 < o.view_scale < 1
     e = QueryOptions.exact(dilation=2)
     assert (e.path, e.spatial, e.view_scale, e.dilation) == ("exact", "exact", 1.0, 2)
     args = build_parser().parse_args(["query", "scene", "text"])
-    assert (args.path, args.codebook_size, args.codebook_refine, args.spatial, args.view_scale, args.view_confirm) \
-        == (o.path, o.codebook_size, o.codebook_refine, o.spatial, o.view_scale, o.view_confirm)
+    assert (args.path, args.sketch_rank, args.codebook_size, args.codebook_refine, args.spatial, args.view_scale,
+            args.view_confirm) \
+        == (o.path, o.sketch_rank, o.codebook_size, o.codebook_refine, o.spatial, o.view_scale, o.view_confirm)
     assert (highlight_job.DEFAULT_QUERY_PATH, highlight_job.DEFAULT_SPATIAL) == (o.path, o.spatial)
     job = highlight_job.HighlightJobOptions(query="x", output="out")
     assert (job.query_path, job.spatial) == (o.path, o.spatial)
@@ -128,9 +129,10 @@ def test_codebook_maps_score_the_gaussians_near_or_above_relevant_exactly(tmp_pa
     scene, field, enc, _ = two_cluster_scene(T=4, active=(1, 2))
     soft = dict(relevancy_scale=1.0)  # scores spread below saturation
     exact = QueryEngine(scene, field, enc, QueryOptions.exact(**soft))
-    lookup = QueryEngine(scene, field, enc, QueryOptions(codebook_size=2, codebook_refine=0.0, **soft),
+    lookup = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=2, codebook_refine=0.0, **soft),
                          codebook_dir=tmp_path)
-    refined = QueryEngine(scene, field, enc, QueryOptions(codebook_size=2, **soft), codebook_dir=tmp_path)
+    refined = QueryEngine(scene, field, enc, QueryOptions(path="codebook", codebook_size=2, **soft),
+                          codebook_dir=tmp_path)
     want = exact.gaussian_relevancy(Q, 1).numpy()
     coded = lookup.gaussian_relevancy(Q, 1).numpy()
     got = refined.gaussian_relevancy(Q, 1).numpy()
@@ -185,11 +187,11 @@ def test_default_path_answers_as_the_exact_path_on_a_distilled_synthetic_scene(t
     queries = list(read_queries(root))
     exact = open_query_engine(scene, encoder, options=QueryOptions.exact()).temporal_many(queries)
     fast = open_query_engine(scene, encoder)
-    assert fast.path == "codebook"
+    assert fast.path == "sketch" and fast.sketch_path.available
     for q, want in zip(queries, exact):
         got = fast.temporal(q)
         assert (got.segments, got.peak) == (want.segments, want.peak), q
-    assert (root / "language" / f"codebook_{QueryOptions().codebook_size}.npz").is_file()  # stored with the field
+    assert (root / "language" / f"sketch_{QueryOptions().sketch_rank}.npz").is_file()  # stored with the field
 
 
 @pytest.mark.slow
@@ -197,13 +199,14 @@ def test_default_path_answers_as_the_exact_path_on_a_distilled_synthetic_scene(t
                     reason="set FOURLEGS_REAL_FIELD to a language field of the real capture")
 def test_default_path_answers_as_the_exact_path_on_the_real_capture(tmp_path):
     """The 150-timestep basketball capture: the default path (its index built into a scratch directory, the
-    field is read-only) gives the exact path's segments and peak for every annotated phrase."""
+    field is read-only) gives the exact path's segments and peak for every annotated phrase, "a person"
+    (which matches everyone: its R_avg must be known to about 1e-6) included."""
     from fourlegs_engine.pipeline import open_query_engine, text_encoder
     from fourlegs_engine.scene.bundle import load_bundle
 
     scene = load_bundle(REAL_FIELD)
     encoder = text_encoder(scene)
-    queries = [p for p in ("the ball in the air", "the ball", "a person holding the ball")
+    queries = [p for p in ("the ball in the air", "the ball", "a person holding the ball", "a person")
                if p in str(scene.language)]
     assert queries
     exact = open_query_engine(scene, encoder, options=QueryOptions.exact()).temporal_many(queries)

@@ -240,3 +240,19 @@ def test_build_restores_the_torch_thread_count(monkeypatch):
     sk = build_sketch(head, refs, lat, rank=4)
     assert torch.get_num_threads() == before
     np.testing.assert_array_equal(sk.coords, whole.coords)
+
+
+def test_per_gaussian_relevancy_is_within_the_bound_and_exact_around_one_half(tmp_path):
+    scene, lat, dec, enc = _soft_scene()
+    exact = QueryEngine(scene, DecoderField(lat, dec), enc, QueryOptions.exact())
+    sketched = QueryEngine(scene, DecoderField(lat, dec), enc, QueryOptions(path="sketch", sketch_rank=4),
+                           codebook_dir=tmp_path)
+    for q in (Q, "object"):
+        want = exact.gaussian_relevancy(q, 3).numpy()
+        got = sketched.gaussian_relevancy(q, 3).numpy()
+        m, rad = sketched.sketch_path.load().margins(sketched.head, sketched.embed_query(q), 10.0, np.array([3]))
+        lo, hi = 1 / (1 + np.exp(-(m[0] - rad[0]))), 1 / (1 + np.exp(-(m[0] + rad[0])))
+        assert np.all((want >= lo - 1e-6) & (want <= hi + 1e-6))
+        assert np.all(np.abs(got - want) <= hi - lo + 1e-6)
+        np.testing.assert_array_equal(got > 0.5, want > 0.5)  # membership exact
+    assert sketched.stats["decoded_latents"] < exact.stats["decoded_latents"]

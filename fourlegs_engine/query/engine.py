@@ -6,15 +6,18 @@ Paths (each selectable, each measured against the exact one by ``fourlegs bench 
   T x N x 768 at once); ``path="codebook"`` decodes only the K codes (once per engine) and scores
   Gaussians by lookup, a temporal query being a (T,K) histogram reduction; ``codebook_refine`` > 0
   re-scores exactly a sample (for R_avg) and, where a timestep's decision depends on them, the Gaussians
-  of codes whose relevancy is that close to R_avg;
+  of codes whose relevancy is that close to R_avg; ``path="sketch"`` (the default) bounds every pair's
+  relevancy from a per-pair sketch of the relevancy head (:mod:`.sketch`) and scores exactly only the
+  pairs whose bounds straddle a decision and a sample for R_avg (:mod:`.sketch_path`); its per-Gaussian
+  relevancy is the exact path's;
 * ``temporal_stride`` scores every k-th timestep only;
 * spatial maps — ``spatial="exact"`` renders the 128-channel latents, decodes every pixel and scores
   it (paper §3.2); ``spatial="fast"`` renders one channel, the per-Gaussian relevancy;
 * ``resolution_scale`` renders the maps at a fraction of the camera resolution.
 
 The engine is thin: :class:`~.scoring.LatentScorer` embeds and scores latents,
-:class:`~.temporal_pass.ExactTemporalPass` and :class:`~.codebook_path.CodebookPath` answer the
-temporal question on their path, :class:`~.maps.SpatialMaps` renders the maps. Every public method counts its calls (and the heavy work it did: decoded latents, decoded pixels,
+:class:`~.temporal_pass.ExactTemporalPass`, :class:`~.codebook_path.CodebookPath` and
+:class:`~.sketch_path.SketchPath` answer the temporal question on their path, :class:`~.maps.SpatialMaps` renders the maps. Every public method counts its calls (and the heavy work it did: decoded latents, decoded pixels,
 128- and 1-channel renders) in ``.stats`` so callers can prove nothing was computed that was not asked
 for; ``localize(query, need)`` computes only the parts named in ``need``.
 """
@@ -174,8 +177,10 @@ class QueryEngine:
             return torch.from_numpy(kept)
         if self.scene.num_gaussians == 0:
             out = torch.zeros(0)
-        elif self.path == "codebook":
+        elif self.path == "codebook" or (self.path == "sketch" and not self.sketch_path.available):
             out = self.codebook_path.gaussian_relevancy(query, t)
+        elif self.path == "sketch":
+            out = self.sketch_path.gaussian_relevancy(query, t)
         else:
             out = self.scorer.score_latents(self.scorer.read_latents(t), self.embed_query(query))
         self._gaussian_cache[key] = out

@@ -30,8 +30,8 @@ MAX_TIMESTEP_ARGUMENT = 1 << 20  # strides and dilation radii beyond any scene's
 class QueryOptions:
     """How :class:`~fourlegs_engine.query.engine.QueryEngine` answers a query.
 
-    The defaults are the interactive path: the codebook (built once per field and stored beside it) with
-    exact re-scoring where a temporal decision depends on it, fast 1-channel maps, and the best view
+    The defaults are the interactive path: the per-pair sketch (built once per field and stored beside it)
+    with exact scoring where a temporal decision depends on it, fast 1-channel maps, and the best view
     scored at reduced resolution then confirmed. :meth:`exact` is the paper's path everywhere.
 
     Attributes:
@@ -70,7 +70,7 @@ class QueryOptions:
         relevancy_scale: the temperature of the pairwise softmax relevancy.
     """
 
-    path: str = "codebook"
+    path: str = "sketch"
     codebook_size: int = DEFAULT_CODEBOOK_SIZE
     codebook_refine: float = DEFAULT_CODEBOOK_REFINE
     codebook_samples: int = R_AVG_SAMPLES

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import warnings
 import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -115,8 +116,8 @@ class PairSketch:
         radius = np.empty((S, N), dtype=np.float32)
         for i in range(0, S, MARGIN_BLOCK_TIMESTEPS):
             rows = timesteps[i:i + MARGIN_BLOCK_TIMESTEPS]
-            coords = torch.from_numpy(_rows_of(self.coords, rows))                  # (s, N, r)
-            sc = torch.from_numpy(_rows_of(self.scalars, rows))                     # (s, N, 4)
+            coords = _rows_of(self.coords, rows)                                    # (s, N, r)
+            sc = _rows_of(self.scalars, rows)                                       # (s, N, 3)
             numer = coords @ g32 + const - sc[..., A_COL]
             inv_norm = scale / sc[..., NORM_COL]
             m = numer * inv_norm
@@ -128,11 +129,14 @@ class PairSketch:
         return margin, radius
 
 
-def _rows_of(array: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """A writable copy of ``array[rows]`` (consecutive rows as one slice)."""
-    if rows.size and rows[-1] - rows[0] == rows.size - 1 and np.all(np.diff(rows) == 1):
-        return np.array(array[int(rows[0]):int(rows[-1]) + 1])
-    return np.array(array[rows])
+def _rows_of(array: np.ndarray, rows: np.ndarray) -> torch.Tensor:
+    """``array[rows]`` as a tensor that is only read: consecutive rows are a view of the (memory-mapped)
+    array, others a copy."""
+    if rows.size and rows[-1] - rows[0] == rows.size - 1:  # sorted and distinct: consecutive
+        with warnings.catch_warnings():  # a read-only mapping: torch warns that it cannot write to it
+            warnings.simplefilter("ignore", UserWarning)
+            return torch.from_numpy(np.asarray(array[int(rows[0]):int(rows[-1]) + 1]))
+    return torch.from_numpy(np.array(array[rows]))
 
 
 def head_key(head: Any, refs: torch.Tensor) -> str:

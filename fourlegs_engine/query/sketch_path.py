@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Callable, Optional, Sequence
 
 import numpy as np
+import torch
 
 from ..scene.scene import Scene
 from .codebook_path import TemporalCounts
@@ -108,6 +109,21 @@ class SketchPath:
         rows, g = np.divmod(np.asarray(idx, dtype=np.int64), N)
         return self.scorer.score_any(query, timesteps[rows] * N + g)
 
+    def gaussian_relevancy(self, query: str, t: int) -> torch.Tensor:
+        """(N,) relevancy of every Gaussian at ``t``: the sketch's value sigmoid(m), within its bound of the
+        exact one (a few 1e-4 at most where the sketch is good), and the exact value where the bound leaves
+        open which side of 0.5 it is on (those a map's relevant part is decided by)."""
+        sketch = self.load()
+        margin, radius = sketch.margins(self.scorer.head, self.scorer.embed_query(query), self.scorer.relevancy_scale,
+                                        np.array([int(t)]))
+        values = torch.sigmoid(torch.from_numpy(margin[0]))
+        open_idx = np.flatnonzero((margin[0] - radius[0] <= 0.0) & (margin[0] + radius[0] > 0.0))
+        if open_idx.size:
+            exact = self.scorer.score_any(query, int(t) * self.scene.num_gaussians + open_idx)
+            values[torch.from_numpy(open_idx)] = torch.from_numpy(exact).to(values.dtype)
+            self.stats["rescored_latents"] += int(open_idx.size)
+        return values
+
     def forget(self, query: str) -> None:
         """Nothing is cached per query."""
 
@@ -136,11 +152,6 @@ class _Pairs:
         return flat[idx]
 
 
-def _sigmoid(x: np.ndarray) -> np.ndarray:
-    x = np.asarray(x, dtype=np.float64)
-    return np.exp(-np.logaddexp(0.0, -x))
-
-
 def _logit(p: float) -> float:
     if p <= 0.0:
         return -math.inf
@@ -166,7 +177,7 @@ def _counts(pairs: _Pairs, weights: np.ndarray, samples: int, rng: np.random.Gen
     # 2. R_avg: sketch values of the certain pairs, corrected by a sample of them drawn where the sketch
     # can be off (probability ∝ its error bound sigmoid'(m)·ρ: each draw's weighted difference is bounded)
     sure_idx = np.flatnonzero(sure_in)
-    sure_values = _sigmoid(m.reshape(-1)[sure_idx])
+    sure_values = torch.sigmoid(torch.from_numpy(m.reshape(-1)[sure_idx])).double().numpy()
     sketch_sum = float(sure_values.sum())
     open_sum = float(pairs.exact.reshape(-1)[open_rel].sum())
     bound = sure_values * (1.0 - sure_values) * rad.reshape(-1)[sure_idx]

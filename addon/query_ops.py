@@ -79,7 +79,7 @@ class QueryJob(jobs.Job):
             self.stage = f"localizing: {stage}"
 
     def on_open_progress(self, fraction: float, stage: str) -> None:
-        """The engine's progress callback while it opens (text encoder, field, reference phrases, codebook):
+        """The engine's progress callback while it opens (text encoder, field, reference phrases, index):
         0-20% of the bar; raises :class:`Cancelled` once the user cancelled, between those steps."""
         if self.cancelled:
             raise _cancelled_error()("the query was cancelled")

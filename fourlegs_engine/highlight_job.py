@@ -42,7 +42,7 @@ OUTPUT_NAMES = {"video": "highlight.mp4", "blend": "highlight.blend", "plan": "p
 #: output formats: an H.264 video, or a PNG / EXR image sequence in ``frames/``
 VIDEO_FORMATS = ("MP4", "PNG", "EXR")
 
-#: the main job's query paths are the query engine's defaults (codebook with exact re-scoring, fast maps);
+#: the main job's query paths are the query engine's defaults (the sketch path, fast maps);
 #: docs/benchmarks.md has the figures
 DEFAULT_QUERY_PATH: str = QueryOptions.path
 DEFAULT_SPATIAL: str = QueryOptions.spatial

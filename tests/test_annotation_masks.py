@@ -476,8 +476,8 @@ def test_unannotated_views_cost_no_storage_and_the_held_out_camera_has_masks(tmp
     assert report["heldout_camera"] == held and report["heldout_cosine"] is not None
     assert report["balance"] == "directions" and report["config"]["balance"] == "directions"
     assert f"held-out camera {held} cosine {report['heldout_cosine']:.4f}" in out and "None" not in out
-    assert "query index (codebook K=4096) ready" in out  # the default query path's index, built with the field
-    assert (full.root / "language" / "codebook_4096.npz").is_file()
+    assert "query index (sketch rank 32) ready" in out  # the default query path's index, built with the field
+    assert (full.root / "language" / "sketch_32.npz").is_file()
     from fourlegs_bench.ae_directions import round_trip_relevancy
 
     from fourlegs_engine.language.autoencoder import DECODER_FILE, ENCODER_FILE, load_decoder, load_encoder

@@ -263,16 +263,19 @@ def run_train_ae(args: argparse.Namespace) -> int:
 
 
 def build_query_index(scene: "Scene") -> str:
-    """The default query path's index (the codebook) built once beside the new field, so that the first
-    query answers as fast as the later ones; returns a line saying what it did."""
-    from ..language.field import LanguageField
-    from ..query.codebook import ensure_codebook
-    from ..query.options import QueryOptions
+    """The default query path's index (the per-pair sketch; the codebook for a field without a relevancy
+    head) built once beside the new field, so that the first query answers as fast as the later ones;
+    returns a line saying what it did."""
+    from ..pipeline import open_query_engine, text_encoder
+    from ..scene.bundle import load_bundle
 
-    k = QueryOptions().codebook_size
     start = time.perf_counter()
-    ensure_codebook(LanguageField.open(scene.root).latents, k, Path(scene.root) / "language")
-    return f"query index (codebook K={k}) ready in {time.perf_counter() - start:.1f} s"
+    fresh = load_bundle(Path(scene.root))
+    engine = open_query_engine(fresh, text_encoder(fresh))
+    engine.load_index()
+    what = (f"sketch rank {engine.options.sketch_rank}" if engine.path == "sketch" and engine.sketch_path.available
+            else f"codebook K={engine.options.codebook_size}")
+    return f"query index ({what}) ready in {time.perf_counter() - start:.1f} s"
 
 
 def heldout_text(report: dict) -> str:

@@ -46,8 +46,9 @@ def register(subparsers: Any) -> None:
                         "R_avg decoded at the timesteps whose s_t > 1/T decision they can change; the maps "
                         "score the Gaussians near or above 0.5 exactly (default %(default)s; 0: lookup only)")
     p.add_argument("--codebook-samples", type=int, default=None, metavar="N",
-                   help="--codebook-refine: exact scores sampled for R_avg (grown 4x at a time, up to 16x, while "
-                        "R_avg's 3-sigma interval leaves a decision open; default: the engine's, 4096)")
+                   help="--path sketch, and codebook with --codebook-refine: exact scores sampled for R_avg (grown 4x "
+                        "at a time, up to 16x, while R_avg's interval leaves a decision open; default: the "
+                        "engine's, 4096)")
     p.add_argument("--spatial", choices=("exact", "fast"), default=QueryOptions.spatial,
                    help="maps: 128-channel render + per-pixel decode, or 1-channel relevancy render "
                         "(default %(default)s)")

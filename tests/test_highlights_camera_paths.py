@@ -205,3 +205,103 @@ def test_property_slerp_is_proper_and_geodesic(a, b):
 
 def test_axis_angle_with_zero_axis_is_identity():
     np.testing.assert_array_equal(axis_angle_matrix(np.zeros(3), 1.0), np.eye(3))
+
+
+class _StubFraming:
+    """A framing whose line-of-sight test answers from a rule over the path's camera positions."""
+
+    def __init__(self, clear, enters=lambda eyes: True):
+        self.centre = np.zeros(3)
+        self.rig = None
+        self.clear, self.enters = clear, enters
+
+    def path_is_clear(self, eyes):
+        return bool(self.clear(np.atleast_2d(eyes)))
+
+    def path_enters_gaussians(self, eyes):
+        return bool(self.enters(np.atleast_2d(eyes)))
+
+    def fitting_focal(self, distance, resolution):
+        return 1e9  # the subject always fits: the lens stays the anchor's
+
+
+def _move(clear, enters=lambda eyes: True):
+    """Swing from a camera on +x to one on +y round the origin (a 'best_view' move of 24 frames)."""
+    from types import SimpleNamespace
+
+    from fourlegs_engine.highlights.effects import _camera_move
+
+    previous = Pose(np.array([3.0, 0.0, 1.0]), look_at_rotation(np.array([3.0, 0.0, 1.0]), np.zeros(3)))
+    anchor = Pose(np.array([0.0, 3.0, 1.0]), look_at_rotation(np.array([0.0, 3.0, 1.0]), np.zeros(3)))
+    ctx = SimpleNamespace(anchor=anchor, anchor_focal=400.0, framing=_StubFraming(clear, enters), resolution=(640, 360),
+                          messages=[], previous=previous, previous_focal=300.0, output_fps=24.0,
+                          action_centre=np.zeros(3), up=np.array([0.0, 0.0, 1.0]))
+    poses, focals = _camera_move({"camera": "best_view", "transition_s": 1.0}, ctx, 24)
+    return previous, anchor, poses, focals, ctx.messages
+
+
+def test_a_move_whose_every_path_passes_through_gaussians_cuts_to_the_camera():
+    previous, anchor, poses, focals, messages = _move(lambda eyes: False)
+    assert all(np.allclose(q.position, anchor.position) and np.allclose(q.rotation, anchor.rotation) for q in poses)
+    np.testing.assert_allclose(focals, 400.0)
+    assert any("the shot cuts to it" in m for m in messages)
+
+
+def test_a_blocked_swing_with_a_clear_straight_path_moves_straight():
+    straight = lambda eyes: np.allclose(eyes[:, 2], 1.0) and np.all(np.abs(eyes[:, 0] + eyes[:, 1] - 3.0) < 1e-6)
+    previous, anchor, poses, focals, messages = _move(straight)
+    eyes = np.array([q.position for q in poses])
+    assert np.allclose(eyes[0], previous.position) and np.allclose(eyes[-1], anchor.position)
+    assert np.all(np.abs(eyes[:, 0] + eyes[:, 1] - 3.0) < 1e-6)   # on the chord, not round the pivot
+    assert focals[0] == pytest.approx(300.0) and focals[-1] == pytest.approx(400.0)
+    assert any("moves straight" in m for m in messages)
+
+
+def test_a_clear_swing_goes_round_the_action():
+    previous, anchor, poses, focals, messages = _move(lambda eyes: True)
+    eyes = np.array([q.position for q in poses])
+    radii = np.linalg.norm(eyes[:, :2], axis=1)
+    assert np.allclose(eyes[0], previous.position) and np.allclose(eyes[-1], anchor.position)
+    assert radii.min() > 2.9 and messages == []   # round the pivot at the same distance, not across the chord
+
+
+def test_a_swing_that_only_hides_the_action_for_a_moment_is_kept():
+    previous, anchor, poses, focals, messages = _move(lambda eyes: False, enters=lambda eyes: False)
+    eyes = np.array([q.position for q in poses])
+    assert np.linalg.norm(eyes[:, :2], axis=1).min() > 2.9 and any("no clear path found" in m for m in messages)
+
+
+def test_a_swing_through_gaussians_takes_the_straight_path_when_that_only_hides_the_action():
+    on_chord = lambda eyes: np.all(np.abs(eyes[:, 0] + eyes[:, 1] - 3.0) < 1e-6)
+    previous, anchor, poses, focals, messages = _move(lambda eyes: False, enters=lambda eyes: not on_chord(eyes))
+    eyes = np.array([q.position for q in poses])
+    assert on_chord(eyes) and np.allclose(eyes[-1], anchor.position)
+    assert any("would pass through scene Gaussians" in m for m in messages)
+
+
+def _follow(first_is_previous: bool):
+    from types import SimpleNamespace
+
+    from fourlegs_engine.highlights.camera_paths import hold_path
+    from fourlegs_engine.highlights.framed_moves import follow_subject
+
+    subject = np.array([0.5, 0.5, 1.0])
+    eye = np.array([3.0, 0.0, 1.5])
+    aimed_away = Pose(eye, look_at_rotation(eye, np.array([0.0, -2.0, 1.0])))
+    previous = aimed_away if first_is_previous else Pose(np.array([0.0, 3.0, 1.0]),
+                                                         look_at_rotation(np.array([0.0, 3.0, 1.0]), np.zeros(3)))
+    framing = SimpleNamespace(track=True, track_at=lambda times: np.repeat(subject[None], len(times), 0))
+    ctx = SimpleNamespace(framing=framing, previous=previous, output_fps=24.0, up=np.array([0.0, 0.0, 1.0]))
+    poses = follow_subject(hold_path(aimed_away, 24), np.linspace(0, 5, 24), ctx, 1.0)
+    forward = np.array([q.rotation[:, 2] for q in poses])
+    towards = (subject - eye) / np.linalg.norm(subject - eye)
+    return forward @ towards
+
+
+def test_a_replay_that_cut_to_its_camera_follows_the_subject_from_its_first_frame():
+    np.testing.assert_allclose(_follow(first_is_previous=False), 1.0, atol=1e-9)
+
+
+def test_a_replay_that_continues_the_previous_shot_turns_onto_the_subject_over_its_transition():
+    cos = _follow(first_is_previous=True)
+    assert cos[0] < 0.9 and np.allclose(cos[-1], 1.0, atol=1e-9) and np.all(np.diff(cos) >= -1e-12)

@@ -234,10 +234,22 @@ def _camera_move(p: dict[str, Any], ctx: ShotContext, n: int) -> tuple[list[Pose
         eyes = np.array([q.position for q in poses[:m]])
         if not ctx.framing.path_is_clear(eyes):
             direct = interpolate_poses(ctx.previous, target, w)
-            if ctx.framing.path_is_clear(np.array([q.position for q in direct[:m]])):
-                poses = direct   # a straight cut past the action only when nothing is in its way
-            ctx.messages.append(f"{p['camera']}: the swing to the camera passes close to or behind scene "
-                                "Gaussians (no clear path found)")
+            direct_eyes = np.array([q.position for q in direct[:m]])
+            if ctx.framing.path_is_clear(direct_eyes):
+                poses = direct   # a straight move past the action only when nothing is in its way
+                ctx.messages.append(f"{p['camera']}: the swing round the action passes close to or behind scene "
+                                    "Gaussians; the camera moves straight to its view")
+            elif not ctx.framing.path_enters_gaussians(eyes):   # the action hidden for a moment: keep the swing
+                ctx.messages.append(f"{p['camera']}: the swing to the camera passes behind scene Gaussians (no "
+                                    "clear path found)")
+            elif not ctx.framing.path_enters_gaussians(direct_eyes):
+                poses = direct
+                ctx.messages.append(f"{p['camera']}: the swing round the action would pass through scene "
+                                    "Gaussians; the camera moves straight to its view")
+            else:  # flying through splats fills frames with their blur: cut to the camera instead
+                poses, focals = hold_path(target, n), np.full(n, target_focal)
+                ctx.messages.append(f"{p['camera']}: every move to the camera passes through scene Gaussians; "
+                                    "the shot cuts to it")
     return poses, focals
 
 

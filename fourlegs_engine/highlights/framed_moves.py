@@ -232,14 +232,17 @@ def follow_subject(poses: list[Pose], times: np.ndarray, ctx: ShotContext, trans
     """The same camera positions turned (level about the scene's up) onto the framed subject's centre at
     each frame's scene time (:attr:`Framing.track`), so a replay follows the subject instead of the spot
     where it was at the peak. A shot that continues the previous one starts from its last pose and turns
-    onto the subject over ``transition_s`` (at most :data:`FOLLOW_TURN_S`). Unchanged without a framed
-    subject's track."""
+    onto the subject over ``transition_s`` (at most :data:`FOLLOW_TURN_S`); one that cut to its camera
+    follows from its first frame. Unchanged without a framed subject's track."""
     fr = ctx.framing
     if fr is None or fr.track is None or not poses:
         return poses
     targets = fr.track_at(times)
     n = len(poses)
-    if ctx.previous is None:
+    # a shot that cut to its camera (its first pose is not the previous one's) follows from its first frame
+    continuing = ctx.previous is not None and bool(
+        np.allclose(poses[0].position, ctx.previous.position) and np.allclose(poses[0].rotation, ctx.previous.rotation))
+    if not continuing:
         w = np.ones(n)
     else:
         m = min(n, max(2, int(round(min(transition_s, FOLLOW_TURN_S) * ctx.output_fps))))
@@ -249,6 +252,6 @@ def follow_subject(poses: list[Pose], times: np.ndarray, ctx: ShotContext, trans
     for pose, target, wi in zip(poses, targets, w):
         level = upright(pose.position, target, ctx.up)
         out.append(Pose(pose.position, level_blend(pose.rotation, level, float(wi), ctx.up)))
-    if ctx.previous is not None:
+    if continuing:
         out[0] = poses[0]
     return out

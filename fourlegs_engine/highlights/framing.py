@@ -310,6 +310,12 @@ class Framing:
             return False
         return bool((self.occlusion(eyes) <= self.max_occlusion).all())
 
+    def path_enters_gaussians(self, eyes: np.ndarray) -> bool:
+        """Whether a position of the path comes nearer a Gaussian in view than the near plane, or leaves the
+        rig: frames there are filled with a splat's blur (an occluded action centre alone is not)."""
+        eyes = np.atleast_2d(np.asarray(eyes, dtype=np.float64))
+        return bool((self.outside_rig(eyes) > 0).any() or (self.clearance(eyes) < self.near).any())
+
     def path_badness(self, eyes: np.ndarray) -> float:
         """How far a path is from clear (0 when :meth:`path_is_clear`): worst occlusion excess plus
         worst near-plane intrusion (metres); used to pick the least bad path when none is clear."""

@@ -100,12 +100,14 @@ def parse_runs(text: str) -> list[tuple[str, dict[str, Any]]]:
 
 
 class _Timer:
-    """Progress callback recording wall and CPU seconds of every finished timestep."""
+    """Progress callback recording wall and CPU seconds of every finished timestep; with a ``path`` the
+    records so far (merged into those a cancelled run left there) are written after each timestep, so a
+    resumed run still has the whole sequence's times."""
 
-    def __init__(self, name: str = "", total: int = 0):
+    def __init__(self, name: str = "", total: int = 0, path: Path | None = None):
         self.wall0, self.cpu0 = time.perf_counter(), time.process_time()
         self.per_timestep: dict[int, dict[str, float]] = {}
-        self.name, self.total = name, total
+        self.name, self.total, self.path = name, total, path
 
     def __call__(self, ev) -> None:
         if ev.kind != "timestep" or ev.resumed:
@@ -115,6 +117,12 @@ class _Timer:
                                           "train_psnr": ev.train_psnr}
         self.wall0, self.cpu0 = wall, cpu
         rec = self.per_timestep[ev.timestep]
+        if self.path is not None:
+            from fourlegs_engine.fileio import read_json, write_json_atomic
+
+            previous = read_json(self.path) if self.path.is_file() else {}
+            finite = {k: (v if np.isfinite(v) else None) for k, v in rec.items()}  # JSON has no NaN
+            write_json_atomic(self.path, {**previous, str(ev.timestep): finite})
         print(f"[bench fit] {self.name}: timestep {ev.timestep} fitted ({len(self.per_timestep)}/{self.total}) in "
               f"{rec['wall_s']:.1f} s ({rec['cpu_s']:.1f} CPU s), training PSNR {ev.train_psnr:.2f} dB", flush=True)
 
@@ -145,7 +153,7 @@ def bench_fit(args: argparse.Namespace) -> int:
         opts = replace(FitOptions(resolution_scale=args.resolution_scale), timesteps=(steps.start, steps.stop), **knobs)
         scene_dir = out / "scenes" / name
         timing_path = out / "scenes" / f"{name}.timing.json"
-        timer = _Timer(name, len(steps))
+        timer = _Timer(name, len(steps), timing_path)
         if not is_bundle(scene_dir):
             print(f"[bench fit] {name}: fitting timesteps {steps.start}:{steps.stop} with {knobs or 'defaults'}",
                   flush=True)

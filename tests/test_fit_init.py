@@ -201,6 +201,24 @@ def test_bench_table_of_a_first_timestep_only_run_shows_the_init_columns(tmp_pat
     assert (tmp_path / "pareto.png").stat().st_size > 0
 
 
+def test_bench_fit_writes_each_timesteps_times_as_it_finishes_keeping_a_cancelled_runs(tmp_path):
+    import json
+
+    from fourlegs_bench.fit import _Timer
+    from fourlegs_engine.fit import FitEvent
+
+    path = tmp_path / "run.timing.json"
+    path.write_text(json.dumps({"0": {"wall_s": 5.0, "cpu_s": 4.0, "train_psnr": 30.0}}))  # a cancelled run's
+    timer = _Timer("r", 3, path)
+    timer(FitEvent("timestep", 0, train_psnr=30.0, resumed=True))
+    timer(FitEvent("timestep", 1, train_psnr=27.0))
+    first = json.loads(path.read_text())
+    assert set(first) == {"0", "1"} and first["0"]["cpu_s"] == 4.0 and first["1"]["train_psnr"] == 27.0
+    timer(FitEvent("timestep", 2, train_psnr=float("nan")))
+    last = json.loads(path.read_text())
+    assert set(last) == {"0", "1", "2"} and last["2"]["train_psnr"] is None and last["2"]["cpu_s"] >= 0
+
+
 def test_bench_fit_reports_each_fitted_timestep_as_it_finishes(capsys):
     from fourlegs_bench.fit import _Timer
     from fourlegs_engine.fit import FitEvent

@@ -52,7 +52,7 @@ DISTILL_MAX_TIMESTEPS = 3
 #: the distillation rows share one query configuration: exact temporal path, fast maps (exact maps decode
 #: every pixel of every scored frame, which would multiply the run time by the number of rows)
 DISTILL_QUERY_OPTIONS = {"spatial": "fast"}
-GROUPS = ("reference", "codebook", "stride", "scale", "spatial", "precision", "distill", "knn")
+GROUPS = ("reference", "codebook", "sketch", "stride", "scale", "spatial", "precision", "distill", "knn")
 
 
 @dataclass
@@ -189,6 +189,9 @@ def variants(skip: Sequence[str]) -> list[Variant]:
     rows += [Variant("codebook", f"codebook K={k} + exact re-scoring ±{m:g}",
                      {"path": "codebook", "codebook_size": k, "codebook_refine": m})
              for k, m in ((65536, 0.0075), (4096, 0.02))]
+    # the per-pair sketch: every pair bounded, exact scores only where a decision needs them
+    rows += [Variant("sketch", f"sketch rank {r}", {"path": "sketch", "sketch_rank": r}) for r in (32, 8)]
+    rows += [Variant("sketch", "fast maps + sketch rank 32 (the default)", {"spatial": "fast", "path": "sketch"})]
     rows += [Variant("stride", f"temporal stride {s}", {"temporal_stride": s}) for s in (2, 5, 10)]
     rows += [Variant("scale", f"resolution scale {s}", {"resolution_scale": s}) for s in (0.5, 0.25)]
     rows += [Variant("spatial", "fast 1-channel maps", {"spatial": "fast"}),
@@ -244,6 +247,14 @@ def run_accuracy_time(scene: Any, *, out_dir: Path, skip: Sequence[str] = (), di
             opts["codebook"] = ensure_codebook(fld.latents, opts["codebook_size"], Path(scene.root) / "language",
                                                progress=progress)
             precompute = time.perf_counter() - start
+        elif opts.get("path") == "sketch":  # built (or loaded) beside the field before the timed run
+            from fourlegs_engine.query.engine import QueryEngine, QueryOptions
+
+            start = time.perf_counter()
+            QueryEngine(scene, fld, ctx.text_encoder, QueryOptions(path="sketch", sketch_rank=opts.get("sketch_rank", 32)),
+                        codebook_dir=Path(scene.root) / "language").load_index()
+            precompute = time.perf_counter() - start
+            opts["codebook_dir"] = Path(scene.root) / "language"
         if progress:
             print(f"accuracy-time: {v.group} / {v.name} ...", file=sys.stderr)
         method = FourLegsMethod(ctx, field=fld, shared=shared, temporal_key=temporal_key, map_key=map_key, **opts)
@@ -269,7 +280,7 @@ def markdown_table(report: dict[str, Any]) -> str:
     lines = [f"Accuracy vs time on {s['name']} (N={s['num_gaussians']:,}, T={s['num_timesteps']}, "
              f"{len(s['views'])} test views, {len(s['queries'])} queries, torch threads {report['torch_threads']}); "
              "metrics in %, ± = std over views; seconds = the method's whole run over all views and queries "
-             "(temporal + maps), precompute = one-off codebook build", "",
+             "(temporal + maps), precompute = one-off index build (codebook or sketch)", "",
              "| group | variant | seconds | temporal s | maps s | precompute s | " + " | ".join(report["metrics"])
              + " | note |", "|---" * (len(report["metrics"]) + 7) + "|"]
     for r in report["rows"]:

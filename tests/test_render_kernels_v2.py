@@ -285,3 +285,42 @@ def test_work_counts_are_consistent_with_the_blending_weights():
     assert work["in_boxes"] >= work["in_footprints"] >= work["blended"] > 0
     assert work["evaluated"] >= work["blended"]
     assert work["tile_pairs"] <= work["tile_pairs_in_boxes"]
+
+
+def test_wide_kernel_flushes_its_batch_before_its_entry_arrays_overflow(monkeypatch):
+    """A tile whose list goes on past pixels that have stopped: five opaque walls stop columns 0-2 of a
+    4x4 tile, column 3 stays open, and 200 small splats behind the walls add no fragment each. The wide
+    kernel's batch must flush on its entry count too: run as plain Python, where numpy checks every index,
+    with a 64-entry batch, it goes through and equals the compiled kernel. (The compiled kernel used to
+    write past its entry arrays there and corrupt the heap: `fourlegs bench accuracy-time --scene bench`
+    aborted during extraction.)"""
+    from fourlegs_engine.render.tile_lists import TileLists
+
+    floor = 1.0 / 255.0
+    walls, small = 5, 200
+    n = walls + small
+    packed = np.zeros((n, 8))
+    boxes = np.zeros((n, 4), dtype=np.int64)
+    for k in range(n):
+        wall = k < walls
+        a = 0.01 if wall else 4.0
+        o = 0.99 if wall else 0.5
+        packed[k] = (1.5, 2.0 if wall else 1.5, a, 0.0, a, o, np.log(o), 2.0 * (np.log(o) - np.log(floor)))
+        boxes[k] = (0, 2, 0, 3) if wall else (1, 1, 1, 1)
+    lists = TileLists(order=np.arange(n), packed=packed, boxes=boxes, tile_offsets=np.array([0, n]),
+                      tile_ranks=np.arange(n, dtype=np.int32), tiles_x=1, tiles_y=1, tile_w=4, tile_h=4, width=4,
+                      height=4, pairs_in_boxes=n)
+    values = np.random.default_rng(0).normal(size=(n, 5))
+
+    def run(kernel):
+        accum, trans = np.zeros((16, 5)), np.zeros(16)
+        kernel(np.arange(1), lists.tile_offsets, lists.tile_ranks, lists.order, lists.packed, lists.boxes, 1, 4, 4,
+               4, 4, values, np.nextafter(floor, 0.0), 0.99, 1e-4, accum, trans)
+        return accum, trans
+
+    compiled = run(blend_kernels._blend_wide)
+    assert (compiled[1].reshape(4, 4)[:, :3] < 1e-3).all() and (compiled[1].reshape(4, 4)[:, 3] == 1.0).all()
+    monkeypatch.setattr(blend_kernels, "FRAGMENT_BATCH", 64)
+    python = run(blend_kernels._blend_wide_py)
+    np.testing.assert_allclose(python[0], compiled[0], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(python[1], compiled[1])

@@ -340,7 +340,8 @@ def _blend_wide_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w,
         start = offsets[tile]
         end = offsets[tile + 1]
         for m in range(start, end + 1):
-            if m == end or live == 0 or n_frag + tw * th > capacity:  # channel sums of the batch so far
+            # channel sums of the batch so far: at the end, or before its fragments or entries could overflow
+            if m == end or live == 0 or n_frag + tw * th > capacity or n_entry == capacity:
                 entry_start[n_entry] = n_frag
                 for e in range(n_entry):
                     vals = values[entry_gaussian[e]]

@@ -256,3 +256,21 @@ def test_per_gaussian_relevancy_is_within_the_bound_and_exact_around_one_half(tm
         assert np.all(np.abs(got - want) <= hi - lo + 1e-6)
         np.testing.assert_array_equal(got > 0.5, want > 0.5)  # membership exact
     assert sketched.stats["decoded_latents"] < exact.stats["decoded_latents"]
+
+
+def test_the_temporal_pass_keeps_the_per_gaussian_relevancy_the_maps_need(tmp_path):
+    scene, lat, dec, enc = _soft_scene()
+    fresh = QueryEngine(scene, DecoderField(lat, dec), enc, QueryOptions(path="sketch", sketch_rank=4),
+                        codebook_dir=tmp_path)
+    want = {t: fresh.gaussian_relevancy(Q, t).numpy() for t in (0, 3, 7)}
+    eng = QueryEngine(scene, DecoderField(lat, dec), enc, QueryOptions(path="sketch", sketch_rank=4),
+                      codebook_dir=tmp_path)
+    eng.temporal(Q)
+    before = dict(eng.stats)
+    for t, w in want.items():  # the same values (exact scores from another batch: float32 rounding apart)
+        np.testing.assert_allclose(eng.gaussian_relevancy(Q, t).numpy(), w, rtol=0, atol=1e-6)
+    assert eng.stats["rescored_latents"] == before.get("rescored_latents", 0)  # no work of their own
+    assert eng.stats["decoded_latents"] == before.get("decoded_latents", 0)
+    eng.forget_query(Q)
+    assert eng.sketch_path.relevancy_at(Q, 3) is None
+    np.testing.assert_allclose(eng.gaussian_relevancy(Q, 3).numpy(), want[3], rtol=0, atol=1e-6)

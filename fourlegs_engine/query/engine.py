@@ -140,6 +140,7 @@ class QueryEngine:
         background relevancy), keeping its text embedding: the next call redoes the query's own work."""
         self.scorer.forget(query)
         self.codebook_path.forget(query)
+        self.sketch_path.forget(query)
         self.temporal_pass.forget(query)
         for key in [k for k in self._gaussian_cache if k[0] == query]:
             del self._gaussian_cache[key]
@@ -175,6 +176,10 @@ class QueryEngine:
         kept = self.temporal_pass.scores_at(query, t)
         if kept is not None:  # decoded once by the temporal pass
             return torch.from_numpy(kept)
+        if self.path == "sketch":
+            sketched = self.sketch_path.relevancy_at(query, t)
+            if sketched is not None:  # kept by the sketch path's temporal pass
+                return sketched
         if self.scene.num_gaussians == 0:
             out = torch.zeros(0)
         elif self.path == "codebook" or (self.path == "sketch" and not self.sketch_path.available):

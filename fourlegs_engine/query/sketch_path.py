@@ -46,6 +46,8 @@ from .temporal import RELEVANT, timestep_weights
 R_AVG_Z = 4.0
 #: a certain pair's draw probability is at least this fraction of the mean (bounds every draw's weight)
 IMPORTANCE_FLOOR = 1e-3
+#: per-Gaussian relevancy kept from temporal passes for the maps (T·N float32 per query)
+KEPT_RELEVANCY_BYTES = 256 << 20
 
 
 class SketchPath:
@@ -68,6 +70,8 @@ class SketchPath:
         self.directory = directory
         self.stats = stats
         self._sketch: Optional[PairSketch] = None
+        # per query: the scored timesteps and their (S, N) per-Gaussian relevancy, kept from the temporal pass
+        self._relevancy: dict[str, tuple[dict[int, int], np.ndarray]] = {}
 
     @property
     def available(self) -> bool:
@@ -99,7 +103,29 @@ class SketchPath:
             out.append(_counts(pairs, weights, self.samples, rng))
             self.stats["rescored_latents"] += pairs.rescored
             self.stats["sampled_latents"] += pairs.sampled
+            self._keep(q, timesteps, pairs)
         return out
+
+    def _keep(self, query: str, timesteps: np.ndarray, pairs: "_Pairs") -> None:
+        """Keep the per-Gaussian relevancy the temporal pass has (up to ``KEPT_RELEVANCY_BYTES``): the sketch's
+        values, exact where step 1 scored them (their bounds straddle 0.5) — what
+        :meth:`gaussian_relevancy` returns, so the maps of its timesteps need no work of their own."""
+        m, rad = pairs.margin, pairs.radius
+        if m.nbytes > KEPT_RELEVANCY_BYTES:
+            return
+        values = torch.sigmoid(torch.from_numpy(m)).numpy()
+        open_at_half = (m - rad <= 0.0) & (m + rad > 0.0)
+        values[open_at_half] = pairs.exact[open_at_half]
+        self._relevancy.pop(query, None)
+        self._relevancy[query] = ({int(t): i for i, t in enumerate(timesteps)}, values)
+        while sum(v.nbytes for _, v in self._relevancy.values()) > KEPT_RELEVANCY_BYTES:
+            self._relevancy.pop(next(iter(self._relevancy)))
+
+    def relevancy_at(self, query: str, t: int) -> Optional[torch.Tensor]:
+        """(N,) :meth:`gaussian_relevancy` of ``query`` at ``t`` if a temporal pass kept it, else None."""
+        rows, values = self._relevancy.get(query, ({}, None))
+        i = rows.get(int(t))
+        return None if i is None else torch.from_numpy(values[i])
 
     def _score(self, query: str, timesteps: np.ndarray, idx: np.ndarray,
                report: Callable[[float, str], None]) -> np.ndarray:
@@ -125,7 +151,8 @@ class SketchPath:
         return values
 
     def forget(self, query: str) -> None:
-        """Nothing is cached per query."""
+        """Drop the per-Gaussian relevancy kept for ``query``."""
+        self._relevancy.pop(query, None)
 
 
 class _Pairs:

@@ -9,7 +9,7 @@ Paths (each selectable, each measured against the exact one by ``fourlegs bench 
   of codes whose relevancy is that close to R_avg; ``path="sketch"`` (the default) bounds every pair's
   relevancy from a per-pair sketch of the relevancy head (:mod:`.sketch`) and scores exactly only the
   pairs whose bounds straddle a decision and a sample for R_avg (:mod:`.sketch_path`); its per-Gaussian
-  relevancy is the exact path's;
+  relevancy is the sketch's value, exact where its bound straddles 0.5;
 * ``temporal_stride`` scores every k-th timestep only;
 * spatial maps — ``spatial="exact"`` renders the 128-channel latents, decodes every pixel and scores
   it (paper §3.2); ``spatial="fast"`` renders one channel, the per-Gaussian relevancy;
@@ -67,7 +67,8 @@ class QueryEngine:
         text_encoder: ``encode_text(list[str]) -> (n,D)`` of the encoder the field was distilled from.
         options: :class:`~.options.QueryOptions` (paths, strides, scales; default: exact everywhere).
         codebook: a prebuilt :class:`Codebook` (else loaded from / stored in ``codebook_dir``, by default
-            the bundle's ``language/`` directory, or built in memory).
+            the bundle's ``language/`` directory, or built in memory); the sketch path's index lives in the
+            same directory.
     """
 
     def __init__(self, scene: Scene, field: Any, text_encoder: Any, options: Optional[QueryOptions] = None, *,
@@ -98,15 +99,13 @@ class QueryEngine:
                                    relevancy_scale=options.relevancy_scale, chunk=options.chunk,
                                    latent_dtype=None if options.latent_dtype is None else np.dtype(options.latent_dtype),
                                    stats=self.stats)
+        index_dir = codebook_dir if codebook_dir is not None else (
+            Path(scene.root) / "language" if scene.root is not None else None)
         self.codebook_path = CodebookPath(
             scene, self.scorer, size=options.codebook_size, refine=options.codebook_refine,
-            samples=options.codebook_samples, codebook=codebook, stats=self.stats,
-            directory=codebook_dir if codebook_dir is not None else (
-                Path(scene.root) / "language" if scene.root is not None else None))
+            samples=options.codebook_samples, codebook=codebook, stats=self.stats, directory=index_dir)
         self.sketch_path = SketchPath(scene, self.scorer, rank=options.sketch_rank, samples=options.codebook_samples,
-                                      directory=codebook_dir if codebook_dir is not None else (
-                                          Path(scene.root) / "language" if scene.root is not None else None),
-                                      stats=self.stats)
+                                      directory=index_dir, stats=self.stats)
         self.temporal_pass = ExactTemporalPass(self.scorer, N, self.stats)
         self.maps = SpatialMaps(scene, self.scorer, self._gaussian_relevancy_many, fast=options.spatial == "fast",
                                 resolution_scale=options.resolution_scale, render_options=options.render_options,

@@ -171,7 +171,7 @@ def build_sketch(head: Any, refs: torch.Tensor, latents: Any, *, rank: int = DEF
 
     Args:
         head: the field's :class:`~.head.RelevancyHead`. refs: (K, D) unit reference embeddings.
-        rank: the basis' rank (at most H; fewer when there are fewer pairs).
+        rank: the basis' rank (at most H, the head's width).
         out_dir: where to store the files (None: in memory).
         on_progress: ``(fraction, stage)`` after each timestep; an exception it raises stops the build
             with nothing stored.

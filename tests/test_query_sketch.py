@@ -17,7 +17,7 @@ from fourlegs_engine.query.head import RelevancyHead
 from fourlegs_engine.query.lerf import l2_normalize
 from fourlegs_engine.query.sketch import build_sketch, ensure_sketch, head_key, load_sketch
 from fourlegs_engine.query.sketch_path import _Correction, _counts, _Pairs
-from fourlegs_engine.query.temporal import counts_from_relevancy, timestep_weights
+from fourlegs_engine.query.temporal import counts_from_relevancy
 
 from _query_helpers import CANON, TableTextEncoder, two_cluster_scene
 from test_query_head import DecoderField, decaying_decoder, trained_like_decoder

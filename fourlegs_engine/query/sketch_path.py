@@ -38,7 +38,7 @@ from ..scene.scene import Scene
 from .codebook_path import TemporalCounts
 from .refined_counts import R_AVG_MAX_SAMPLES_FACTOR
 from .scoring import LatentScorer
-from .sketch import DEFAULT_RANK, PairSketch, ensure_sketch
+from .sketch import PairSketch, ensure_sketch
 from .temporal import RELEVANT, timestep_weights
 
 

@@ -17,8 +17,9 @@ Cost: the clips each row's extraction actually sent to the encoder (counted in t
 measured, not assumed), priced at ViCLIP-L/14's seconds per clip — measured here on the CPU by the
 planner's calibration (random weights: seconds depend only on shapes) or read from a calibration JSON
 (``fourlegs extract --dry-run --plan-json``; the GPU figure is from the device check, marked derived).
-Also the plan's clips on a Panoptic-sized rig (27 cameras x 150 timesteps at 640x360) with the early-exit
-share measured on the real proxy.
+Also the plan's clips on a Panoptic-sized rig (27 cameras x 150 timesteps at 640x360, 30 fps) with the
+early-exit share measured over a whole fitted sequence on every camera (``--exit-share-scene``), or else on
+the real proxy's row of the same plan.
 
 Outputs in ``--out``: ``language_cost.json``, ``language_cost.md``, ``language_cost.png``. Rows already
 scored in ``--work`` are reused (each row's result is kept beside its bundle).
@@ -42,7 +43,7 @@ from fourlegs_engine.fileio import atomic_path, write_json_atomic
 from fourlegs_engine.language.plans import PLANS, ExtractPlan, plan_clips
 
 PROXIES = ("synthetic", "real")
-PANOPTIC = {"cameras": 27, "timesteps": 150, "width": 640, "height": 360}
+PANOPTIC = {"cameras": 27, "timesteps": 150, "width": 640, "height": 360, "fps": 30.0}
 #: synthetic rows are scored like the main job: exact temporal path, fast 1-channel maps
 SYNTHETIC_QUERY = {"spatial": "fast"}
 REAL_PHRASE = "a person"
@@ -62,17 +63,22 @@ def knob_rows(num_cameras: int) -> list[tuple[str, str, ExtractPlan]]:
         rows.append(("timestep stride", f"stride {s}, latents", full.with_(timestep_stride=s, fill="latents")))
     rows += [("levels", "levels 1-4 (no smallest)", full.with_(levels=(1, 2, 3, 4))),
              ("levels", "levels 2-4", full.with_(levels=(2, 3, 4)))]
-    rows += [("crop stride", f"crop stride {f:g}", full.with_(crop_stride=f)) for f in (0.75, 1.0)]
+    rows += [("crop stride", f"crop stride {f:g}", full.with_(crop_stride=f)) for f in (0.65, 0.75, 1.0)]
     rows += [("early exit", f"early exit {m}", full.with_(early_exit=m)) for m in ("foreground", "difference")]
     rows += [("combined", "stride 4 + crop stride 1 + early exit", full.with_(timestep_stride=4, crop_stride=1.0,
                                                                            early_exit="foreground")),
              ("combined", "stride 8 + crop stride 0.75 + early exit", full.with_(timestep_stride=8, crop_stride=0.75,
-                                                                              early_exit="foreground"))]
+                                                                              early_exit="foreground")),
+             ("combined", "stride 6 + crop stride 0.75 + early exit (the previous default)",
+              full.with_(timestep_stride=6, crop_stride=0.75, early_exit="foreground"))]
     rows += [("combined", f"stride {s} + crop stride 0.75 + early exit, latents",
               full.with_(timestep_stride=s, crop_stride=0.75, early_exit="foreground", fill="latents"))
              for s in (5, 6, 8)]
     # the cheapest plans without a timestep stride above 2: every knob that keeps the labels of each timestep
     rows += [("combined", "early exit + crop stride 0.75", full.with_(crop_stride=0.75, early_exit="foreground")),
+             ("combined", "early exit + crop stride 0.65", full.with_(crop_stride=0.65, early_exit="foreground")),
+             ("combined", "stride 6 + crop stride 0.65 + early exit", full.with_(timestep_stride=6, crop_stride=0.65,
+                                                                              early_exit="foreground")),
              ("combined", "stride 2 + crop stride 0.75 + levels 1-4 + early exit",
               full.with_(timestep_stride=2, crop_stride=0.75, levels=(1, 2, 3, 4), early_exit="foreground"))]
     rows.append(("default", "default plan", PLANS["default"]))
@@ -340,8 +346,65 @@ def panoptic_hours(row: dict[str, Any], clip_s: float, exit_share: float) -> dic
         plan = plan.with_(cameras=max(1, int(round(plan.cameras / row["scene"]["cameras"] * PANOPTIC["cameras"]))),
                           name=plan.name)
     clips = plan_clips(plan, PANOPTIC["cameras"], PANOPTIC["timesteps"], PANOPTIC["width"], PANOPTIC["height"],
-                       exit_share=exit_share)
+                       exit_share=exit_share, fps=PANOPTIC["fps"])
     return {**clips, "hours": clips["expected"] * clip_s / 3600.0}
+
+
+def plan_key(plan: dict[str, Any] | ExtractPlan) -> str:
+    """A plan's knobs (not its name) as a key: rows of equal knobs share their early-exit share."""
+    d = asdict(plan) if isinstance(plan, ExtractPlan) else dict(plan)
+    d.pop("name", None)
+    d.setdefault("timestep_seconds", None)
+    return json.dumps({k: (list(v) if isinstance(v, tuple) else v) for k, v in sorted(d.items())})
+
+
+def sequence_exit_shares(scene_path: Path, plans: Sequence[ExtractPlan], *, progress: bool = True) -> dict[str, Any]:
+    """Each early-exit plan's copied share over a whole fitted sequence: every encoded timestep after the
+    first, on every training camera (the rig a Panoptic projection prices), instead of the real proxy's
+    first few timesteps, whose windows are shorter. Foreground plans only; each (frame, camera) is
+    rendered once for all plans.
+
+    Returns ``{"scene", "timesteps", "cameras", "shares": {plan_key: {"share", "camera_timesteps"}}}``."""
+    import torch
+    from fourlegs_engine.language.frames import frame_crop_means
+    from fourlegs_engine.language.pyramid import crop_layout
+    from fourlegs_engine.language.skipping import (comparison_frames, encoded_timesteps, foreground_values,
+                                                   render_foreground, unchanged_crops)
+    from fourlegs_engine.scene.bundle import load_bundle
+
+    scene = load_bundle(scene_path)
+    values = foreground_values(scene)
+    if values is None:
+        raise InputError("the scene has no foreground flags", file=scene_path, field="foreground")
+    T, num_cams = scene.num_timesteps, scene.cameras.num_cameras("train")
+    configs = {plan_key(p): p.extract_config(scene) for p in plans if p.early_exit == "foreground"}
+    layouts = {(key, c): crop_layout(cam.width, cam.height, config.ratios, config.crop_stride)
+               for key, config in configs.items() for c, cam in enumerate(scene.cameras.cameras(0, "train"))}
+    signals: dict[tuple[str, int, int], torch.Tensor] = {}   # (plan, frame, camera) -> (num_crops,) coverage
+
+    def signal(key: str, k: int, c: int) -> torch.Tensor:
+        if (key, k, c) not in signals:               # one render of the frame serves every plan
+            coverage = render_foreground(scene, scene.cameras.cameras(k, "train")[c], k, values)
+            for other in configs:
+                signals[(other, k, c)] = frame_crop_means(coverage, layouts[(other, c)])[:, 0]
+        return signals[(key, k, c)]
+
+    counts = {key: [0, 0, 0] for key in configs}     # copied crops, crops, camera-timesteps
+    with torch.no_grad():
+        for key, config in configs.items():
+            grid = encoded_timesteps(T, config.timestep_stride)
+            cams = range(num_cams) if config.cameras is None else config.cameras
+            for i, t in enumerate(grid[1:], start=1):
+                span = comparison_frames(t, grid[i - 1], T)
+                for c in cams:
+                    same = unchanged_crops(lambda k: signal(key, k, c), span, "foreground", config.unchanged_below)
+                    counts[key][0] += int(same.sum())
+                    counts[key][1] += int(same.numel())
+                    counts[key][2] += 1
+                if progress:
+                    print(f"  exit share, timestep {t}: {counts[key][0] / max(counts[key][1], 1):.3f}", file=sys.stderr)
+    shares = {key: {"share": copied / max(total, 1), "camera_timesteps": n} for key, (copied, total, n) in counts.items()}
+    return {"scene": str(scene_path), "timesteps": T, "cameras": num_cams, "shares": shares}
 
 
 def exit_share_of(row: dict[str, Any]) -> float:
@@ -359,8 +422,10 @@ def summarize(report: dict[str, Any]) -> dict[str, Any]:
     """Add each row's cost (L/14 seconds on this proxy, Panoptic-sized hours) and its loss against the
     reference row of its proxy."""
     cpu, gpu = report.get("clip_seconds", {}).get("cpu"), report.get("clip_seconds", {}).get("gpu")
-    # the Panoptic projection takes each plan's early-exit share from the real capture's row of that plan
-    real_shares = {r["name"]: exit_share_of(r) for r in report["rows"] if r["proxy"] == "real"}
+    # the Panoptic projection takes each plan's early-exit share from the whole sequence when measured
+    # (--exit-share-scene), else from the real capture's row of that plan
+    real_shares = {plan_key(r["plan"]): exit_share_of(r) for r in report["rows"] if r["proxy"] == "real"}
+    real_shares.update({k: v["share"] for k, v in (report.get("sequence_exit_shares") or {}).get("shares", {}).items()})
     for proxy in PROXIES:
         rows = [r for r in report["rows"] if r["proxy"] == proxy]
         ref = next((r for r in rows if r["group"] == "reference"), None)
@@ -371,7 +436,7 @@ def summarize(report: dict[str, Any]) -> dict[str, Any]:
                 r["l14_cpu_s"] = r["clips_encoded"] * cpu["clip_s"]
             if gpu:
                 r["l14_gpu_s_derived"] = r["clips_encoded"] * gpu["clip_s"]
-            share = real_shares.get(r["name"], exit_share_of(r))
+            share = real_shares.get(plan_key(r["plan"]), exit_share_of(r))
             if cpu:
                 r["panoptic"] = panoptic_hours(r, cpu["clip_s"], share)
                 if gpu:
@@ -479,6 +544,10 @@ def register_bench(bench_sub: Any) -> None:
     p.add_argument("--real-scene", default=None, help="fitted real scene bundle (`fourlegs fit`), read only")
     p.add_argument("--masks", default="../shared/data/panoptic-basketball/seg",
                    help="the real capture's masks {camera}/{t:06d}.png (default the Panoptic capture's seg/)")
+    p.add_argument("--exit-share-scene", default=None, metavar="SCENE",
+                   help="a fitted scene of the whole sequence (e.g. all 150 timesteps of the capture): the early-exit "
+                        "share of each plan is measured on all of it, every camera, for the Panoptic projection "
+                        "(default: the real proxy's row of the plan, over its first --timesteps)")
     p.add_argument("--held-out", type=int, default=4, help="real proxy: training cameras held out (default 4)")
     p.add_argument("--timesteps", type=int, default=9, help="real proxy: first timesteps used (default 9)")
     p.add_argument("--rows", default=None,
@@ -544,6 +613,16 @@ def run_cli(args: argparse.Namespace) -> int:
                              held_out=args.held_out, timesteps=args.timesteps, work=work, ae_epochs=args.ae_epochs,
                              view_scale=args.view_scale, score_scale=args.score_scale, progress=True,
                              own_autoencoder=args.own_autoencoder, cached_only=args.cached_only)
+    if args.exit_share_scene:
+        plans = {plan_key(plan): plan for _, _, plan in pick(knob_rows(12)) if plan.early_exit == "foreground"}
+        measured = report.get("sequence_exit_shares") or {}
+        if measured.get("scene") != str(Path(args.exit_share_scene).resolve()):
+            measured = {}
+        missing = [plan for key, plan in plans.items() if key not in measured.get("shares", {})]
+        if missing:
+            got = sequence_exit_shares(Path(args.exit_share_scene).resolve(), missing)
+            got["shares"] = {**measured.get("shares", {}), **got["shares"]}
+            report["sequence_exit_shares"] = got
     keys = {(r["proxy"], r["name"]) for r in new_rows}
     report["rows"] = [r for r in report["rows"] if (r["proxy"], r["name"]) not in keys] + new_rows
     order = {name: i for i, (_, name, _) in enumerate(knob_rows(12))}

@@ -22,6 +22,9 @@ def add_plan_arguments(parser: argparse.ArgumentParser) -> None:
                    help="encode K of the training cameras, chosen for coverage (the others give no evidence)")
     g.add_argument("--timestep-stride", type=bounded(int, 1), default=None, metavar="N",
                    help="encode every N-th timestep and the last; the others are filled from their neighbours")
+    g.add_argument("--timestep-seconds", type=bounded(float, 0, low_open=True), default=None, metavar="S",
+                   help="encode timesteps S seconds apart (the stride is the most whole timesteps within S at "
+                        "the scene's frame rate, at least 1; the default plan's: 0.2); replaces --timestep-stride")
     g.add_argument("--fill", default=None, choices=FILL_MODES,
                    help="how skipped timesteps are filled: interpolate their neighbours' features (default), reuse the "
                         "nearer one's, or latents: lift only the encoded timesteps and give each Gaussian the "
@@ -58,6 +61,7 @@ def plan_from_args(args: argparse.Namespace, encoder: Any):
     from ..language.plans import resolve_plan
     return resolve_plan(getattr(args, "plan", "auto"), encoder).with_(
         cameras=getattr(args, "camera_subset", None), timestep_stride=getattr(args, "timestep_stride", None),
+        timestep_seconds=getattr(args, "timestep_seconds", None),
         fill=getattr(args, "fill", None), levels=_levels(getattr(args, "levels", None)),
         crop_stride=getattr(args, "crop_stride", None), early_exit=getattr(args, "early_exit", None))
 

@@ -299,6 +299,7 @@ class PlanEstimate:
     seconds: float | None
     cpu_seconds: float | None
     encoder: str
+    fps: float | None = None
 
     @property
     def tflop(self) -> float | None:
@@ -313,7 +314,7 @@ class PlanEstimate:
         k = self.counts
         cal = self.calibration
         levels = ", ".join(f"{r:g}" for r in self.config.ratios)
-        lines = [self.plan.describe(),
+        lines = [self.plan.describe(self.fps),
                  f"  {len(k.cameras_encoded)} of {k.cameras} cameras x {len(k.encoded)} encoded timesteps"
                  + (f" (+{len(k.filled)} filled by {self.config.fill})" if k.filled else "")
                  + f"; {k.clips_per_view} clips per camera-timestep (ratios {levels}, crop stride "
@@ -366,7 +367,8 @@ def estimate_plan(scene: Scene, encoder: Any, plan: str | ExtractPlan | None = "
         counts.exit_samples = samples
     cal = calibrate(scene, encoder, config, seconds=calibrate_seconds)
     wall, cpu = estimate_seconds(counts, cal, signal_s, signal_cpu_s)
-    return PlanEstimate(resolved, config, counts, cal, wall, cpu, str(getattr(encoder, "name", "encoder")))
+    return PlanEstimate(resolved, config, counts, cal, wall, cpu, str(getattr(encoder, "name", "encoder")),
+                        float(scene.fps))
 
 
 # ---------------------------------------------------------------------------------------- budget

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import assume, given, strategies as st
+from hypothesis import assume, example, given, strategies as st
 
 from fourlegs_engine.highlights.camera_paths import (Pose, aim, axis_angle_matrix, dolly_path, interpolate_poses,
                                                      is_proper_rotation, look_at_rotation, orbit_path,
@@ -171,6 +171,8 @@ def _orbit(start, centre, arc, rs, hs, n):
 
 
 @given(centre=vec, eye=vec, q=unit_quat, arc=st.floats(-720, 720), rs=st.floats(0.05, 5), hs=st.floats(0, 5))
+@example(centre=np.array([0.0, 18.5, 0.0]), eye=np.array([0.0, 18.4375, 5.0]), q=(0.0, 0.0, 0.0, 1.0), arc=0.0,
+         rs=0.5, hs=0.0)                    # descends from above to 0.03 beside the centre: aim turns fast at the end
 def test_property_orbit_is_proper_finite_and_continuous(centre, eye, q, arc, rs, hs):
     start = Pose(eye, rot_from_quat(q))
     poses = _orbit(start, centre, arc, rs, hs, 61)
@@ -178,17 +180,20 @@ def test_property_orbit_is_proper_finite_and_continuous(centre, eye, q, arc, rs,
     np.testing.assert_allclose(poses[0].rotation, start.rotation, atol=1e-7)
     for p in poses:
         assert is_proper_rotation(p.rotation) and np.all(np.isfinite(p.position))
-    # Continuity: sampling twice as densely halves the largest orientation step (a flip would not shrink).
+    # Continuity: sampling 4x as densely shrinks the largest orientation step about 4x; a flip would keep it
+    # at the flip's size. Aiming at the centre turns by about step / distance, so this holds where the path
+    # stays several fine steps away from the centre; a path through (or grazing) the centre turns its aim
+    # discontinuously by construction (the degenerate cases have their own tests above).
     rel = eye - centre
     assume(np.linalg.norm(rel) > 1e-2)
     coarse = max(rotation_angle(a.rotation, b.rotation) for a, b in zip(poses, poses[1:]))
-    fine_poses = _orbit(start, centre, arc, rs, hs, 121)
+    fine_poses = _orbit(start, centre, arc, rs, hs, 241)
     fine = max(rotation_angle(a.rotation, b.rotation) for a, b in zip(fine_poses, fine_poses[1:]))
-    # halving the step shrinks the largest step (≈ 0.5x, more where the turn rate varies fast near the
-    # centre); a flip would keep it at the flip's size
-    assert fine <= 0.75 * coarse + 1e-7
-    # and steps stay small unless the path runs close to the centre, where aiming turns quickly
+    fine_step = max(np.linalg.norm(a.position - b.position) for a, b in zip(fine_poses, fine_poses[1:]))
     closest = min(np.linalg.norm(p.position - centre) for p in fine_poses)
+    if closest > 4 * fine_step:
+        assert fine <= 0.6 * coarse + 1e-7
+    # and steps stay small unless the path runs close to the centre, where aiming turns quickly
     assert coarse < 0.5 or closest < 0.3 * np.linalg.norm(rel)
 
 

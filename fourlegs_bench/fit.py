@@ -34,7 +34,10 @@ INT_KNOBS = ("first_iterations", "iterations", "max_iterations", "min_iterations
              "background_stride", "knn", "seed", "clean_plate_samples")
 STR_KNOBS = ("init",)
 FLOAT_KNOBS = ("resolution_scale", "lr_means", "lr_means_later", "lr_colors", "lr_scales", "lr_opacities",
-               "lr_rotations", "lr_rotations_later", "lr_camera", "voxel", "grad_threshold", "motion_step_range")
+               "lr_rotations", "lr_rotations_later", "lr_camera", "voxel", "grad_threshold", "motion_step_range",
+               "knn_lambda")
+#: loss weights as knobs: w_rigid=8 sets FitOptions.weights["rigid"] (the others keep their defaults)
+WEIGHT_KNOBS = tuple(f"w_{name}" for name in ("im", "seg", "rigid", "rot", "iso", "floor", "plate"))
 
 
 def register_bench(bench_sub: Any) -> None:
@@ -80,10 +83,14 @@ def parse_runs(text: str) -> list[tuple[str, dict[str, Any]]]:
         for item in (s.strip() for s in knobs.split(",") if s.strip()):
             key, _, value = item.partition("=")
             key = key.strip().replace("-", "_")
-            if key not in INT_KNOBS + FLOAT_KNOBS + STR_KNOBS + ("densify",):
+            if key not in INT_KNOBS + FLOAT_KNOBS + STR_KNOBS + WEIGHT_KNOBS + ("densify",):
                 raise InputError(f"unknown knob {key!r}", field="--runs")
             try:
-                if key in INT_KNOBS:
+                if key in WEIGHT_KNOBS:
+                    from fourlegs_engine.fit import FitOptions
+                    weights = kw.setdefault("weights", dict(FitOptions().weights))
+                    weights[key[2:]] = float(value)
+                elif key in INT_KNOBS:
                     kw[key] = int(value)
                 elif key in FLOAT_KNOBS:
                     kw[key] = float(value)

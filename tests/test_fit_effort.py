@@ -105,6 +105,12 @@ def test_bench_runs_take_the_motion_knob_and_name_an_unknown_one():
         parse_runs("m:step_range=2")
     with pytest.raises(InputError, match="bad value for motion_step_range"):
         parse_runs("m:motion_step_range=fast")
+    from fourlegs_engine.fit import FitOptions
+    (name, knobs), = parse_runs("r:w_rigid=8,w_iso=4,knn_lambda=1000")
+    assert knobs == {"weights": {**FitOptions().weights, "rigid": 8.0, "iso": 4.0}, "knn_lambda": 1000.0}
+    assert FitOptions(**knobs).weights["rot"] == FitOptions().weights["rot"]
+    with pytest.raises(InputError, match="bad value for w_rot"):
+        parse_runs("r:w_rot=strong")
 
 
 def test_motion_step_option_is_checked_and_left_out_of_the_fingerprint_when_off():

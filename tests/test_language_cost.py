@@ -164,7 +164,7 @@ def _extract(root, config, **kw):
 
 
 KNOBS = [ExtractOptions(cameras=(0, 2)), ExtractOptions(timestep_stride=3), ExtractOptions(timestep_stride=4, fill="reuse"),
-         ExtractOptions(ratios=pyramid_ratios()[2:]), ExtractOptions(crop_stride=1.0),
+         ExtractOptions(ratios=pyramid_ratios()[2:]), ExtractOptions(crop_stride=0.65), ExtractOptions(crop_stride=1.0),
          ExtractOptions(early_exit="foreground"), ExtractOptions(early_exit="difference")]
 
 

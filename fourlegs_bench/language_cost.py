@@ -147,7 +147,7 @@ def build_field(bundle: Path, encoder: Any, config: Any, *, ae_epochs: int, view
 # ------------------------------------------------------------------------------------ proxies
 def run_synthetic(rows: Sequence[tuple[str, str, ExtractPlan]], *, size: str, seed: int, work: Path,
                   ae_epochs: int, view_scale: float, progress: bool, own_autoencoder: bool = False,
-                  cached_only: bool = False) -> list[dict[str, Any]]:
+                  cached_only: bool = False, keep_bundles: bool = False) -> list[dict[str, Any]]:
     """Every row on the synthetic scene with the simulated encoder; six metrics on its test views."""
     from fourlegs_engine.language.field import LanguageField
     from fourlegs_engine.pipeline import text_encoder
@@ -191,7 +191,7 @@ def run_synthetic(rows: Sequence[tuple[str, str, ExtractPlan]], *, size: str, se
                "scene": {"name": scene.name, "cameras": scene.cameras.num_cameras("train"),
                          "timesteps": scene.num_timesteps, "gaussians": scene.num_gaussians,
                          "views": [c.name for c in ctx.cameras]}}
-        _keep(vdir, row)
+        _keep(vdir, row, keep_bundles)
         out.append(row)
         if progress:
             print(f"  clips {row['clips_encoded']:,} of {row['clips_full']:,}  vAP {100 * row['metrics']['vAP']['mean']:.1f}"
@@ -201,7 +201,8 @@ def run_synthetic(rows: Sequence[tuple[str, str, ExtractPlan]], *, size: str, se
 
 def run_real(rows: Sequence[tuple[str, str, ExtractPlan]], *, scene_path: Path, masks: Path, held_out: int,
              timesteps: int, work: Path, ae_epochs: int, view_scale: float, score_scale: float,
-             progress: bool, own_autoencoder: bool = False, cached_only: bool = False) -> list[dict[str, Any]]:
+             progress: bool, own_autoencoder: bool = False, cached_only: bool = False,
+             keep_bundles: bool = False) -> list[dict[str, Any]]:
     """Every row on a fitted real capture with the annotation-mask teacher, scored on held-out cameras."""
     from fourlegs_engine.language.annotations import AnnotationMaskEncoder
     from fourlegs_engine.scene.bundle import load_bundle
@@ -248,7 +249,7 @@ def run_real(rows: Sequence[tuple[str, str, ExtractPlan]], *, scene_path: Path, 
                "vap_per_t": vaps, "viou_per_t": vious,
                "scene": {"name": scene.name, "cameras": len(pool), "timesteps": scene.num_timesteps,
                          "gaussians": scene.num_gaussians, "held_out": [c.name for c in held]}}
-        _keep(vdir, row)
+        _keep(vdir, row, keep_bundles)
         out.append(row)
         if progress:
             print(f"  clips {row['clips_encoded']:,} of {row['clips_full']:,}  vAP {row['metrics']['vAP']['mean']:.3f}"
@@ -284,9 +285,27 @@ def _cached(vdir: Path, plan: ExtractPlan, settings: dict[str, Any]) -> dict[str
     return row if same else None
 
 
-def _keep(vdir: Path, row: dict[str, Any]) -> None:
+def _keep(vdir: Path, row: dict[str, Any], keep_bundle: bool = False) -> None:
+    """Keep a scored row's result (what ``--cached-only`` and reruns read); unless ``keep_bundle``, drop its
+    bundle's features and field (gigabytes per row on the ``bench`` scene), keeping the autoencoder the
+    other rows reuse."""
     vdir.mkdir(parents=True, exist_ok=True)
     write_json_atomic(vdir / "result.json", row, overwrite=True)
+    if not keep_bundle:
+        prune_row_bundle(vdir / "bundle")
+
+
+def prune_row_bundle(bundle: Path) -> None:
+    """Delete a scored row's teacher features and lifted field; the scene and the autoencoder stay."""
+    import shutil
+    from fourlegs_engine.language.autoencoder import AE_REPORT, DECODER_FILE, ENCODER_FILE
+
+    shutil.rmtree(bundle / "features", ignore_errors=True)
+    kept = {bundle / rel for rel in (AE_REPORT, ENCODER_FILE, DECODER_FILE)}
+    language = bundle / "language"
+    for path in (language.iterdir() if language.is_dir() else ()):
+        if path not in kept:
+            shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
 
 
 # ---------------------------------------------------------------------------------------- cost
@@ -564,6 +583,9 @@ def register_bench(bench_sub: Any) -> None:
     p.add_argument("--gpu-clip-seconds", default=None, metavar="JSON",
                    help="the device check's seconds per clip (GPU rows are derived from it)")
     p.add_argument("--threads", type=int, default=None, help="torch threads")
+    p.add_argument("--keep-bundles", action="store_true",
+                   help="keep each scored row's features and lifted field in --work (default: dropped once the row "
+                        "is scored; a row of the bench scene holds several GB)")
     p.add_argument("--cached-only", action="store_true",
                    help="tabulate only the rows already scored in --work (no new extraction)")
     p.add_argument("--out", default="docs/bench/language_cost", help="output folder (default docs/bench/language_cost)")
@@ -605,14 +627,16 @@ def run_cli(args: argparse.Namespace) -> int:
         cams = load_bundle(ensure_demo_bundle(args.scene, args.seed)).cameras.num_cameras("train")
         new_rows += run_synthetic(pick(knob_rows(cams)), size=args.scene, seed=args.seed, work=work,
                                   ae_epochs=args.ae_epochs, view_scale=args.view_scale, progress=True,
-                                  own_autoencoder=args.own_autoencoder, cached_only=args.cached_only)
+                                  own_autoencoder=args.own_autoencoder, cached_only=args.cached_only,
+                                  keep_bundles=args.keep_bundles)
     if "real" in proxies:
         from fourlegs_engine.scene.bundle import load_bundle
         cams = load_bundle(args.real_scene).cameras.num_cameras("train") - args.held_out
         new_rows += run_real(pick(knob_rows(cams)), scene_path=Path(args.real_scene), masks=Path(args.masks).resolve(),
                              held_out=args.held_out, timesteps=args.timesteps, work=work, ae_epochs=args.ae_epochs,
                              view_scale=args.view_scale, score_scale=args.score_scale, progress=True,
-                             own_autoencoder=args.own_autoencoder, cached_only=args.cached_only)
+                             own_autoencoder=args.own_autoencoder, cached_only=args.cached_only,
+                             keep_bundles=args.keep_bundles)
     if args.exit_share_scene:
         plans = {plan_key(plan): plan for _, _, plan in pick(knob_rows(12)) if plan.early_exit == "foreground"}
         measured = report.get("sequence_exit_shares") or {}

@@ -371,6 +371,24 @@ def test_sequence_exit_share_is_what_the_extraction_copies(micro, tmp_path):
         assert measured["share"] == pytest.approx(report.clips_copied / (per_step * (len(report.timesteps_done) - 1)))
 
 
+def test_a_scored_row_drops_its_features_and_field_but_keeps_the_shared_autoencoder(tmp_path):
+    from fourlegs_bench.language_cost import _keep
+    from fourlegs_engine.language.autoencoder import AE_REPORT, DECODER_FILE, ENCODER_FILE
+
+    vdir = tmp_path / "row"
+    bundle = vdir / "bundle"
+    for rel in ("features/t000000.npy", "features/manifest.json", "language/latents.npy", "language/steps/t0.npy",
+                AE_REPORT, ENCODER_FILE, DECODER_FILE, "means.npy", "scene.json"):
+        (bundle / rel).parent.mkdir(parents=True, exist_ok=True)
+        (bundle / rel).write_bytes(b"x")
+    _keep(vdir, {"name": "row"}, keep_bundle=True)
+    assert (bundle / "language/latents.npy").is_file() and (vdir / "result.json").is_file()
+    _keep(vdir, {"name": "row"})
+    assert not (bundle / "features").exists() and sorted(p.name for p in (bundle / "language").iterdir()) == \
+        sorted((bundle / rel).name for rel in (AE_REPORT, ENCODER_FILE, DECODER_FILE))
+    assert (bundle / "means.npy").is_file() and (bundle / "scene.json").is_file()
+
+
 def test_the_panel_prices_the_field_through_the_api_before_building_it(micro, tmp_path):
     from fourlegs_engine import api
 

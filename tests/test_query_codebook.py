@@ -99,7 +99,7 @@ def test_lookup_temporal_counts_equal_exact_counts_when_codes_are_exact():
 
 
 # ----------------------------------------------------------------------------- exact re-scoring near thresholds
-from hypothesis import given, settings  # noqa: E402
+from hypothesis import example, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 from fourlegs_engine.query.refined_counts import _sampled_r_avg, counts_from_codes_refined  # noqa: E402
@@ -288,10 +288,12 @@ def _flat_problem(seed: int, S: int = 24, N: int = 10_000, K: int = 60, margin: 
 
 @settings(max_examples=10, deadline=None)
 @given(st.integers(0, 10_000))
+@example(610)                                       # a draw whose saving is small (0.84 of the bounds-only pairs)
 def test_a_flat_query_decides_its_far_timesteps_from_a_sample_and_agrees_with_exact_counting(seed):
     """The real capture's "a person": most timesteps' counts are far from the mean only in units of the
     sample's error, not of the band's size. Decided from their re-scored samples they agree with exact
-    counting (against the total returned) at a fraction of the bounds-only re-scoring."""
+    counting (against the total returned) with fewer pairs re-scored than the bounds-only re-scoring (how
+    many fewer varies by draw: the next test holds the mean)."""
     codes, code_scores, exact, hist = _flat_problem(seed)
     S = codes.shape[0]
     want_counts = counts_from_relevancy(torch.from_numpy(exact))[0]
@@ -300,9 +302,22 @@ def test_a_flat_query_decides_its_far_timesteps_from_a_sample_and_agrees_with_ex
     bounds_only = _refined(code_scores, hist, codes, exact, 0.05, bounded_calls, exact_band_pairs=0, row_z=0.0)
     total = int(counts.sum())
     np.testing.assert_array_equal(counts * S > total, want_counts * S > total)
-    assert rescored < 0.8 * bounds_only[3]
+    assert rescored < bounds_only[3]
     np.testing.assert_array_equal(bounds_only[0] * S > int(bounds_only[0].sum()),
                                   want_counts * S > int(bounds_only[0].sum()))
+
+
+def test_sampling_the_far_timesteps_saves_at_least_a_third_of_the_rescoring_on_average():
+    """Over 40 draws of the flat problem the sampled decision re-scores 0.53 of the bounds-only pairs on
+    average (0.75 at most here; draw 610 of the property test above: 0.84): the saving is a property of the
+    mean, not of every draw."""
+    ratios = []
+    for seed in range(40):
+        codes, code_scores, exact, hist = _flat_problem(seed)
+        sampled = _refined(code_scores, hist, codes, exact, 0.05, [], exact_band_pairs=0)[3]
+        bounded = _refined(code_scores, hist, codes, exact, 0.05, [], exact_band_pairs=0, row_z=0.0)[3]
+        ratios.append(sampled / bounded)
+    assert np.mean(ratios) < 0.67 and max(ratios) < 1.0
 
 
 @settings(max_examples=15, deadline=None)

@@ -216,11 +216,12 @@ def _counts(pairs: _Pairs, weights: np.ndarray, samples: int, rng: np.random.Gen
         correction, correction_se = estimate.grow_to(size)
         r_avg, r_se = (sketch_sum + correction + open_sum) / n_rel, correction_se / n_rel
         r_low, r_high = r_avg - R_AVG_Z * r_se, r_avg + R_AVG_Z * r_se
-        if first is not None:  # a larger sample's interval, kept inside the first one
-            r_avg = float(np.clip(r_avg, *first))
-            r_low, r_high = max(first[0], r_low), min(first[1], r_high)
-            if r_low > r_high:
-                r_low = r_high = r_avg
+        if first is not None:
+            if max(first[0], r_low) <= min(first[1], r_high):  # a larger sample's interval, kept inside the first
+                r_avg = float(np.clip(r_avg, *first))
+                r_low, r_high = max(first[0], r_low), min(first[1], r_high)
+            else:  # the two samples disagree beyond their errors: every value either allows stays possible
+                r_low, r_high = min(first[0], r_low), max(first[1], r_high)
         else:
             first = (r_low, r_high)
         counts, low, high = _above(pairs, r_avg, r_low, r_high)

@@ -1,10 +1,16 @@
-"""Losses of the Dynamic 3D Gaussians fit: image (L1 + D-SSIM) and the physical priors."""
+"""Losses of the Dynamic 3D Gaussians fit: image (L1 + D-SSIM) and the physical priors.
+
+On CPU tensors the SSIM and the priors run as the fused kernels of :mod:`.fused_losses` (one pass forward,
+one backward); the torch formulations here (:func:`ssim_reference`, :meth:`Priors.reference`) are their
+test oracles and serve every other device and dtype."""
 from __future__ import annotations
 
 import math
 
 import torch
 import torch.nn.functional as F
+
+from .fused_losses import FusedPriors, FusedSSIM, fused_applies
 
 #: SSIM window (11 px Gaussian, σ 1.5) and constants for images in [0, 1]
 SSIM_WINDOW, SSIM_SIGMA = 11, 1.5
@@ -20,6 +26,16 @@ def _window_1d(dtype: torch.dtype, device) -> torch.Tensor:
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Mean SSIM of two (H,W,C) images (Gaussian window, zero padding as in 3DGS); scalar tensor.
+
+    The fused kernel serves CPU float32/float64 images when ``b`` needs no gradient; otherwise
+    :func:`ssim_reference`."""
+    if a.dim() == 3 and not b.requires_grad and fused_applies(a, b):
+        return FusedSSIM.apply(a, b, _window_1d(a.dtype, a.device), SSIM_C1, SSIM_C2)
+    return ssim_reference(a, b)
+
+
+def ssim_reference(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """:func:`ssim` as torch operations (any device, gradients to both images).
 
     The five local moments are blurred together, the separable window as a row pass and a column pass
     (2·11 instead of 11² multiply-adds per pixel; zero padding makes it equal to the 2D window)."""
@@ -86,11 +102,22 @@ class Priors:
 
     def __call__(self, means: torch.Tensor, rotations: torch.Tensor, prev_means: torch.Tensor,
                  prev_rotations: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Loss terms for the current (N,3) means, (N,4) unit rotations against the previous timestep's.
+        """Loss terms for the current (N,3) means, (N,4) unit rotations against the previous timestep's
+        (the fused kernel on CPU when the previous timestep needs no gradient, else :meth:`reference`).
 
         Returns:
             {"rigid", "rot", "iso"} scalar tensors.
         """
+        if (not prev_means.requires_grad and not prev_rotations.requires_grad
+                and fused_applies(means, rotations, prev_means, prev_rotations, self.weights, self.distances)):
+            rigid, rot, iso = FusedPriors.apply(means, rotations, prev_means, prev_rotations, self.neighbors,
+                                                self.weights, self.distances)
+            return {"rigid": rigid, "rot": rot, "iso": iso}
+        return self.reference(means, rotations, prev_means, prev_rotations)
+
+    def reference(self, means: torch.Tensor, rotations: torch.Tensor, prev_means: torch.Tensor,
+                  prev_rotations: torch.Tensor) -> dict[str, torch.Tensor]:
+        """:meth:`__call__` as torch operations (any device, gradients to every input)."""
         from ..scene.gaussians import quaternion_to_matrix
 
         rel = quat_multiply(rotations, quat_conjugate(prev_rotations))  # R_t R_{t-1}^{-1}

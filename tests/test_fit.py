@@ -51,6 +51,8 @@ def test_synthetic_capture_fitted_back_matches_its_images(capture_dir, fitted):
     assert scene.num_timesteps == 3 and scene.gaussians.foreground is not None
     assert 0 < scene.gaussians.foreground.mean() < 1
     cc = scene.metadata["color_correction"]
+    # the colours are the average training camera's: its log-gains average to zero
+    assert np.abs(np.mean(cc["cam_m"], axis=0)).max() < 1e-6
     scores = []
     for t in range(3):
         images = fh.load_images(capture_dir, "train", t)

@@ -83,7 +83,7 @@ def evaluate_test_views(bundle: str | Path, capture: Capture | str | Path, *, re
     """Render every timestep of ``bundle`` from the capture's test cameras and compare.
 
     The test cameras have no colour correction of their own, so renders are compared as they are
-    (the paper's protocol). ``keep_images_at`` lists bundle timestep positions whose images are kept.
+    (the paper's protocol): a fitted bundle's colours are the average training camera's. ``keep_images_at`` lists bundle timestep positions whose images are kept.
     ``region`` (an (H, W, 3) uint8 image -> (H, W) bool mask, e.g. the orange ball's colour threshold)
     adds the region's PSNR (:func:`region_error`).
     """

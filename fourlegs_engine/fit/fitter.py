@@ -45,7 +45,7 @@ from ..scene.gaussians import GaussianSequence
 from ..scene.scene import Scene
 from .clean_plate import clean_plates, sample_timesteps
 from .dataset import Capture
-from .model import TrainingFrames, initial_model, model_from_arrays, to_numpy
+from .model import TrainingFrames, average_camera_colours, initial_model, model_from_arrays, to_numpy
 from .effort import iterations_for
 from .optimize import Tracker, fit_first_timestep, fit_later_timestep, forecast_residual
 from .options import FitEvent, FitOptions
@@ -126,7 +126,9 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
             measure the held-out PSNR).
     Returns:
         the bundle path. Per-Gaussian foreground flags, the per-camera colour correction and per-timestep
-        training PSNR are stored in the bundle (``foreground.npy``; ``metadata.fit``).
+        training PSNR are stored in the bundle (``foreground.npy``; ``metadata.fit``). The colours are those
+        the average training camera sees (:func:`.model.average_camera_colours`): what a camera the fit
+        never saw renders.
     Raises:
         InputError: a malformed dataset (missing frames, bad calibration, mismatched sizes) or options.
         OutputExistsError: ``output`` exists and ``overwrite`` is False.
@@ -182,6 +184,8 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
             report.close()
 
     static = _load_npz(work / "static.npz")
+    static["colors"], static["cam_m"], static["cam_c"] = average_camera_colours(static["colors"], static["cam_m"],
+                                                                                static["cam_c"])
     T = len(steps)
     means = np.empty((T, static["colors"].shape[0], 3), np.float32)
     rotations = np.empty((T, static["colors"].shape[0], 4), np.float32)

@@ -83,6 +83,38 @@ def correct_colours(rgb: torch.Tensor, model: GaussianModel, c: int) -> torch.Te
     return torch.exp(model.cam_m[c]) * rgb + model.cam_c[c]
 
 
+def average_camera_colours(colors: np.ndarray, cam_m: np.ndarray, cam_c: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The Gaussian colours as the average training camera sees them, and the corrections re-expressed.
+
+    A fit learns colours and, per training camera, a correction exp(m_c)·render + c_c; how a gain splits
+    between the two is free. A camera the fit never saw (a test view, a shot's virtual camera) renders the
+    colours as they are, so they should be the average training camera's: with ḡ = exp(mean_c m_c) and
+    c̄ = mean_c c_c,
+
+        colours' = clip(ḡ·colours + c̄, 0, 1),   m'_c = m_c − ln ḡ,   c'_c = c_c − exp(m'_c)·c̄,
+
+    which leaves every training camera's corrected render unchanged wherever the pixel's accumulated
+    opacity is 1 (everywhere a capture's background is fitted) and the colours stay within [0, 1].
+
+    Args:
+        colors: (N, 3) in [0, 1]. cam_m, cam_c: (C, 3) log-gains and offsets of the training cameras.
+    Returns:
+        (colours', m', c') as float32 arrays of the same shapes (unchanged when C = 0).
+    """
+    colors = np.asarray(colors, np.float64)
+    cam_m = np.asarray(cam_m, np.float64)
+    cam_c = np.asarray(cam_c, np.float64)
+    if cam_m.shape[0] == 0:
+        return colors.astype(np.float32), cam_m.astype(np.float32), cam_c.astype(np.float32)
+    log_gain = cam_m.mean(0)
+    offset = cam_c.mean(0)
+    new_m = cam_m - log_gain
+    new_colors = np.clip(np.exp(log_gain) * colors + offset, 0.0, 1.0)
+    new_c = cam_c - np.exp(new_m) * offset
+    return new_colors.astype(np.float32), new_m.astype(np.float32), new_c.astype(np.float32)
+
+
 def to_numpy(t: torch.Tensor) -> np.ndarray:
     """A tensor as a numpy array (floats as float32), for the work directory."""
     a = t.detach().cpu().numpy()

@@ -186,10 +186,10 @@ def _quat_rel_py(q, p, n):  # pragma: no cover - compiled by numba
 
 
 def _priors_py(means, quats, prev_means, prev_quats, neighbors, weights, distances, want_grad, rel, rot_mat,
-               grad_means, grad_rel, grad_rot_mat, scales):  # pragma: no cover - compiled by numba
+               grad_means, grad_rel, grad_rot_mat):  # pragma: no cover - compiled by numba
     """The three prior sums (rigid, rot, iso, each Σ w·term over the N·K pairs) and, when ``want_grad``,
-    the per-pair gradients of the terms weighted by scales = (∂L/∂rigid, ∂L/∂rot, ∂L/∂iso) / (N·K),
-    accumulated into grad_means (N,3), grad_rel (N,4) and grad_rot_mat (N,3,3) (float64, zeroed here)."""
+    the gradients of each sum (float64, zeroed here): grad_means (2, N, 3) of rigid and of iso,
+    grad_rel (N, 4) of rot, grad_rot_mat (N, 3, 3) of rigid."""
     N, K = neighbors.shape
     for n in range(N):
         rw, rx, ry, rz = _quat_rel(quats, prev_quats, n)
@@ -236,19 +236,21 @@ def _priors_py(means, quats, prev_means, prev_quats, neighbors, weights, distanc
             iso += wt * abs(gap)
             if want_grad:
                 # rigid: e = Rᵀo − o_prev;  ∂/∂o = R·ĝ, ∂/∂R[j, i] = o_j ĝ_i
-                ge = scales[0] * wt / e_len
+                ge = wt / e_len
                 g0, g1, g2 = ge * e0, ge * e1, ge * e2
                 # iso: |‖o‖ − d|;  ∂/∂o = sign(gap)·o/‖o‖
-                gi = scales[2] * wt * (1.0 if gap > 0.0 else (-1.0 if gap < 0.0 else 0.0)) / o_len
+                gi = wt * (1.0 if gap > 0.0 else (-1.0 if gap < 0.0 else 0.0)) / o_len
                 for j in range(3):
-                    go = R[j, 0] * g0 + R[j, 1] * g1 + R[j, 2] * g2 + gi * o[j]
-                    grad_means[m, j] += go
-                    grad_means[n, j] -= go
+                    go = R[j, 0] * g0 + R[j, 1] * g1 + R[j, 2] * g2
+                    grad_means[0, m, j] += go
+                    grad_means[0, n, j] -= go
+                    grad_means[1, m, j] += gi * o[j]
+                    grad_means[1, n, j] -= gi * o[j]
                     grad_rot_mat[n, j, 0] += o[j] * g0
                     grad_rot_mat[n, j, 1] += o[j] * g1
                     grad_rot_mat[n, j, 2] += o[j] * g2
                 # rot: ‖rel_m − rel_n‖
-                gr = scales[1] * wt / d_len
+                gr = wt / d_len
                 grad_rel[m, 0] += gr * d0
                 grad_rel[m, 1] += gr * d1
                 grad_rel[m, 2] += gr * d2
@@ -298,7 +300,8 @@ def _priors_rotation_grad_py(quats, prev_quats, rel, grad_rel, grad_rot_mat, gra
 class FusedPriors(torch.autograd.Function):
     """(means (N,3), unit rotations (N,4), previous means and rotations, neighbours (N,K), weights (N,K),
     distances (N,K)) -> (rigid, rot, iso) scalars as :class:`.losses.Priors`; gradients flow to the
-    current means and rotations."""
+    current means and rotations. The forward pass also forms each term's gradient (one walk over the
+    pairs); the backward pass only weighs and chains them."""
 
     @staticmethod
     def forward(ctx, means, quats, prev_means, prev_quats, neighbors, weights, distances):  # noqa: D401
@@ -307,30 +310,25 @@ class FusedPriors(torch.autograd.Function):
         w = weights.detach().contiguous().numpy()
         d = distances.detach().contiguous().numpy()
         N, K = nb.shape
+        want_grad = bool(ctx.needs_input_grad[0] or ctx.needs_input_grad[1])
         rel = np.empty((N, 4))
         rot_mat = np.empty((N, 3, 3))
-        empty = np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3, 3))
-        rigid, rot, iso = _priors(*arrays, nb, w, d, False, rel, rot_mat, *empty, np.zeros(3))
-        ctx.arrays = (*arrays, nb, w, d)
+        grads = (np.empty((2, N, 3)), np.empty((N, 4)), np.empty((N, 3, 3))) if want_grad else \
+            (np.zeros((2, 0, 3)), np.zeros((0, 4)), np.zeros((0, 3, 3)))
+        rigid, rot, iso = _priors(*arrays, nb, w, d, want_grad, rel, rot_mat, *grads)
+        if want_grad:
+            ctx.arrays = (arrays[1], arrays[3], rel, *grads, max(N * K, 1), torch.from_numpy(arrays[0][:0]).dtype)
         scale = 1.0 / max(N * K, 1)
         return tuple(torch.tensor(v * scale, dtype=means.dtype) for v in (rigid, rot, iso))
 
     @staticmethod
     def backward(ctx, g_rigid, g_rot, g_iso):
-        means, quats, prev_means, prev_quats, nb, w, d = ctx.arrays
-        N, K = nb.shape
-        scales = np.array([0.0 if g is None else float(g) for g in (g_rigid, g_rot, g_iso)]) / max(N * K, 1)
-        rel = np.empty((N, 4))
-        rot_mat = np.empty((N, 3, 3))
-        grad_means = np.empty((N, 3))
-        grad_rel = np.empty((N, 4))
-        grad_rot_mat = np.empty((N, 3, 3))
-        _priors(means, quats, prev_means, prev_quats, nb, w, d, True, rel, rot_mat, grad_means, grad_rel,
-                grad_rot_mat, scales)
-        grad_quats = np.empty((N, 4))
-        _priors_rotation_grad(quats, prev_quats, rel, grad_rel, grad_rot_mat, grad_quats)
-        dtype = torch.from_numpy(means[:0]).dtype
-        return (torch.from_numpy(grad_means).to(dtype), torch.from_numpy(grad_quats).to(dtype),
+        quats, prev_quats, rel, grad_means, grad_rel, grad_rot_mat, pairs, dtype = ctx.arrays
+        s_rigid, s_rot, s_iso = (0.0 if g is None else float(g) / pairs for g in (g_rigid, g_rot, g_iso))
+        grad_quats = np.empty((quats.shape[0], 4))
+        _priors_rotation_grad(quats, prev_quats, rel, s_rot * grad_rel, s_rigid * grad_rot_mat, grad_quats)
+        grad_pos = s_rigid * grad_means[0] + s_iso * grad_means[1]
+        return (torch.from_numpy(grad_pos).to(dtype), torch.from_numpy(grad_quats).to(dtype),
                 None, None, None, None, None)
 
 

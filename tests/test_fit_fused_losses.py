@@ -10,8 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fourlegs_engine.fit import fused_losses
-from fourlegs_engine.fit.fused_losses import FusedPriors, FusedSSIM
-from fourlegs_engine.fit.losses import SSIM_C1, SSIM_C2, Priors, _window_1d, ssim, ssim_reference
+from fourlegs_engine.fit.fused_losses import FusedImageLoss, FusedPriors, FusedSSIM
+from fourlegs_engine.fit.losses import (SSIM_C1, SSIM_C2, Priors, _window_1d, image_loss, image_loss_reference, ssim,
+                                       ssim_reference)
 
 pytestmark = pytest.mark.skipif(fused_losses.numba is None, reason="numba not installed")
 
@@ -89,6 +90,35 @@ def test_ssim_dispatches_to_the_fused_kernel_only_where_it_applies():
     # a non-contiguous view is read correctly
     wide = torch.rand(3, 10, 12, dtype=torch.float64)
     assert abs(float(ssim(wide.permute(1, 2, 0), target)) - float(ssim_reference(wide.permute(1, 2, 0), target))) < 1e-13
+
+
+@pytest.mark.parametrize("l1_weight", [0.8, 0.0, 1.0])
+def test_fused_image_loss_equals_l1_plus_dssim_in_torch(l1_weight):
+    render, target = _pair(23, 31, 3, seed=11)
+    render[:4] = target[:4]  # pixels where |a − b| has its kink
+    fused, fused_grad = _value_and_grad(lambda a, b: image_loss(a, b, l1_weight), render, target)
+    ref, ref_grad = _value_and_grad(lambda a, b: image_loss_reference(a, b, l1_weight), render, target)
+    assert abs(fused - ref) < 1e-13
+    torch.testing.assert_close(fused_grad, ref_grad, rtol=1e-10, atol=1e-16)
+
+
+def test_fused_image_loss_gradient_matches_finite_differences():
+    render, target = _pair(8, 10, 3, seed=13)
+    a = render.clone().requires_grad_()
+    window = _window_1d(torch.float64, "cpu")
+    assert torch.autograd.gradcheck(lambda x: FusedImageLoss.apply(x, target, window, SSIM_C1, SSIM_C2, 0.8), (a,),
+                                    eps=1e-6, atol=1e-8, rtol=1e-5)
+
+
+def test_two_losses_in_flight_keep_their_own_partials():
+    """A fit step takes the rgb and the segmentation loss before one backward pass."""
+    (r1, t1), (r2, t2) = _pair(20, 24, 3, seed=1), _pair(20, 24, 3, seed=2)
+    a1, a2 = r1.clone().requires_grad_(), r2.clone().requires_grad_()
+    (image_loss(a1, t1) + 3.0 * image_loss(a2, t2)).backward()
+    b1, b2 = r1.clone().requires_grad_(), r2.clone().requires_grad_()
+    (image_loss_reference(b1, t1) + 3.0 * image_loss_reference(b2, t2)).backward()
+    torch.testing.assert_close(a1.grad, b1.grad, rtol=1e-10, atol=1e-16)
+    torch.testing.assert_close(a2.grad, b2.grad, rtol=1e-10, atol=1e-16)
 
 
 # ---------------------------------------------------------------------------------------------- priors

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import threading
+import weakref
 
 import numpy as np
 import torch
@@ -135,15 +136,70 @@ def _ssim_forward_py(a, b, g, channels, c1, c2, want_grad, partials, moments, ro
     return total
 
 
-def _ssim_backward_py(a, b, partials, g, channels, scale, grad, rows):  # pragma: no cover - compiled by numba
-    """grad (H, W·C) = scale·(g∗∂s/∂μx + 2a·(g∗∂s/∂exx) + b·(g∗∂s/∂exy)); rows: (3, H, W·C) scratch."""
+def _ssim_backward_py(a, b, partials, g, channels, scale, l1_scale, grad, rows):  # pragma: no cover
+    """grad (H, W·C) = scale·(g∗∂s/∂μx + 2a·(g∗∂s/∂exx) + b·(g∗∂s/∂exy)) + l1_scale·sign(a − b);
+    rows: (3, H, W·C) scratch."""
     height, width = a.shape
     _blur_rows(partials, rows, g, channels)
     acc = np.empty((3, width), dtype=partials.dtype)
     for y in range(height):
         _blur_column(rows, y, acc, g)
         for j in range(width):
-            grad[y, j] = scale * (acc[0, j] + 2.0 * a[y, j] * acc[1, j] + b[y, j] * acc[2, j])
+            diff = a[y, j] - b[y, j]
+            sign = 1.0 if diff > 0.0 else (-1.0 if diff < 0.0 else 0.0)
+            grad[y, j] = scale * (acc[0, j] + 2.0 * a[y, j] * acc[1, j] + b[y, j] * acc[2, j]) + l1_scale * sign
+
+
+def _abs_diff_sum_py(a, b):  # pragma: no cover - compiled by numba
+    """Σ |a − b| over two (H, W·C) images, float64."""
+    total = 0.0
+    for y in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            total += abs(np.float64(a[y, j]) - np.float64(b[y, j]))
+    return total
+
+
+_POOL = threading.local()
+
+
+def _take(shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+    """An array for SSIM partials that live as long as their autograd node, from a per-thread pool of
+    released ones (a fit step has two in flight, and fresh arrays of that size page-fault)."""
+    pool = _POOL.__dict__.setdefault("arrays", [])
+    for i, arr in enumerate(pool):
+        if arr.shape == shape and arr.dtype == dtype:
+            return pool.pop(i)
+    return np.empty(shape, dtype=dtype)
+
+
+def _give(arr: np.ndarray) -> None:
+    pool = _POOL.__dict__.setdefault("arrays", [])
+    if len(pool) < 4:
+        pool.append(arr)
+
+
+def _ssim_forward_pass(ctx, a: torch.Tensor, b: torch.Tensor, window: torch.Tensor, c1: float, c2: float):
+    """(SSIM sum, a and b as (H, W·C) arrays); keeps what the backward pass needs on ``ctx``."""
+    H, W, C = a.shape
+    a2 = a.detach().contiguous().numpy().reshape(H, W * C)
+    b2 = b.detach().to(a.dtype).contiguous().numpy().reshape(H, W * C)
+    want_grad = bool(ctx.needs_input_grad[0])
+    partials = _take((3, H, W * C), a2.dtype) if want_grad else np.empty((3, 1, 1), dtype=a2.dtype)
+    g = window.detach().to(a.dtype).numpy()
+    total = _ssim_forward(a2, b2, g, C, float(c1), float(c2), want_grad, partials,
+                          _scratch("moments", (5, H, W * C), a2.dtype), _scratch("rows", (5, H, W * C), a2.dtype))
+    ctx.arrays = (a2, b2, partials, g, C) if want_grad else None
+    if want_grad:  # back to the pool when autograd lets go of this node (a backward pass may run twice)
+        weakref.finalize(ctx, _give, partials)
+    return total, a2, b2
+
+
+def _ssim_backward_pass(ctx, ssim_scale: float, l1_scale: float) -> torch.Tensor:
+    a2, b2, partials, g, C = ctx.arrays
+    grad = np.empty_like(a2)
+    _ssim_backward(a2, b2, partials, g, C, ssim_scale, l1_scale, grad,
+                   _scratch("rows", (5,) + a2.shape, a2.dtype)[:3])
+    return torch.from_numpy(grad).view(a2.shape[0], -1, C)
 
 
 class FusedSSIM(torch.autograd.Function):
@@ -151,27 +207,33 @@ class FusedSSIM(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, a, b, window, c1, c2):  # noqa: D401
-        H, W, C = a.shape
-        a2 = a.detach().contiguous().numpy().reshape(H, W * C)
-        b2 = b.detach().to(a.dtype).contiguous().numpy().reshape(H, W * C)
-        want_grad = bool(ctx.needs_input_grad[0])
-        partials = np.empty((3, H, W * C) if want_grad else (3, 1, 1), dtype=a2.dtype)
-        g = window.detach().to(a.dtype).numpy()
-        moments = _scratch("moments", (5, H, W * C), a2.dtype)
-        total = _ssim_forward(a2, b2, g, C, float(c1), float(c2), want_grad, partials, moments,
-                              _scratch("rows", (5, H, W * C), a2.dtype))
-        if want_grad:
-            ctx.arrays = (a2, b2, partials, g, C)
+        total, _, _ = _ssim_forward_pass(ctx, a, b, window, c1, c2)
         return torch.tensor(total / a.numel(), dtype=a.dtype)
 
     @staticmethod
     def backward(ctx, grad_out):
-        a2, b2, partials, g, C = ctx.arrays
-        grad = np.empty_like(a2)
-        rows = _scratch("rows", (5,) + a2.shape, a2.dtype)[:3]
-        _ssim_backward(a2, b2, partials, g, C, float(grad_out) / a2.size, grad, rows)
-        H = a2.shape[0]
-        return torch.from_numpy(grad).view(H, -1, C), None, None, None, None
+        n = ctx.arrays[0].size
+        return _ssim_backward_pass(ctx, float(grad_out) / n, 0.0), None, None, None, None
+
+
+class FusedImageLoss(torch.autograd.Function):
+    """(a (H,W,C), b (H,W,C), window, C1, C2, λ) -> λ·mean|a − b| + (1 − λ)·(1 − SSIM(a, b)), the
+    fit's image loss in one pass each way; the gradient flows to ``a`` (|·|' = 0 where a = b)."""
+
+    @staticmethod
+    def forward(ctx, a, b, window, c1, c2, l1_weight):  # noqa: D401
+        total, a2, b2 = _ssim_forward_pass(ctx, a, b, window, c1, c2)
+        n = a.numel()
+        ctx.l1_weight = float(l1_weight)
+        loss = l1_weight * _abs_diff_sum(a2, b2) / n + (1.0 - l1_weight) * (1.0 - total / n)
+        return torch.tensor(loss, dtype=a.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        n = ctx.arrays[0].size
+        g = float(grad_out)
+        grad = _ssim_backward_pass(ctx, -g * (1.0 - ctx.l1_weight) / n, g * ctx.l1_weight / n)
+        return grad, None, None, None, None, None
 
 
 # ---------------------------------------------------------------------------------------------- priors
@@ -344,8 +406,9 @@ if numba is not None:
     _blur_column = _inline(_blur_column_py)
     _ssim_forward = _jit(_ssim_forward_py)
     _ssim_backward = _jit(_ssim_backward_py)
+    _abs_diff_sum = _jit(_abs_diff_sum_py)
     _quat_rel = _inline(_quat_rel_py)
     _priors = _jit(_priors_py)
     _priors_rotation_grad = _jit(_priors_rotation_grad_py)
 else:  # pragma: no cover
-    _blur_rows = _blur_column = _ssim_forward = _ssim_backward = _quat_rel = _priors = _priors_rotation_grad = None
+    _blur_rows = _blur_column = _ssim_forward = _ssim_backward = _abs_diff_sum = _quat_rel = _priors = _priors_rotation_grad = None

@@ -10,7 +10,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from .fused_losses import FusedPriors, FusedSSIM, fused_applies
+from .fused_losses import FusedImageLoss, FusedPriors, FusedSSIM, fused_applies
 
 #: SSIM window (11 px Gaussian, σ 1.5) and constants for images in [0, 1]
 SSIM_WINDOW, SSIM_SIGMA = 11, 1.5
@@ -58,8 +58,17 @@ def ssim_reference(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def image_loss(render: torch.Tensor, target: torch.Tensor, l1_weight: float = 0.8) -> torch.Tensor:
-    """(1−λ_ssim)·L1 + λ_ssim·(1 − SSIM) with λ_ssim = 1 − ``l1_weight``."""
-    return l1_weight * (render - target).abs().mean() + (1.0 - l1_weight) * (1.0 - ssim(render, target))
+    """(1−λ_ssim)·L1 + λ_ssim·(1 − SSIM) with λ_ssim = 1 − ``l1_weight`` (one fused kernel on CPU when
+    ``target`` needs no gradient)."""
+    if render.dim() == 3 and not target.requires_grad and fused_applies(render, target):
+        return FusedImageLoss.apply(render, target, _window_1d(render.dtype, render.device), SSIM_C1, SSIM_C2,
+                                    l1_weight)
+    return image_loss_reference(render, target, l1_weight)
+
+
+def image_loss_reference(render: torch.Tensor, target: torch.Tensor, l1_weight: float = 0.8) -> torch.Tensor:
+    """:func:`image_loss` as torch operations."""
+    return l1_weight * (render - target).abs().mean() + (1.0 - l1_weight) * (1.0 - ssim_reference(render, target))
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:

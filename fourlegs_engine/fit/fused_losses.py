@@ -89,6 +89,17 @@ def _blur_column_py(src, y, acc, g):  # pragma: no cover - compiled by numba
                 out[j] += gt * row[j]
 
 
+def _ssim_terms_py(acc, j, c1, c2):  # pragma: no cover - compiled by numba
+    """(μx, μy, A1, A2, B1, B2) at column j of the blurred moments acc (5, W·C), float64: SSIM = A1·A2/(B1·B2)."""
+    mu_x = np.float64(acc[0, j])
+    mu_y = np.float64(acc[1, j])
+    a1 = 2.0 * mu_x * mu_y + c1
+    a2 = 2.0 * (np.float64(acc[4, j]) - mu_x * mu_y) + c2
+    b1 = mu_x * mu_x + mu_y * mu_y + c1
+    b2 = np.float64(acc[2, j]) - mu_x * mu_x + np.float64(acc[3, j]) - mu_y * mu_y + c2
+    return mu_x, mu_y, a1, a2, b1, b2
+
+
 def _ssim_forward_py(a, b, g, channels, c1, c2, want_grad, partials, moments, rows):  # pragma: no cover
     """Σ of the SSIM map of (H, W·C) images ``a``, ``b``; when ``want_grad``, partials[0..2] (H, W·C)
     receive ∂s/∂μx, ∂s/∂exx, ∂s/∂exy per pixel. Blurs run in a's dtype, the per-pixel formula in float64;
@@ -111,21 +122,11 @@ def _ssim_forward_py(a, b, g, channels, c1, c2, want_grad, partials, moments, ro
         _blur_column(rows, y, acc, g)
         # branch-free loops over the row (vectorized); the sum is taken afterwards
         for j in range(width):
-            mu_x = np.float64(acc[0, j])
-            mu_y = np.float64(acc[1, j])
-            a1 = 2.0 * mu_x * mu_y + c1
-            a2 = 2.0 * (np.float64(acc[4, j]) - mu_x * mu_y) + c2
-            b1 = mu_x * mu_x + mu_y * mu_y + c1
-            b2 = np.float64(acc[2, j]) - mu_x * mu_x + np.float64(acc[3, j]) - mu_y * mu_y + c2
+            mu_x, mu_y, a1, a2, b1, b2 = _ssim_terms(acc, j, c1, c2)
             ssim_row[j] = a1 * a2 / (b1 * b2)
         if want_grad:
             for j in range(width):
-                mu_x = np.float64(acc[0, j])
-                mu_y = np.float64(acc[1, j])
-                a1 = 2.0 * mu_x * mu_y + c1
-                a2 = 2.0 * (np.float64(acc[4, j]) - mu_x * mu_y) + c2
-                b1 = mu_x * mu_x + mu_y * mu_y + c1
-                b2 = np.float64(acc[2, j]) - mu_x * mu_x + np.float64(acc[3, j]) - mu_y * mu_y + c2
+                mu_x, mu_y, a1, a2, b1, b2 = _ssim_terms(acc, j, c1, c2)
                 inv_den = 1.0 / (b1 * b2)
                 s = ssim_row[j]
                 partials[0, y, j] = 2.0 * mu_y * (a2 - a1) * inv_den + 2.0 * mu_x * s * (1.0 / b2 - 1.0 / b1)
@@ -404,6 +405,7 @@ if numba is not None:
     _jit = numba.njit(nogil=True, cache=JIT_CACHE)
     _blur_rows = _jit(_blur_rows_py)
     _blur_column = _inline(_blur_column_py)
+    _ssim_terms = _inline(_ssim_terms_py)
     _ssim_forward = _jit(_ssim_forward_py)
     _ssim_backward = _jit(_ssim_backward_py)
     _abs_diff_sum = _jit(_abs_diff_sum_py)
@@ -411,4 +413,5 @@ if numba is not None:
     _priors = _jit(_priors_py)
     _priors_rotation_grad = _jit(_priors_rotation_grad_py)
 else:  # pragma: no cover
-    _blur_rows = _blur_column = _ssim_forward = _ssim_backward = _abs_diff_sum = _quat_rel = _priors = _priors_rotation_grad = None
+    _blur_rows = _blur_column = _ssim_terms = _ssim_forward = _ssim_backward = _abs_diff_sum = None
+    _quat_rel = _priors = _priors_rotation_grad = None

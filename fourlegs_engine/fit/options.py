@@ -56,10 +56,10 @@ class FitOptions:
     resolution_scale: float = 0.5
     timesteps: tuple[int, int] | None = None
     cameras: tuple[str, ...] | None = None
-    first_iterations: int = 400
-    iterations: int = 38
-    max_iterations: int = 114
-    min_iterations: int = 12
+    first_iterations: int = 600
+    iterations: int = 96
+    max_iterations: int = 288
+    min_iterations: int = 30
     max_gaussians: int = 60_000
     init: str = "hull"
     init_foreground: int = 30_000

@@ -1,10 +1,12 @@
 """Fused CPU kernels (numba) of the fit's costliest loss terms, each with its analytic backward pass: the
-SSIM of :func:`.losses.ssim` and the kNN priors of :class:`.losses.Priors`.
+image loss (L1 + D-SSIM) of :func:`.losses.image_loss`, the SSIM of :func:`.losses.ssim` and the kNN
+priors of :class:`.losses.Priors`.
 
-As torch graphs, a fit step's two SSIMs (five blurred moments each) and its priors (F·K neighbour pairs)
-are dozens of full-size operations forward and as many backward, and cost several times the rasterizer's
-share of the step. Each kernel here is one pass each way over the same formulas. The torch versions stay
-in :mod:`.losses` (``ssim_reference``, ``Priors.reference``) as the test oracles.
+As torch graphs, a fit step's two image losses (five blurred moments each) and its priors (F·K neighbour
+pairs) are dozens of full-size operations forward and as many backward, and cost several times the
+rasterizer's share of the step. Each kernel here is one pass each way over the same formulas. The torch
+versions stay in :mod:`.losses` (``image_loss_reference``, ``ssim_reference``, ``Priors.reference``) as the
+test oracles.
 
 SSIM (Gaussian window g, zero padding): with per-pixel moments μx = g∗a, μy = g∗b, exx = g∗a², eyy = g∗b²,
 exy = g∗ab and s = (2μxμy + C1)(2σxy + C2) / ((μx² + μy² + C1)(σxx + σyy + C2)), σxx = exx − μx²,

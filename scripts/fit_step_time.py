@@ -28,7 +28,7 @@ def main() -> int:
     args = p.parse_args()
     torch.set_num_threads(1)
     from fourlegs_engine.fit.dataset import Capture
-    from fourlegs_engine.fit.fitter import _generator
+    from fourlegs_engine.fit.fitter import _generator, rig_radius
     from fourlegs_engine.fit.model import TrainingFrames, model_from_arrays
     from fourlegs_engine.fit.optimize import Tracker, fit_later_timestep
     from fourlegs_engine.fit.options import FitOptions
@@ -49,8 +49,7 @@ def main() -> int:
     cams_idx = capture.camera_indices("train", opts.cameras)
     full = [capture.train.cameras[first][c] for c in cams_idx]
     cameras = [c.scaled(opts.resolution_scale) for c in full]
-    centers = np.stack([c.center for c in full])
-    radius = 1.1 * float(np.linalg.norm(centers - centers.mean(0), axis=1).max())
+    radius = rig_radius(full)
     model = model_from_arrays(np.array(means[0]), np.array(rots[0]), static, "cpu")
     tracker = Tracker(model, cameras, opts, meta["fit"]["floor_y"])
     prev2 = (torch.from_numpy(np.array(means[i - 2])), torch.from_numpy(np.array(rots[i - 2])))

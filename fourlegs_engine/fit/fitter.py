@@ -54,6 +54,13 @@ WORK_VERSION = 1
 
 
 # ------------------------------------------------------------------------------------- orchestration
+def rig_radius(cameras: list[Camera]) -> float:
+    """1.1 × the largest distance of a camera centre from the rig's mean centre: the scale the fit's
+    centre learning rates are fractions of."""
+    centers = np.stack([c.center for c in cameras])
+    return 1.1 * float(np.linalg.norm(centers - centers.mean(0), axis=1).max())
+
+
 def _work_dir(output: Path) -> Path:
     return output.parent / f".{output.name}.fit"
 
@@ -150,8 +157,7 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
     full_cams = [capture.train.cameras[a][c] for c in cams_idx]
     cameras = [c.scaled(opts.resolution_scale) for c in full_cams]
     size = (cameras[0].width, cameras[0].height)
-    centers = np.stack([c.center for c in full_cams])
-    scene_radius = 1.1 * float(np.linalg.norm(centers - centers.mean(0), axis=1).max())
+    scene_radius = rig_radius(full_cams)
 
     work = _work_dir(output)
     config = {"version": WORK_VERSION, "dataset": str(capture.root.resolve()), "options": opts.fingerprint(),

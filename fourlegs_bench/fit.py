@@ -35,7 +35,8 @@ INT_KNOBS = ("first_iterations", "iterations", "max_iterations", "min_iterations
 STR_KNOBS = ("init",)
 FLOAT_KNOBS = ("resolution_scale", "lr_means", "lr_means_later", "lr_colors", "lr_scales", "lr_opacities",
                "lr_rotations", "lr_rotations_later", "lr_camera", "voxel", "grad_threshold", "motion_step_range",
-               "knn_lambda")
+               "knn_lambda", "part_extent", "part_fraction",
+               "free_part_fraction", "part_scale")
 #: loss weights as knobs: w_rigid=8 sets FitOptions.weights["rigid"] (the others keep their defaults)
 WEIGHT_KNOBS = tuple(f"w_{name}" for name in ("im", "seg", "rigid", "rot", "iso", "floor", "plate"))
 

@@ -116,10 +116,22 @@ def test_bench_runs_take_the_motion_knob_and_name_an_unknown_one():
 def test_motion_step_option_is_checked_and_left_out_of_the_fingerprint_when_off():
     # off, it is left out: a fit started before the knob existed (with its options then) still resumes
     assert "motion_step_range" not in FitOptions(motion_step_range=1.0).fingerprint()
-    assert FitOptions().fingerprint()["motion_step_range"] == 4.0 == FitOptions().motion_step_range
+    assert FitOptions(motion_step_range=4.0).fingerprint()["motion_step_range"] == 4.0
     for bad in (0.5, 0.0, 1000.0, float("nan")):
         with pytest.raises(InputError, match="motion_step_range"):
             FitOptions(motion_step_range=bad).check()
+
+
+def test_part_options_are_checked_and_left_out_of_the_fingerprint_when_off():
+    off = FitOptions(part_extent=0.0).fingerprint()
+    assert not {"part_extent", "part_fraction", "free_part_fraction", "part_scale"} & set(off)
+    assert FitOptions().fingerprint()["free_part_fraction"] == 0.25
+    on = preset_options("accurate").fingerprint()
+    assert on["part_extent"] == 0.4 and on["part_scale"] == 0.5 and on["free_part_fraction"] == 0.5
+    for bad in ({"part_extent": -0.1}, {"part_extent": float("nan")}, {"part_extent": float("inf")},
+                {"part_fraction": -1.0}, {"free_part_fraction": 5.0}, {"part_scale": 0.0}, {"part_scale": 1.5}):
+        with pytest.raises(InputError, match=next(iter(bad))):
+            FitOptions(**bad).check()
 
 
 def test_schedule_options_are_checked_and_left_out_of_the_fingerprint_when_off():
@@ -305,7 +317,8 @@ def test_cli_preset_sets_the_knobs_and_explicit_options_override_it():
     parse = lambda *extra: options_from_args(build_parser().parse_args(["fit", "ds", "-o", "out", *extra]))  # noqa: E731
     accurate = parse("--preset", "accurate", "--iterations", "60")
     assert accurate.resolution_scale == 1.0 and accurate.iterations == 60
+    assert parse("--preset", "accurate", "--part-extent", "0").part_extent == 0.0
     assert accurate.first_iterations == FIT_PRESETS["accurate"]["first_iterations"]
     default = parse("--max-iterations", "0")
     assert default.resolution_scale == 0.5 and default.max_iterations == 0 and default == FitOptions(max_iterations=0)
-    assert parse().motion_step_range == 4.0 and parse("--motion-step-range", "1").motion_step_range == 1.0
+    assert parse().motion_step_range == 1.0 and parse("--motion-step-range", "4").motion_step_range == 4.0

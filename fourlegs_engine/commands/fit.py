@@ -44,7 +44,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--timesteps", type=str, default=None, help="half-open range a:b (default: all)")
     p.add_argument("--cameras", type=str, default=None, help="training camera ids, comma separated (default: all)")
     p.add_argument("--preset", choices=tuple(FIT_PRESETS), default="default",
-                   help="knob set: default (320x180, about 18 CPU minutes for 150 timesteps) or accurate (640x360, "
+                   help="knob set: default (320x180, about 16 CPU minutes for 150 timesteps) or accurate (640x360, "
                    "hours); the options below override it")
     p.add_argument("--resolution-scale", type=float, default=None,
                    help="image scale for fitting (default: the preset's, 0.5 for default)")
@@ -58,7 +58,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--max-gaussians", type=int, default=None, help="cap on the number of Gaussians")
     p.add_argument("--motion-step-range", type=float, default=None,
                    help="later timesteps scale each centre's steps by its speed over the median, within "
-                        "[1/range, range] (default 4; 1: the same step for all)")
+                        "[1/range, range] (default 1: the same step for all)")
+    p.add_argument("--part-extent", type=float, default=None,
+                   help="later timesteps first move rigid parts of the foreground (what touches, cut to at most "
+                   "this many metres) so a thrown ball follows whole (default 0.4; 0: off)")
     p.add_argument("--init", choices=("hull", "features", "hull+features"), default=None,
                    help="initial Gaussians: visual hull + background proxy (hull), triangulated SIFT matches "
                    "(features, needs OpenCV: pip install 'fourlegs[fit-features]') or both (default: hull)")
@@ -89,7 +92,7 @@ def options_from_args(args: argparse.Namespace):
     if args.cameras is not None:
         kw["cameras"] = parse_cameras(args.cameras)
     for name in ("first_iterations", "iterations", "max_iterations", "min_iterations", "max_gaussians", "init",
-                 "init_foreground", "init_background", "clean_plate_samples", "motion_step_range"):
+                 "init_foreground", "init_background", "clean_plate_samples", "motion_step_range", "part_extent"):
         if getattr(args, name) is not None:
             kw[name] = getattr(args, name)
     return preset_options(args.preset, **kw)

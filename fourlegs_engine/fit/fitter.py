@@ -11,9 +11,11 @@ Per timestep, in order:
   L1 term on the background Gaussians rendered alone against each camera's clean plate
   (:mod:`.clean_plate`: the median of its background pixels over timesteps spread across the fitted
   range), whose pixels also seed background points where the people hide it at the first timestep.
-* later timesteps: start from a constant-velocity forecast of centres and rotations; optimize only the
-  foreground centres and rotations (colours, opacities, scales, colour correction fixed) under the
-  image and segmentation losses plus local rigidity, rotation similarity and long-term isometry over
+* later timesteps: start from a constant-velocity forecast of centres and rotations, move rigid parts of
+  the foreground whole at half resolution (:mod:`.clusters`: every part at the first later timestep, which
+  has no velocity yet; later only the free ones such as a thrown ball, whose forecast fails when it is
+  caught), then optimize only the foreground centres and rotations (colours, opacities, scales, colour
+  correction fixed) under the image and segmentation losses plus local rigidity, rotation similarity and long-term isometry over
   the 20 nearest foreground neighbours of the first timestep, and a floor term. Background Gaussians
   are held exactly still (the limit of the paper's heavily weighted background term), which makes
   the background's contribution a fixed image per camera: each view blends the foreground alone over

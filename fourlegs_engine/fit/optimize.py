@@ -10,6 +10,7 @@ import torch
 
 from ..scene.camera import Camera
 from ..scene.gaussians import quaternion_to_matrix
+from .clusters import motion_parts, rigid_part_motion
 from .effort import moving_residual
 from .losses import Priors, image_loss, psnr
 from .model import GaussianModel, TrainingFrames, correct_colours, render_views
@@ -178,14 +179,44 @@ class Tracker:
         else:
             dist, nb = np.zeros((fg_means.shape[0], 0)), np.zeros((fg_means.shape[0], 0), np.int64)
         dt = model.means.dtype
+        self.parts: torch.Tensor | None = None  # (F,) part of each foreground Gaussian
+        self.free_parts: torch.Tensor | None = None  # (P,) whole connected components
+        if opts.part_extent > 0:
+            labels, free = motion_parts(fg_means, nb, dist, opts.part_extent)
+            self.parts, self.free_parts = torch.as_tensor(labels, device=dev), torch.as_tensor(free, device=dev)
         self.priors = Priors(torch.as_tensor(nb, dtype=torch.int64, device=dev),
                              torch.as_tensor(np.exp(-opts.knn_lambda * dist ** 2), dtype=dt, device=dev),
                              torch.as_tensor(dist, dtype=dt, device=dev))
-        self.backgrounds = []
+        self.model = model
+        self.cameras = cameras
+        self.backgrounds = self._background_images(cameras)
+        self._scaled: dict[float, tuple[list[Camera], list[tuple[torch.Tensor, torch.Tensor]]]] = {}
+
+    def _background_images(self, cameras: list[Camera]) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Per camera, the background Gaussians' rgb (H,W,3) and seg colours (H,W,3), rendered alone."""
+        images = []
         with torch.no_grad():
             for cam in cameras:
-                out = render_views(model, cam, subset=self.bg_idx)
-                self.backgrounds.append((out["rgb"], out["features"]))
+                out = render_views(self.model, cam, subset=self.bg_idx)
+                images.append((out["rgb"], out["features"]))
+        return images
+
+    def scaled_views(self, scale: float) -> tuple[list[Camera], list[tuple[torch.Tensor, torch.Tensor]]]:
+        """The training cameras at ``scale`` times the fit resolution and their background images (cached)."""
+        if scale == 1.0:
+            return self.cameras, self.backgrounds
+        if scale not in self._scaled:
+            cams = [cam.scaled(scale) for cam in self.cameras]
+            self._scaled[scale] = (cams, self._background_images(cams))
+        return self._scaled[scale]
+
+
+def downsample(image: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """(H,W,C) → (height,width,C) by area averaging (each output pixel the mean of the input pixels it covers)."""
+    if image.shape[0] == height and image.shape[1] == width:
+        return image
+    out = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(height, width), mode="area")
+    return out[0].permute(1, 2, 0).contiguous()
 
 
 def _forecast(fi: torch.Tensor, prev: tuple[torch.Tensor, torch.Tensor], prev2: tuple[torch.Tensor, torch.Tensor]
@@ -197,11 +228,12 @@ def _forecast(fi: torch.Tensor, prev: tuple[torch.Tensor, torch.Tensor], prev2: 
 
 
 def _composite(model: GaussianModel, tracker: Tracker, cameras: list[Camera], c: int, means: torch.Tensor,
-               unit_rotations: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+               unit_rotations: torch.Tensor, backgrounds: list[tuple[torch.Tensor, torch.Tensor]] | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor]:
     """Camera ``c``'s colour-corrected rgb (H,W,3) and seg colours (H,W,3): the foreground at ``means``/
-    ``unit_rotations`` blended over the fixed background image."""
+    ``unit_rotations`` blended over the fixed background image (``backgrounds``, default the tracker's)."""
     out = render_views(model, cameras[c], subset=tracker.fg_idx, means=means, rotations=unit_rotations)
-    bg_rgb, bg_seg = tracker.backgrounds[c]
+    bg_rgb, bg_seg = (tracker.backgrounds if backgrounds is None else backgrounds)[c]
     trans = 1.0 - out["alpha"]
     return correct_colours(out["rgb"] + trans * bg_rgb, model, c), out["features"] + trans * bg_seg
 
@@ -235,12 +267,22 @@ def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingF
                scene_radius: float, prev: tuple[torch.Tensor, torch.Tensor], prev2: tuple[torch.Tensor, torch.Tensor],
                generator: torch.Generator, progress: Callable[[FitEvent], None], t: int, iterations: int
                ) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """Optimize the foreground centres/rotations of one timestep for ``iterations`` steps. Returns full
-    (N,3) means, (N,4) rotations and the last training PSNR."""
+    """Optimize the foreground centres/rotations of one timestep for ``iterations`` steps, after the part
+    steps of :func:`move_parts` when ``opts.part_extent`` > 0 (``part_fraction`` × ``iterations`` of them,
+    every part, at the first later timestep, recognised by ``prev2`` being ``prev``; ``free_part_fraction`` ×
+    ``iterations``, free parts only, later). Returns full (N,3) means, (N,4) rotations and the last
+    training PSNR."""
     w = opts.weights
     fi = tracker.fg_idx
     prev_m, prev_r = prev[0][fi], prev[1][fi]
     forecast_m, forecast_r = _forecast(fi, prev, prev2)
+    if tracker.parts is not None:
+        first = prev2[0] is prev[0]  # no velocity known yet: the forecast is the previous timestep
+        fraction = opts.part_fraction if first else opts.free_part_fraction
+        part_steps = int(round(fraction * iterations))
+        if part_steps and fi.numel():
+            forecast_m, forecast_r = move_parts(model, tracker, frames, opts, scene_radius, forecast_m, forecast_r,
+                                                generator, part_steps, only_free=not first)
     # the centres are the forecast plus a per-Gaussian step scale times what Adam moves: Adam's steps are
     # about its learning rate whatever the gradient's size, so the scale sets each centre's step
     step = motion_step_scale(prev_m, prev2[0][fi], opts.motion_step_range)[:, None]
@@ -277,3 +319,51 @@ def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingF
         full_m[fi] = forecast_m + step * offset.detach()
         full_r[fi] = torch.nn.functional.normalize(rots.detach(), dim=-1)
     return full_m, full_r, last_psnr
+
+
+def move_parts(model: GaussianModel, tracker: Tracker, frames: TrainingFrames, opts: FitOptions, scene_radius: float,
+               start_m: torch.Tensor, start_r: torch.Tensor, generator: torch.Generator, steps: int,
+               only_free: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """The part steps of a later timestep: optimize one translation and one rotation (about the part's
+    mean centre) per rigid part of ``tracker.parts`` for ``steps`` steps, one training camera per step at
+    ``opts.part_scale`` of the fit resolution, under the image, segmentation and floor losses.
+
+    Args:
+        start_m, start_r: (F,3) foreground centres and (F,4) unit rotations to start from (the forecast).
+        only_free: move only the free parts (whole connected components); the others stay at the start.
+    Returns:
+        the moved (F,3) centres and (F,4) unit rotations.
+    """
+    w = opts.weights
+    labels = tracker.parts
+    cameras, backgrounds = tracker.scaled_views(opts.part_scale)
+    images = [downsample(im, cam.width, cam.height) for im, cam in zip(frames.images, cameras)]
+    masks = None if frames.masks is None else [downsample(m, cam.width, cam.height) for m, cam in zip(frames.masks, cameras)]
+    n_parts = tracker.free_parts.shape[0]
+    counts = torch.bincount(labels, minlength=n_parts).clamp_min(1).to(start_m.dtype)
+    centres = torch.zeros(n_parts, 3, dtype=start_m.dtype, device=start_m.device).index_add_(0, labels, start_m)
+    centres = centres / counts[:, None]
+    movable = (tracker.free_parts if only_free else torch.ones_like(tracker.free_parts)).to(start_m.dtype)[:, None]
+    translation = torch.zeros_like(centres).requires_grad_(True)
+    omega = torch.zeros_like(centres).requires_grad_(True)
+    optimizer = torch.optim.Adam([{"params": [translation], "lr": opts.lr_means_later * scene_radius},
+                                  {"params": [omega], "lr": opts.lr_rotations_later}], lr=0.0, eps=1e-15)
+    order: list[int] = []
+    for _ in range(steps):
+        if not order:
+            order = torch.randperm(len(cameras), generator=generator).tolist()
+        c = order.pop()
+        means, unit = rigid_part_motion(start_m, start_r, labels, centres, translation * movable, omega * movable)
+        rgb, seg = _composite(model, tracker, cameras, c, means, unit, backgrounds)
+        loss = w["im"] * image_loss(rgb, images[c])
+        if masks is not None:
+            loss = loss + w["seg"] * image_loss(seg, masks[c])
+        if tracker.floor_y is not None:
+            loss = loss + w["floor"] * torch.clamp(means[:, 1] - tracker.floor_y, min=0).mean()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        means, unit = rigid_part_motion(start_m, start_r, labels, centres, translation * movable, omega * movable)
+        kept = movable[labels] == 0  # exactly where they started, not (x − c) + c
+        return torch.where(kept, start_m, means), torch.where(kept, start_r, unit)

@@ -13,7 +13,7 @@ from .presets import FIT_PRESETS
 
 @dataclass(frozen=True)
 class FitOptions:
-    """Knobs of :func:`fit_capture` (defaults: 2 CPU cores at 320×180).
+    """Knobs of :func:`fit_capture` (defaults: one CPU core at 320×180; docs/benchmarks_fit.md measures them).
 
     Attributes:
         resolution_scale: images and intrinsics are scaled by this (0.5: 640×360 → 320×180).
@@ -47,7 +47,18 @@ class FitOptions:
         motion_step_range: later timesteps move each foreground centre by steps scaled with its speed
             (its displacement between the two previous timesteps) against the median speed, the scale
             clamped to [1 / range, range]: a fast ball takes larger steps than the slower people
-            (1: the same step for all).
+            (1, the default since the part steps carry the ball: the same step for all).
+        part_extent: above 0, each later timestep starts with steps that move rigid parts of the
+            foreground (:mod:`.clusters`: what touches at the first timestep, cut to at most this long, in
+            metres) before the steps that move each Gaussian: a part that moved farther than its own size
+            (the thrown ball) is pulled over whole instead of tearing (0: off).
+        part_fraction: those part steps at the first later timestep (no velocity known yet: every part),
+            as a fraction of its steps (added to them).
+        free_part_fraction: the same at every later timestep for the free parts only (whole connected
+            components such as the ball, which the constant-velocity forecast misses when caught or
+            bounced; the cut parts of the people are left to the per-Gaussian steps).
+        part_scale: the resolution of the part steps, as a fraction of the fit resolution (images
+            area-averaged).
         lr_colors, lr_rotations, lr_opacities, lr_scales, lr_camera: Adam learning rates.
         seed: every random choice derives from it.
         device: "auto" (CUDA when available), "cpu" or "cuda".
@@ -75,7 +86,11 @@ class FitOptions:
         "im": 1.0, "seg": 3.0, "rigid": 4.0, "rot": 4.0, "iso": 2.0, "floor": 2.0, "plate": 1.0})
     lr_means: float = 0.00016
     lr_means_later: float = 0.0008
-    motion_step_range: float = 4.0
+    motion_step_range: float = 1.0
+    part_extent: float = 0.4
+    part_fraction: float = 0.5
+    free_part_fraction: float = 0.25
+    part_scale: float = 0.5
     lr_colors: float = 0.01
     lr_rotations: float = 0.001
     lr_rotations_later: float = 0.004
@@ -107,6 +122,13 @@ class FitOptions:
             require_cv2()
         if not 1.0 <= float(self.motion_step_range) <= 100.0:
             raise InputError(f"must be in [1, 100], got {self.motion_step_range}", field="motion_step_range")
+        if not 0.0 <= float(self.part_extent) < float("inf"):
+            raise InputError(f"must be 0 or a positive length in metres, got {self.part_extent}", field="part_extent")
+        for name in ("part_fraction", "free_part_fraction"):
+            if not 0.0 <= float(getattr(self, name)) <= 4.0:
+                raise InputError(f"must be in [0, 4], got {getattr(self, name)}", field=name)
+        if not 0.0 < float(self.part_scale) <= 1.0:
+            raise InputError(f"must be in (0, 1], got {self.part_scale}", field="part_scale")
         if self.device not in ("auto", "cpu", "cuda"):
             raise InputError(f"must be auto, cpu or cuda, got {self.device!r}", field="device")
         if self.device == "cuda" and not torch.cuda.is_available():
@@ -125,6 +147,9 @@ class FitOptions:
             d.pop("init")
         if d["motion_step_range"] == 1.0:
             d.pop("motion_step_range")
+        if d["part_extent"] == 0.0:
+            for name in ("part_extent", "part_fraction", "free_part_fraction", "part_scale"):
+                d.pop(name)
         if d["clean_plate_samples"] == 0:
             d.pop("clean_plate_samples")
             d["weights"] = {k: v for k, v in d["weights"].items() if k != "plate"}

@@ -7,5 +7,6 @@ from typing import Any
 FIT_PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
     "accurate": {"resolution_scale": 1.0, "first_iterations": 3000, "iterations": 80, "max_iterations": 240,
-                 "min_iterations": 27, "max_gaussians": 200_000, "init_background": 60_000},
+                 "min_iterations": 27, "max_gaussians": 200_000, "init_background": 60_000,
+                 "free_part_fraction": 0.5},
 }

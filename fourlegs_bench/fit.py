@@ -84,7 +84,7 @@ def parse_runs(text: str) -> list[tuple[str, dict[str, Any]]]:
         for item in (s.strip() for s in knobs.split(",") if s.strip()):
             key, _, value = item.partition("=")
             key = key.strip().replace("-", "_")
-            if key not in INT_KNOBS + FLOAT_KNOBS + STR_KNOBS + WEIGHT_KNOBS + ("densify", "rigid_free_parts"):
+            if key not in INT_KNOBS + FLOAT_KNOBS + STR_KNOBS + WEIGHT_KNOBS + ("densify",):
                 raise InputError(f"unknown knob {key!r}", field="--runs")
             try:
                 if key in WEIGHT_KNOBS:

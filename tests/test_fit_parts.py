@@ -238,22 +238,3 @@ def test_later_part_steps_move_the_free_ball_and_leave_the_cut_person_where_the_
     moved = (m[torch.from_numpy(ball_fg)] - start_m[torch.from_numpy(ball_fg)]).mean(0).numpy()
     assert abs(moved[2] - 0.3) < 0.05 and abs(moved[0]) < 0.05 and abs(moved[1]) < 0.05, moved
 
-
-def test_rigid_free_parts_keep_the_ball_exactly_rigid_through_the_per_gaussian_steps():
-    from fourlegs_engine.fit.optimize import fit_later_timestep
-    from fourlegs_engine.fit.options import FitOptions
-
-    model, frames, train, opts, tracker, is_ball = _ball_problem(0.4)
-    opts = FitOptions(**{**opts.__dict__, "rigid_free_parts": True})
-    assert "rigid_free_parts" in opts.fingerprint() and "rigid_free_parts" not in FitOptions().fingerprint()
-    prev = (model.means, model.rotations)
-    m, r, _ = fit_later_timestep(model, tracker, frames, train, opts, 4.0, prev, prev,
-                                 torch.Generator().manual_seed(0), lambda ev: None, 1, 40)
-    ball = torch.from_numpy(is_ball)
-    x0, x1 = model.means[ball].numpy(), m[ball].numpy()
-    d0 = np.linalg.norm(x0[:, None] - x0[None], axis=-1)
-    d1 = np.linalg.norm(x1[:, None] - x1[None], axis=-1)
-    np.testing.assert_allclose(d1, d0, atol=1e-9)  # moved as one rigid body
-    assert np.linalg.norm(x1.mean(0) - x0.mean(0) - [0.0, 0.0, 0.3]) < 0.05
-    person = torch.from_numpy(~is_ball) & model.foreground
-    assert not torch.equal(m[person], model.means[person])  # the cut parts still move Gaussian by Gaussian

@@ -286,10 +286,6 @@ def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingF
     # the centres are the forecast plus a per-Gaussian step scale times what Adam moves: Adam's steps are
     # about its learning rate whatever the gradient's size, so the scale sets each centre's step
     step = motion_step_scale(prev_m, prev2[0][fi], opts.motion_step_range)[:, None]
-    rigid = None  # (F,1): Gaussians of free parts, which then move only with their part
-    if opts.rigid_free_parts and tracker.parts is not None:
-        rigid = tracker.free_parts[tracker.parts][:, None]
-        step = torch.where(rigid, torch.zeros_like(step), step)
     offset = torch.zeros_like(forecast_m).requires_grad_(True)
     rots = forecast_r.clone().requires_grad_(True)
     optimizer = torch.optim.Adam([{"params": [offset], "lr": opts.lr_means_later * scene_radius},
@@ -302,8 +298,6 @@ def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingF
         c = order.pop()
         means = forecast_m + step * offset
         unit = torch.nn.functional.normalize(rots, dim=-1)
-        if rigid is not None:
-            unit = torch.where(rigid, forecast_r, unit)
         rgb, seg = _composite(model, tracker, cameras, c, means, unit)
         loss = w["im"] * image_loss(rgb, frames.images[c])
         if frames.masks is not None:
@@ -323,8 +317,7 @@ def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingF
         full_m = prev[0].clone()
         full_r = prev[1].clone()
         full_m[fi] = forecast_m + step * offset.detach()
-        unit = torch.nn.functional.normalize(rots.detach(), dim=-1)
-        full_r[fi] = unit if rigid is None else torch.where(rigid, forecast_r, unit)
+        full_r[fi] = torch.nn.functional.normalize(rots.detach(), dim=-1)
     return full_m, full_r, last_psnr
 
 

@@ -59,7 +59,6 @@ class FitOptions:
             bounced; the cut parts of the people are left to the per-Gaussian steps).
         part_scale: the resolution of the part steps, as a fraction of the fit resolution (images
             area-averaged).
-        rigid_free_parts: the free parts move only rigidly (their part steps), never Gaussian by Gaussian.
         lr_colors, lr_rotations, lr_opacities, lr_scales, lr_camera: Adam learning rates.
         seed: every random choice derives from it.
         device: "auto" (CUDA when available), "cpu" or "cuda".
@@ -92,7 +91,6 @@ class FitOptions:
     part_fraction: float = 0.5
     free_part_fraction: float = 0.25
     part_scale: float = 0.5
-    rigid_free_parts: bool = False
     lr_colors: float = 0.01
     lr_rotations: float = 0.001
     lr_rotations_later: float = 0.004
@@ -150,10 +148,8 @@ class FitOptions:
         if d["motion_step_range"] == 1.0:
             d.pop("motion_step_range")
         if d["part_extent"] == 0.0:
-            for name in ("part_extent", "part_fraction", "free_part_fraction", "part_scale", "rigid_free_parts"):
+            for name in ("part_extent", "part_fraction", "free_part_fraction", "part_scale"):
                 d.pop(name)
-        elif not d["rigid_free_parts"]:
-            d.pop("rigid_free_parts")
         if d["clean_plate_samples"] == 0:
             d.pop("clean_plate_samples")
             d["weights"] = {k: v for k, v in d["weights"].items() if k != "plate"}

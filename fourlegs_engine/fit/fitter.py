@@ -15,11 +15,12 @@ Per timestep, in order:
   the foreground whole at half resolution (:mod:`.clusters`: every part at the first later timestep, which
   has no velocity yet; later only the free ones such as a thrown ball, whose forecast fails when it is
   caught), then optimize only the foreground centres and rotations (colours, opacities, scales, colour
-  correction fixed) under the image and segmentation losses plus local rigidity, rotation similarity and long-term isometry over
-  the 20 nearest foreground neighbours of the first timestep, and a floor term. Background Gaussians
-  are held exactly still (the limit of the paper's heavily weighted background term), which makes
-  the background's contribution a fixed image per camera: each view blends the foreground alone over
-  that image (exact while the foreground is in front of the background along every ray).
+  correction fixed) under the image and segmentation losses plus local rigidity, rotation similarity and
+  long-term isometry over the 20 nearest foreground neighbours of the first timestep, and a floor term.
+  Background Gaussians are held exactly still (the limit of the paper's heavily weighted background
+  term), which makes the background's contribution a fixed image per camera: each view blends the
+  foreground alone over that image (exact while the foreground is in front of the background along
+  every ray).
 
 Finished timesteps are written to a work directory beside the output (``.NAME.fit/``); a killed fit
 resumes from there and produces the identical bundle (every random choice is seeded per timestep).

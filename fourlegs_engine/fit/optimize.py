@@ -280,7 +280,7 @@ def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingF
         first = prev2[0] is prev[0]  # no velocity known yet: the forecast is the previous timestep
         fraction = opts.part_fraction if first else opts.free_part_fraction
         part_steps = int(round(fraction * iterations))
-        if part_steps and fi.numel():
+        if part_steps and fi.numel() and (first or bool(tracker.free_parts.any())):
             forecast_m, forecast_r = move_parts(model, tracker, frames, opts, scene_radius, forecast_m, forecast_r,
                                                 generator, part_steps, only_free=not first)
     # the centres are the forecast plus a per-Gaussian step scale times what Adam moves: Adam's steps are

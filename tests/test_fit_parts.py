@@ -238,3 +238,21 @@ def test_later_part_steps_move_the_free_ball_and_leave_the_cut_person_where_the_
     moved = (m[torch.from_numpy(ball_fg)] - start_m[torch.from_numpy(ball_fg)]).mean(0).numpy()
     assert abs(moved[2] - 0.3) < 0.05 and abs(moved[0]) < 0.05 and abs(moved[1]) < 0.05, moved
 
+
+
+def test_a_later_timestep_without_free_parts_takes_no_part_steps():
+    from fourlegs_engine.fit.optimize import fit_later_timestep
+
+    def fit(no_parts: bool):
+        model, frames, train, opts, tracker, _ = _ball_problem(0.4)
+        if no_parts:
+            tracker.parts = tracker.free_parts = None
+        else:
+            tracker.free_parts = torch.zeros_like(tracker.free_parts)  # the ball cut too: nothing is free
+        prev = (model.means, model.rotations)
+        prev2 = (model.means.clone(), model.rotations.clone())  # a later timestep: not the first one
+        return fit_later_timestep(model, tracker, frames, train, opts, 4.0, prev, prev2,
+                                  torch.Generator().manual_seed(0), lambda ev: None, 2, 12)[:2]
+
+    skipped, plain = fit(False), fit(True)
+    assert torch.equal(skipped[0], plain[0]) and torch.equal(skipped[1], plain[1])

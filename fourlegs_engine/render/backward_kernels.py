@@ -137,6 +137,8 @@ def _count_py(offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, hei
             hi = min(boxes[k, 1], x0 + tw - 1)
             for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
                 r = y - y0
+                if row_live[r, 0] <= row_live[r, 1]:  # the forward's lanes cover the box's columns of a live row
+                    counters[2] += max(hi - lo + 1, 0)
                 lo_r = max(lo, x0 + row_live[r, 0])
                 hi_r = min(hi, x0 + row_live[r, 1])
                 if lo_r > hi_r:
@@ -146,7 +148,6 @@ def _count_py(offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, hei
                 row_stopped = 0
                 for x in range(xs, xe + 1):
                     p = r * tw + x - x0
-                    counters[2] += 1
                     t_before = transmittance[p]
                     if t_before < 0.0:
                         continue

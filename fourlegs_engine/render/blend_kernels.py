@@ -1,20 +1,28 @@
 """Fused CPU blending kernels (numba) over :class:`~.tile_lists.TileLists`: forward, backward, splat.
 
-Every kernel walks a tile's depth-ordered list front to back, one Gaussian at a time, and visits only
-the pixels of that Gaussian's footprint, row by row: for pixel row y the footprint
-{dᵀΣ⁻¹d ≤ q} is the x-interval centred at mx − b·dy/a with half-width sqrt(a·q − (ac − b²)·dy²)/a
-(:func:`_row_span`), so no pixel outside it is ever evaluated. Along a row the exponent is a quadratic
-in x, so α = o·exp(power) follows a two-term recurrence — G(x+1) = G(x)·R(x), R(x+1) = R(x)·e^(−a) —
-two multiplications per pixel instead of an exp (:data:`RECURRENCE_MAX_A` bounds where it is used; the
-steepest footprints, a handful of pixels wide, take one exp per pixel). Each pixel keeps its own
-transmittance and stops as in 3DGS; a row whose pixels have all stopped is skipped, a tile whose
+Every kernel walks a tile's depth-ordered list front to back, one Gaussian at a time. Each pixel keeps
+its own transmittance and stops as in 3DGS; a row whose pixels have all stopped is skipped, a tile whose
 pixels have all stopped ends its list.
+
+The forward kernels (:func:`_blend_narrow_py` for up to three channels, :func:`_blend_wide_py` for more)
+blend each pair's bounding box (clipped to the tile) in chunks of LANES columns, row after row, with the
+vector code of :mod:`.lane_kernels`: α follows a recurrence down the rows (two vector multiplications
+per row, six exps per chunk), and a row's lanes are tested, blended and counted at once. The table rows
+of the next list entries are prefetched (they are scattered over tables larger than the caches).
+
+The backward and splat kernels visit only the pixels of a Gaussian's footprint, row by row: for pixel
+row y the footprint {dᵀΣ⁻¹d ≤ q} is the x-interval centred at mx − b·dy/a with half-width
+sqrt(a·q − (ac − b²)·dy²)/a (:func:`_row_span`). Along a row the exponent is a quadratic in x, so α
+follows a two-term recurrence — G(x+1) = G(x)·R(x), R(x+1) = R(x)·e^(−a) — two multiplications per pixel
+instead of an exp (:data:`RECURRENCE_MAX_A` bounds where it is used; the steepest footprints, a handful
+of pixels wide, take one exp per pixel). Pixels outside the footprint have α < α_floor, so both walks
+blend the same pixels; their α agree to ~1e-13 relative (two recurrences of the same exponent), so they
+decide alike except for a pixel whose T lands within that margin of the stop threshold.
 
 The α test (α ≤ α_floor is skipped), the α_max clamp, the stop rule and the blending order are those of
 :mod:`.rasterizer`; arithmetic is float64 except the channel loops, which run in the working dtype.
 
-The backward pass recomputes α and T in the same order as the forward (the same code decides what is
-blended), and needs no back-to-front walk: with s_i = ∂L/∂w_i = g_p·v_i,
+The backward pass recomputes α and T in the same order as the forward, and needs no back-to-front walk: with s_i = ∂L/∂w_i = g_p·v_i,
 
     ∂L/∂α_i = T_i s_i − (Σ_{k>i} w_k s_k + T_final ∂L/∂T_final) / (1 − α_i)
 
@@ -29,6 +37,7 @@ import math
 import numpy as np
 
 from ..jit_cache import JIT_CACHE
+from .lane_kernels import LANES, blend_lanes, chunk_start, direct_row, fragment_lanes, prefetch
 
 try:  # pragma: no cover - exercised when numba is missing
     import numba
@@ -42,8 +51,10 @@ RECURRENCE_MAX_A = 16.0
 SPAN_SLACK_PX = 1e-6
 #: relative slack on a row's squared half-width (rounding at rows tangent to the footprint)
 SPAN_SLACK_REL = 1e-12
-#: channels the narrow forward kernel keeps next to each pixel's T (fewer are zero-padded)
+#: channels the narrow forward kernel blends in planes beside T (fewer are zero)
 NARROW_LANES = 3
+#: list entries the forward kernels prefetch ahead of the one they blend
+PREFETCH_AHEAD = 8
 #: fragments the many-channel kernels collect before forming their channel sums
 FRAGMENT_BATCH = 1 << 14
 
@@ -128,99 +139,96 @@ def _gauss_at_py(packed, k, x, y):  # pragma: no cover - compiled by numba
     return math.exp(log_o - 0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy))
 
 
-def _row_blend3_py(state, p0, n, gauss, ratio, step, v0, v1, v2, alpha_floor, alpha_max,
-                   transmittance_min):  # pragma: no cover - compiled by numba
-    """Blend one row segment of one Gaussian into the tile state (P, 4) = (T, three channel sums) per
-    pixel, interleaved so a pixel is one 32-byte load and store: pixels p0 .. p0 + n − 1, α following
-    the recurrence from (gauss, ratio, step). Returns how many pixels stopped (their T is stored
-    negated). Indices are unsigned (no negative-index wraparound code in the loop)."""
-    stopped = 0
-    for i in range(n):
-        alpha = gauss
-        gauss *= ratio
-        ratio *= step
-        p = p0 + np.uint64(i)
-        t_before = state[p, 0]
-        if t_before < 0.0:
-            continue
-        if alpha > alpha_max:
-            alpha = alpha_max
-        if alpha <= alpha_floor:
-            continue
-        after = t_before * (1.0 - alpha)
-        if after < transmittance_min:
-            state[p, 0] = -t_before
-            stopped += 1
-            continue
-        w = alpha * t_before
-        state[p, 0] = after
-        state[p, 1] += w * v0
-        state[p, 2] += w * v1
-        state[p, 3] += w * v2
-    return stopped
-
-
 def _blend_narrow_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile_h, width, height, values,
                      alpha_floor, alpha_max, transmittance_min, accum, transmittance_out):  # pragma: no cover
     """accum[p, :C] = Σ_i w_i(p)·values[g_i, :C] and transmittance_out[p] = T_final for the pixels of
-    ``tiles``, for C ≤ 3 channels (values (N, C), g_i = order[rank]); each pixel's T and channel sums
-    (float64) sit together in one 32-byte row of the tile state.
+    ``tiles``, for C ≤ 3 channels (values (N, C), g_i = order[rank]), each pair's box blended in chunks of
+    LANES columns by :func:`~.lane_kernels.blend_lanes` into float64 planes (T, three channel sums).
 
     Arrays: see :class:`~.tile_lists.TileLists`; accum (H·W, C) and transmittance_out (H·W,) are written
     for every pixel of the listed tiles (tiles own disjoint pixels, so tile subsets run concurrently).
-    A stopped pixel keeps −T in ``transmittance`` (T ≥ transmittance_min > 0, so the sign is free).
+    A stopped pixel keeps −T in ``trans`` (T ≥ transmittance_min > 0, so the sign is free).
     """
     channels = accum.shape[1]
-    n_pix = tile_w * tile_h
-    state = np.empty((n_pix, NARROW_LANES + 1), dtype=np.float64)
-    transmittance = state[:, 0]
-    row_live = np.empty((tile_h, 2), dtype=np.int64)
-    seg_p0 = np.empty(tile_h, dtype=np.uint64)
-    seg_n = np.empty(tile_h, dtype=np.int64)
-    seg_row = np.empty(tile_h, dtype=np.int64)
-    seg_exp = np.empty(2 * tile_h, dtype=np.float64)
+    pitch = tile_w + LANES  # a chunk's vector reaches LANES − 1 columns past its row's last pixel
+    plane = tile_h * pitch
+    trans = np.empty(plane, dtype=np.float64)
+    c0 = np.empty(plane, dtype=np.float64)
+    c1 = np.empty(plane, dtype=np.float64)
+    c2 = np.empty(plane, dtype=np.float64)
+    lanes = np.empty(2 * LANES, dtype=np.float64)
+    row_live = np.empty(tile_h, dtype=np.int64)
     for tile in tiles:
-        x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
-        state[:tw * th, 1:] = 0.0
+        x0, y0, tw, th = _tile_origin(tile, tiles_x, tile_w, tile_h, width, height)
+        trans[:] = 1.0
+        c0[:] = 0.0
+        c1[:] = 0.0
+        c2[:] = 0.0
+        row_live[:th] = tw
         live = tw * th
-        for m in range(offsets[tile], offsets[tile + 1]):
+        end = offsets[tile + 1]
+        for m in range(offsets[tile], end):
             k = ranks[m]
-            n_seg, recurrence, step = _row_segments(packed, boxes, k, x0, y0, tw, th, row_live, seg_p0, seg_n,
-                                                    seg_row, seg_exp)
-            if n_seg == 0:
-                continue
+            if m + PREFETCH_AHEAD < end:
+                ahead = ranks[m + PREFETCH_AHEAD]
+                prefetch(packed, ahead)
+                prefetch(boxes, ahead)
+                prefetch(values, order[ahead])
+            bx0, bx1 = max(boxes[k, 0], x0), min(boxes[k, 1], x0 + tw - 1)
+            by0, by1 = max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1)
             vals = values[order[k]]
             v0 = np.float64(vals[0]) if channels > 0 else 0.0
             v1 = np.float64(vals[1]) if channels > 1 else 0.0
             v2 = np.float64(vals[2]) if channels > 2 else 0.0
-            for i in range(n_seg):
-                if recurrence:
-                    stopped = _row_blend3(state, seg_p0[i], seg_n[i], seg_exp[2 * i], seg_exp[2 * i + 1], step,
-                                          v0, v1, v2, alpha_floor, alpha_max, transmittance_min)
-                else:  # steep footprint, a few pixels wide: α evaluated directly, one pixel at a time
-                    stopped = 0
-                    y = y0 + seg_row[i]
-                    xs = x0 + int(seg_p0[i]) - seg_row[i] * tw
-                    for j in range(seg_n[i]):
-                        stopped += _row_blend3(state, seg_p0[i] + np.uint64(j), 1, _gauss_at(packed, k, xs + j, y),
-                                               1.0, 1.0, v0, v1, v2, alpha_floor, alpha_max, transmittance_min)
-                if stopped:
-                    _shrink_row(transmittance, row_live, seg_row[i], tw)
-                live -= stopped
+            for cx in range(bx0, bx1 + 1, LANES):
+                n_lanes = min(LANES, bx1 - cx + 1)
+                step = chunk_start(packed, k, cx, by0, cx + n_lanes - 1, by1, lanes)
+                direct = step < 0.0
+                for y in range(by0, by1 + 1):
+                    r = y - y0
+                    if direct:
+                        direct_row(packed, k, cx, y, lanes)
+                    if row_live[r] == 0:
+                        _skip_row(lanes, step)
+                        continue
+                    stopped = blend_lanes(trans, c0, c1, c2, lanes, r * pitch + cx - x0, n_lanes,
+                                          1.0 if direct else step, v0, v1, v2, alpha_floor, alpha_max,
+                                          transmittance_min)
+                    row_live[r] -= stopped
+                    live -= stopped
             if live == 0:
                 break
         for r in range(th):
             row = (y0 + r) * width + x0
             for x in range(tw):
-                p = r * tw + x
-                transmittance_out[row + x] = abs(state[p, 0])
-                for s in range(channels):
-                    accum[row + x, s] = state[p, 1 + s]
+                p = r * pitch + x
+                transmittance_out[row + x] = abs(trans[p])
+                if channels > 0:
+                    accum[row + x, 0] = c0[p]
+                if channels > 1:
+                    accum[row + x, 1] = c1[p]
+                if channels > 2:
+                    accum[row + x, 2] = c2[p]
+
+
+def _tile_origin_py(tile, tiles_x, tile_w, tile_h, width, height):  # pragma: no cover - compiled by numba
+    """(x0, y0, tile width, tile height) of tile number ``tile`` (edge tiles are cut by the image)."""
+    x0 = (tile % tiles_x) * tile_w
+    y0 = (tile // tiles_x) * tile_h
+    return x0, y0, min(tile_w, width - x0), min(tile_h, height - y0)
+
+
+def _skip_row_py(lanes, step):  # pragma: no cover - compiled by numba
+    """Advance a chunk's α recurrence past a row without blending it (nothing to do for direct rows)."""
+    if step >= 0.0:
+        for lane in range(LANES):
+            lanes[lane] *= lanes[LANES + lane]
+            lanes[LANES + lane] *= step
 
 
 def _row_fragments_py(transmittance, p0, n, gauss, ratio, step, alpha_floor, alpha_max, transmittance_min,
                       frag_pixel, frag_weight, frag_alpha, n_frag):  # pragma: no cover - compiled by numba
-    """Blend one row segment's α into the tile's transmittance (as :func:`_row_blend3_py`) and append
+    """Blend one row segment's α into the tile's transmittance (the rule of :func:`~.lane_kernels.blend_lanes`) and append
     its fragments (pixel, weight w = α·T, α). Returns (fragments now, pixels stopped)."""
     stopped = 0
     for i in range(n):
@@ -314,25 +322,24 @@ def _blend_wide_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w,
                    alpha_floor, alpha_max, transmittance_min, accum, transmittance_out):  # pragma: no cover
     """As :func:`_blend_narrow_py` for any number of channels: values (N, C) indexed by Gaussian id
     (order[rank]). Two phases per batch of list entries: the fragments (pixel, w) of every entry
-    (scalar work, as in the narrow kernel), then the channel sums acc[pixel] += w·values[g] over
-    them (SIMD over the channels, in accum's dtype)."""
+    (:func:`~.lane_kernels.fragment_lanes`, chunk rows as in the narrow kernel), then the channel sums
+    acc[pixel] += w·values[g] over them (SIMD over the channels, in accum's dtype)."""
     channels = values.shape[1]
     n_pix = tile_w * tile_h
-    transmittance = np.empty(n_pix, dtype=np.float64)
-    row_live = np.empty((tile_h, 2), dtype=np.int64)
+    pitch = tile_w + LANES
+    trans = np.empty(tile_h * pitch, dtype=np.float64)
+    lanes = np.empty(2 * LANES, dtype=np.float64)
+    row_live = np.empty(tile_h, dtype=np.int64)
     acc = np.empty((n_pix, channels), dtype=accum.dtype)
-    seg_p0 = np.empty(tile_h, dtype=np.uint64)
-    seg_n = np.empty(tile_h, dtype=np.int64)
-    seg_row = np.empty(tile_h, dtype=np.int64)
-    seg_exp = np.empty(2 * tile_h, dtype=np.float64)
     capacity = max(FRAGMENT_BATCH, 2 * n_pix)
     frag_pixel = np.empty(capacity, dtype=np.uint64)
     frag_weight = np.empty(capacity, dtype=accum.dtype)
-    frag_alpha = np.empty(capacity, dtype=np.float64)
     entry_gaussian = np.empty(capacity, dtype=np.int64)
     entry_start = np.empty(capacity + 1, dtype=np.int64)
     for tile in tiles:
-        x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
+        x0, y0, tw, th = _tile_origin(tile, tiles_x, tile_w, tile_h, width, height)
+        trans[:] = 1.0
+        row_live[:th] = tw
         acc[:tw * th] = 0
         live = tw * th
         n_frag = 0
@@ -343,7 +350,11 @@ def _blend_wide_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w,
             # channel sums of the batch so far: at the end, or before its fragments or entries could overflow
             if m == end or live == 0 or n_frag + tw * th > capacity or n_entry == capacity:
                 entry_start[n_entry] = n_frag
+                for e in range(min(n_entry, PREFETCH_AHEAD)):
+                    prefetch(values, entry_gaussian[e])
                 for e in range(n_entry):
+                    if e + PREFETCH_AHEAD < n_entry:
+                        prefetch(values, entry_gaussian[e + PREFETCH_AHEAD])
                     vals = values[entry_gaussian[e]]
                     for f in range(entry_start[e], entry_start[e + 1]):
                         acc_row = acc[frag_pixel[f]]
@@ -355,18 +366,36 @@ def _blend_wide_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w,
                 if m == end or live == 0:
                     break
             k = ranks[m]
+            if m + PREFETCH_AHEAD < end:
+                ahead = ranks[m + PREFETCH_AHEAD]
+                prefetch(packed, ahead)
+                prefetch(boxes, ahead)
             entry_gaussian[n_entry] = order[k]
             entry_start[n_entry] = n_frag
             n_entry += 1
-            n_frag, stopped = _pair_fragments(packed, boxes, k, x0, y0, tw, th, transmittance, row_live, seg_p0, seg_n,
-                                              seg_row, seg_exp, alpha_floor, alpha_max, transmittance_min, frag_pixel,
-                                              frag_weight, frag_alpha, n_frag)
-            live -= stopped
+            bx0, bx1 = max(boxes[k, 0], x0), min(boxes[k, 1], x0 + tw - 1)
+            by0, by1 = max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1)
+            for cx in range(bx0, bx1 + 1, LANES):
+                n_lanes = min(LANES, bx1 - cx + 1)
+                step = chunk_start(packed, k, cx, by0, cx + n_lanes - 1, by1, lanes)
+                direct = step < 0.0
+                for y in range(by0, by1 + 1):
+                    r = y - y0
+                    if direct:
+                        direct_row(packed, k, cx, y, lanes)
+                    if row_live[r] == 0:
+                        _skip_row(lanes, step)
+                        continue
+                    n_frag, stopped = fragment_lanes(trans, lanes, r * pitch + cx - x0, n_lanes, 1.0 if direct else step,
+                                                     r * tw + cx - x0, frag_pixel, frag_weight, n_frag, alpha_floor,
+                                                     alpha_max, transmittance_min)
+                    row_live[r] -= stopped
+                    live -= stopped
         for r in range(th):
             row = (y0 + r) * width + x0
             for x in range(tw):
                 p = r * tw + x
-                transmittance_out[row + x] = abs(transmittance[p])
+                transmittance_out[row + x] = abs(trans[r * pitch + x])
                 out_row = accum[row + x]
                 acc_row = acc[p]
                 for s in range(channels):
@@ -429,13 +458,15 @@ if numba is not None:
     _row_start = _jit_inline(_row_start_py)
     _gauss_at = _jit_inline(_gauss_at_py)
     _jit = numba.njit(nogil=True, cache=JIT_CACHE)
-    _row_blend3 = _jit_inline(_row_blend3_py)
     _blend_narrow = _jit(_blend_narrow_py)
+    _tile_origin = _jit_inline(_tile_origin_py)
+    _skip_row = _jit_inline(_skip_row_py)
     _row_fragments = _jit_inline(_row_fragments_py)
     _row_segments = _jit_inline(_row_segments_py)
     _pair_fragments = _jit_inline(_pair_fragments_py)
     _blend_wide = _jit(_blend_wide_py)
     _splat = _jit(_splat_py)
 else:  # pragma: no cover
-    _pair_setup = _row_span = _tile_reset = _shrink_row = _row_start = _gauss_at = _row_blend3 = None
+    _pair_setup = _row_span = _tile_reset = _shrink_row = _row_start = _gauss_at = None
     _blend_narrow = _blend_wide = _splat = _row_fragments = _row_segments = _pair_fragments = None
+    _tile_origin = _skip_row = None

@@ -222,7 +222,8 @@ def count_work(means: torch.Tensor, rotations: torch.Tensor, log_scales: torch.T
 
     * ``in_boxes``: pixels inside the visible Gaussians' bounding boxes;
     * ``in_footprints``: of those, the ones where α ≥ alpha_min (ignoring occlusion);
-    * ``evaluated``: the pairs the v2 kernels evaluate (row footprints, live pixels);
+    * ``evaluated``: the pairs the v2 forward evaluates (each pair's box columns in the tile, on the rows
+      that still have pixels to blend);
     * ``blended``: the pairs actually blended (front to back, until each pixel stops);
     * ``tile_pairs``, ``tile_pairs_in_boxes``: tile–Gaussian list entries of the v2 lists, and how many
       the bounding boxes alone would give; ``visible``: Gaussians drawn.

@@ -1,0 +1,326 @@
+"""SIMD blending of one Gaussian over a chunk of :data:`LANES` pixel columns, row after row (numba + LLVM).
+
+The forward kernels of :mod:`.blend_kernels` cut each tile–Gaussian pair's bounding box into chunks of
+:data:`LANES` columns and walk a chunk's rows. α in lane l of row y is exp(E(x_l, y)) with
+E = ln o − ½(a dx² + 2b dx dy + c dy²), a quadratic, so from one row to the next
+
+    α(x_l, y + 1) = α(x_l, y)·ρ_l(y),    ρ_l(y + 1) = ρ_l(y)·e^(−c)
+
+(:func:`chunk_start_py` evaluates α and ρ of the chunk's first row, with six exps per chunk): a row costs two
+vector multiplications for α, then the blend of all its lanes at once — the α floor and clamp, the stop
+rule and T·(1 − α), the weights and the channel sums — as explicit LLVM vector code (:func:`blend_lanes`,
+:func:`fragment_lanes`), whatever numba's vectorizer makes of a loop. Each lane keeps the scalar
+kernels' arithmetic exactly (no fused multiply-add, no reassociation), so a lane's result is the
+scalar rule applied to its α.
+
+The recurrence multiplies factors e^(±|E|); while every exponent it passes through on the chunk is at
+least :data:`RECURRENCE_MIN_EXPONENT` they all stay normal float64 numbers and α keeps ~100 ulp of
+relative accuracy. :func:`chunk_start_py` checks that on the chunk's corners (E is concave for a positive
+definite conic, so its minimum over a rectangle is at a corner) and otherwise returns −1: the caller
+then evaluates α directly, one exp per lane (:func:`direct_row_py`).
+
+Every function here is also plain Python (the float64 reference the tests hold the LLVM code to); numba
+compiles :func:`blend_lanes` and :func:`fragment_lanes` to the vector code through ``overload``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+try:  # pragma: no cover - exercised when numba is missing
+    import numba
+    from llvmlite import ir
+    from numba import types
+    from numba.extending import intrinsic, overload
+except ImportError:  # pragma: no cover
+    numba = None
+
+#: pixel columns blended together (one LLVM vector; two AVX-512 registers of float64)
+LANES = 16
+#: the α recurrence is used on a chunk while every exponent on it is at least this (see the module doc)
+RECURRENCE_MIN_EXPONENT = -600.0
+#: bytes the CPU loads at a time (:func:`prefetch` touches one address per line)
+CACHE_LINE = 64
+
+
+def _exponent_py(mx, my, a, b, c, log_o, x, y):  # pragma: no cover - compiled by numba
+    """E = ln α at pixel (x, y) (centre at +0.5) before the clamp."""
+    dx = x + 0.5 - mx
+    dy = y + 0.5 - my
+    return log_o - 0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)
+
+
+def chunk_start_py(packed, k, cx, cy, x_last, y_last, lanes):  # pragma: no cover - compiled by numba
+    """Start the row recurrence of Gaussian rank k on the chunk of columns cx .. x_last, rows cy .. y_last.
+
+    Fills ``lanes`` (2·LANES,) float64: lanes[l] = α(cx + l, cy) before the clamp and lanes[LANES + l] =
+    α(cx + l, cy + 1)/α(cx + l, cy), for every l < LANES (lanes past x_last included: the blend masks them).
+    Returns the per-row factor e^(−c) of the ratios, or −1 when the recurrence does not apply (conic not
+    positive definite, or an exponent below :data:`RECURRENCE_MIN_EXPONENT` on [cx, x_last + 1] ×
+    [cy, y_last + 1]); the ratios are then 1 and the caller fills α row by row (:func:`direct_row_py`).
+    """
+    mx, my, a, b, c, log_o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], packed[k, 6]
+    lowest = min(min(_exponent(mx, my, a, b, c, log_o, cx, cy), _exponent(mx, my, a, b, c, log_o, x_last + 1, cy)),
+                 min(_exponent(mx, my, a, b, c, log_o, cx, y_last + 1),
+                     _exponent(mx, my, a, b, c, log_o, x_last + 1, y_last + 1)))
+    if not (a > 0.0 and a * c - b * b > 0.0 and lowest >= RECURRENCE_MIN_EXPONENT):
+        for lane in range(LANES):
+            lanes[LANES + lane] = 1.0
+        return -1.0
+    dx = cx + 0.5 - mx
+    dy = cy + 0.5 - my
+    gauss = math.exp(log_o - 0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy))
+    along_x = math.exp(-(a * dx + b * dy) - 0.5 * a)  # α(x + 1, y)/α(x, y) at lane 0
+    along_x_step = math.exp(-a)
+    along_y = math.exp(-(b * dx + c * dy) - 0.5 * c)  # α(x, y + 1)/α(x, y) at lane 0
+    along_y_step = math.exp(-b)
+    for lane in range(LANES):
+        lanes[lane] = gauss
+        lanes[LANES + lane] = along_y
+        gauss *= along_x
+        along_x *= along_x_step
+        along_y *= along_y_step
+    return math.exp(-c)
+
+
+def direct_row_py(packed, k, cx, y, lanes):  # pragma: no cover - compiled by numba
+    """lanes[l] = α(cx + l, y) before the clamp, one exp per lane (where :func:`chunk_start_py` returned −1)."""
+    mx, my, a, b, c, log_o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], packed[k, 6]
+    for lane in range(LANES):
+        lanes[lane] = math.exp(_exponent(mx, my, a, b, c, log_o, cx + lane, y))
+
+
+def _lane_rule(gauss, t_before, lane, n_lanes, alpha_floor, alpha_max, transmittance_min):
+    """One lane of the blend: (T to store, weight w = α·T or 0, stopped here, blended here)."""
+    alpha = gauss if gauss < alpha_max else alpha_max
+    ok = lane < n_lanes and t_before > 0.0 and alpha > alpha_floor
+    after = t_before * (1.0 - alpha)
+    if ok and after < transmittance_min:
+        return -t_before, 0.0, True, False
+    if ok:
+        return after, alpha * t_before, False, True
+    return t_before, 0.0, False, False
+
+
+def blend_lanes(trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, alpha_floor, alpha_max,
+                transmittance_min):
+    """Blend one chunk row: pixels base .. base + LANES − 1 of the tile planes (T, three channel sums),
+    lanes l < n_lanes only, α = lanes[l] (then α ← α·ratio, ratio ← ratio·step for the next row).
+
+    Arrays: trans, c0, c1, c2 float64 planes with at least base + LANES entries; a stopped pixel keeps
+    −T (T ≥ transmittance_min > 0, so the sign is free). Returns how many pixels stopped in this row.
+    """
+    stopped = 0
+    for lane in range(LANES):
+        p = base + lane
+        t_new, w, stop, _ = _lane_rule(lanes[lane], trans[p], lane, n_lanes, alpha_floor, alpha_max,
+                                       transmittance_min)
+        trans[p] = t_new
+        c0[p] += w * v0
+        c1[p] += w * v1
+        c2[p] += w * v2
+        stopped += stop
+        lanes[lane] *= lanes[LANES + lane]
+        lanes[LANES + lane] *= step
+    return stopped
+
+
+def fragment_lanes(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, n_frag, alpha_floor,
+                   alpha_max, transmittance_min):
+    """As :func:`blend_lanes` without channels: each blended lane appends a fragment (pixel_base + l,
+    w = α·T) at frag_pixel/frag_weight[n_frag ...], in lane order. Returns (fragments now, pixels stopped)."""
+    stopped = 0
+    for lane in range(LANES):
+        p = base + lane
+        t_new, w, stop, blend = _lane_rule(lanes[lane], trans[p], lane, n_lanes, alpha_floor, alpha_max,
+                                           transmittance_min)
+        if blend:
+            frag_pixel[n_frag] = pixel_base + lane
+            frag_weight[n_frag] = w
+            n_frag += 1
+        trans[p] = t_new
+        stopped += stop
+        lanes[lane] *= lanes[LANES + lane]
+        lanes[LANES + lane] *= step
+    return n_frag, stopped
+
+
+def prefetch(array, row):
+    """Ask the CPU to start loading every cache line of ``array[row]`` (a hint; nothing in Python), for an
+    array whose rows are contiguous (a row's bytes are its stride).
+
+    The tile lists visit Gaussians in depth order, scattered over tables larger than the caches; the
+    kernels prefetch a few list entries ahead so the loads overlap the blending instead of stalling it.
+    """
+
+
+if numba is not None:
+    _jit_inline = numba.njit(nogil=True, inline="always")
+    _exponent = _jit_inline(_exponent_py)
+    chunk_start = _jit_inline(chunk_start_py)
+    direct_row = _jit_inline(direct_row_py)
+
+    def _vector_helpers(builder):
+        """Constructors for <LANES x double> / <LANES x i64> values in ``builder``."""
+        f64, i64, i32 = ir.DoubleType(), ir.IntType(64), ir.IntType(32)
+        vec, ivec = ir.VectorType(f64, LANES), ir.VectorType(i64, LANES)
+        zeros = ir.Constant(ir.VectorType(i32, LANES), [0] * LANES)
+
+        def splat(value, vector_type):
+            one = builder.insert_element(ir.Constant(vector_type, ir.Undefined), value, ir.Constant(i32, 0))
+            return builder.shuffle_vector(one, ir.Constant(vector_type, ir.Undefined), zeros)
+
+        return vec, ivec, splat
+
+    def _vector_pointer(context, builder, array_type, array, offset, element_type):
+        data = context.make_array(array_type)(context, builder, array).data
+        return builder.bitcast(builder.gep(data, [offset]), ir.VectorType(element_type, LANES).as_pointer())
+
+    def _lane_rule_ir(builder, gauss, t_before, n_lanes, alpha_floor, alpha_max, transmittance_min):
+        """The vector form of :func:`_lane_rule`: (α, T to store, w, stop mask, blend mask)."""
+        vec, ivec, splat = _vector_helpers(builder)
+        amax = splat(alpha_max, vec)
+        alpha = builder.select(builder.fcmp_ordered("<", gauss, amax), gauss, amax)
+        zero = ir.Constant(vec, [0.0] * LANES)
+        in_chunk = builder.icmp_signed("<", ir.Constant(ivec, list(range(LANES))), splat(n_lanes, ivec))
+        ok = builder.and_(builder.and_(in_chunk, builder.fcmp_ordered(">", t_before, zero)),
+                          builder.fcmp_ordered(">", alpha, splat(alpha_floor, vec)))
+        after = builder.fmul(t_before, builder.fsub(ir.Constant(vec, [1.0] * LANES), alpha))
+        low = builder.fcmp_ordered("<", after, splat(transmittance_min, vec))
+        stop = builder.and_(ok, low)
+        blend = builder.and_(ok, builder.not_(low))
+        t_new = builder.select(stop, builder.fneg(t_before), builder.select(blend, after, t_before))
+        weight = builder.select(blend, builder.fmul(alpha, t_before), zero)
+        return t_new, weight, stop, blend
+
+    def _advance_ir(context, builder, lanes_type, lanes, step):
+        """α ← α·ratio, ratio ← ratio·step in ``lanes``; returns the α vector before the update."""
+        vec, _, splat = _vector_helpers(builder)
+        f64, i64 = ir.DoubleType(), ir.IntType(64)
+        gauss_ptr = _vector_pointer(context, builder, lanes_type, lanes, ir.Constant(i64, 0), f64)
+        ratio_ptr = _vector_pointer(context, builder, lanes_type, lanes, ir.Constant(i64, LANES), f64)
+        gauss = builder.load(gauss_ptr, align=8)
+        ratio = builder.load(ratio_ptr, align=8)
+        builder.store(builder.fmul(gauss, ratio), gauss_ptr, align=8)
+        builder.store(builder.fmul(ratio, splat(step, vec)), ratio_ptr, align=8)
+        return gauss
+
+    def _popcount(builder, mask):
+        count = builder.module.declare_intrinsic("llvm.ctpop", [ir.IntType(LANES)])
+        return builder.zext(builder.call(count, [builder.bitcast(mask, ir.IntType(LANES))]), ir.IntType(64))
+
+    def _compress_store(builder, values, pointer, mask):
+        """llvm.masked.compressstore: the masked lanes of ``values`` stored one after another at ``pointer``."""
+        element = values.type.element
+        suffix = {ir.DoubleType(): "f64", ir.FloatType(): "f32", ir.IntType(64): "i64"}[element]
+        name = f"llvm.masked.compressstore.v{LANES}{suffix}"
+        function = builder.module.globals.get(name)
+        if function is None:
+            function = ir.Function(builder.module, ir.FunctionType(ir.VoidType(), [values.type, element.as_pointer(),
+                                                                                  mask.type]), name=name)
+        builder.call(function, [values, builder.bitcast(pointer, element.as_pointer()), mask])
+
+    @intrinsic
+    def _blend_lanes_ir(typingctx, trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, alpha_floor,
+                        alpha_max, transmittance_min):
+        signature = types.int64(trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, alpha_floor, alpha_max,
+                                transmittance_min)
+
+        def codegen(context, builder, sig, args):
+            (trans_a, c0_a, c1_a, c2_a, lanes_a, base_v, n_lanes_v, step_v, v0_v, v1_v, v2_v, floor_v, amax_v,
+             tmin_v) = args
+            vec, _, splat = _vector_helpers(builder)
+            f64 = ir.DoubleType()
+            gauss = _advance_ir(context, builder, sig.args[4], lanes_a, step_v)
+            t_ptr = _vector_pointer(context, builder, sig.args[0], trans_a, base_v, f64)
+            t_new, weight, stop, _ = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v, floor_v,
+                                                   amax_v, tmin_v)
+            builder.store(t_new, t_ptr, align=8)
+            for array_type, array, value in ((sig.args[1], c0_a, v0_v), (sig.args[2], c1_a, v1_v),
+                                             (sig.args[3], c2_a, v2_v)):
+                ptr = _vector_pointer(context, builder, array_type, array, base_v, f64)
+                builder.store(builder.fadd(builder.load(ptr, align=8), builder.fmul(weight, splat(value, vec))), ptr,
+                              align=8)
+            return _popcount(builder, stop)
+
+        return signature, codegen
+
+    @intrinsic
+    def _fragment_lanes_ir(typingctx, trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, n_frag,
+                           alpha_floor, alpha_max, transmittance_min):
+        result = types.UniTuple(types.int64, 2)
+        signature = result(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, n_frag,
+                           alpha_floor, alpha_max, transmittance_min)
+
+        def codegen(context, builder, sig, args):
+            (trans_a, lanes_a, base_v, n_lanes_v, step_v, pixel_base_v, pixel_a, weight_a, n_frag_v, floor_v, amax_v,
+             tmin_v) = args
+            _, ivec, splat = _vector_helpers(builder)
+            f64, i64 = ir.DoubleType(), ir.IntType(64)
+            gauss = _advance_ir(context, builder, sig.args[1], lanes_a, step_v)
+            t_ptr = _vector_pointer(context, builder, sig.args[0], trans_a, base_v, f64)
+            t_new, weight, stop, blend = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v,
+                                                       floor_v, amax_v, tmin_v)
+            builder.store(t_new, t_ptr, align=8)
+            pixels = builder.add(splat(pixel_base_v, ivec), ir.Constant(ivec, list(range(LANES))))
+            pixel_data = context.make_array(sig.args[6])(context, builder, pixel_a).data
+            _compress_store(builder, pixels, builder.gep(pixel_data, [n_frag_v]), blend)
+            weight_type = context.get_value_type(sig.args[7].dtype)
+            if weight_type != f64:
+                weight = builder.fptrunc(weight, ir.VectorType(weight_type, LANES))
+            weight_data = context.make_array(sig.args[7])(context, builder, weight_a).data
+            _compress_store(builder, weight, builder.gep(weight_data, [n_frag_v]), blend)
+            count = builder.add(n_frag_v, _popcount(builder, blend))
+            return context.make_tuple(builder, result, [count, _popcount(builder, stop)])
+
+        return signature, codegen
+
+    @intrinsic
+    def _prefetch_ir(typingctx, array, row, byte_offset):
+        def codegen(context, builder, sig, args):
+            array_type = sig.args[0]
+            view = context.make_array(array_type)(context, builder, args[0])
+            stride = builder.extract_value(view.strides, 0)
+            address = builder.add(builder.ptrtoint(view.data, ir.IntType(64)),
+                                  builder.add(builder.mul(args[1], stride), args[2]))
+            i8_ptr = ir.IntType(8).as_pointer()
+            i32 = ir.IntType(32)
+            hint = builder.module.globals.get("llvm.prefetch.p0")
+            if hint is None:
+                hint = ir.Function(builder.module, ir.FunctionType(ir.VoidType(), [i8_ptr, i32, i32, i32]),
+                                   name="llvm.prefetch.p0")
+            builder.call(hint, [builder.inttoptr(address, i8_ptr), ir.Constant(i32, 0), ir.Constant(i32, 3),
+                                ir.Constant(i32, 1)])
+            return context.get_dummy_value()
+
+        return types.none(array, types.int64, types.int64), codegen
+
+    @overload(prefetch, inline="always")
+    def _prefetch_overload(array, row):
+        def implementation(array, row):
+            for offset in range(0, array.strides[0], CACHE_LINE):
+                _prefetch_ir(array, np.int64(row), np.int64(offset))
+        return implementation
+
+    @overload(blend_lanes, inline="always")
+    def _blend_lanes_overload(trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, alpha_floor, alpha_max,
+                              transmittance_min):
+        def implementation(trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, alpha_floor, alpha_max,
+                           transmittance_min):
+            return _blend_lanes_ir(trans, c0, c1, c2, lanes, np.int64(base), np.int64(n_lanes), np.float64(step),
+                                   np.float64(v0), np.float64(v1), np.float64(v2), np.float64(alpha_floor),
+                                   np.float64(alpha_max), np.float64(transmittance_min))
+        return implementation
+
+    @overload(fragment_lanes, inline="always")
+    def _fragment_lanes_overload(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, n_frag,
+                                 alpha_floor, alpha_max, transmittance_min):
+        def implementation(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, n_frag,
+                           alpha_floor, alpha_max, transmittance_min):
+            return _fragment_lanes_ir(trans, lanes, np.int64(base), np.int64(n_lanes), np.float64(step),
+                                      np.int64(pixel_base), frag_pixel, frag_weight, np.int64(n_frag),
+                                      np.float64(alpha_floor), np.float64(alpha_max), np.float64(transmittance_min))
+        return implementation
+else:  # pragma: no cover
+    _exponent, chunk_start, direct_row = _exponent_py, chunk_start_py, direct_row_py

@@ -361,7 +361,8 @@ def run_bench(cfg: RenderBenchOptions, progress=None) -> list[dict]:
 # ------------------------------------------------------------------------------------------ report
 def markdown_report(records: list[dict], command: str, env: dict) -> str:
     lines = [f"Command: `{command}`", "", f"Machine: {env.get('machine', '')}; torch {env.get('torch', '')}, "
-             f"{env.get('threads', '?')} threads, OpenMP wait policy {env.get('omp_wait_policy', '?')}", ""]
+             f"{env.get('threads', '?')} threads, OpenMP wait policy {env.get('omp_wait_policy', '?')}, freed memory "
+             f"{'kept (glibc thresholds raised)' if env.get('freed_memory_kept') else 'returned to the system'}", ""]
     speed = [r for r in records if r["part"] == "speed"]
     if speed:
         res = f"{speed[0]['width']}×{speed[0]['height']}"
@@ -457,10 +458,11 @@ def plot_knobs(records: list[dict], path) -> None:
 
 def environment() -> dict:
     import platform
+    from fourlegs_engine.memory import freed_memory_kept
     from fourlegs_engine.threads import openmp_wait_policy
     return {"machine": f"{platform.machine()} {os.cpu_count()} CPUs", "torch": torch.__version__,
             "threads": torch.get_num_threads(), "python": platform.python_version(),
-            "omp_wait_policy": openmp_wait_policy()}
+            "omp_wait_policy": openmp_wait_policy(), "freed_memory_kept": freed_memory_kept()}
 
 
 def _ints(text: str, name: str) -> tuple[int, ...]:

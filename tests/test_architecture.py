@@ -16,7 +16,7 @@ REPO = Path(__file__).resolve().parents[1]
 ENGINE = REPO / "fourlegs_engine"
 #: engine packages in data-flow order; a module may import its own layer and the ones before it; the
 #: command line (``commands``) is the last layer and the only one that may use argparse
-LAYERS = {"errors": 0, "fileio": 0, "jit_cache": 0, "lazy": 0, "lifetime": 0, "options_json": 0, "paths": 0,
+LAYERS = {"errors": 0, "fileio": 0, "jit_cache": 0, "lazy": 0, "lifetime": 0, "memory": 0, "options_json": 0, "paths": 0,
           "runlock": 0, "threads": 0, "validate": 0,
           "scene": 1, "render": 2, "fit": 3, "language": 3, "cluster": 3, "demo": 4, "query": 5, "highlights": 6,
           "pipeline": 7, "highlight_job": 8, "api": 8, "commands": 9}

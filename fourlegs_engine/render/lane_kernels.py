@@ -155,6 +155,10 @@ def prefetch(array, row):
     """
 
 
+def prefetch_for_write(array, row):
+    """As :func:`prefetch`, for a row about to be written (the line is fetched ready to be modified)."""
+
+
 if numba is not None:
     _jit_inline = numba.njit(nogil=True, inline="always")
     _exponent = _jit_inline(_exponent_py)
@@ -276,31 +280,44 @@ if numba is not None:
 
         return signature, codegen
 
-    @intrinsic
-    def _prefetch_ir(typingctx, array, row, byte_offset):
-        def codegen(context, builder, sig, args):
-            array_type = sig.args[0]
-            view = context.make_array(array_type)(context, builder, args[0])
-            stride = builder.extract_value(view.strides, 0)
-            address = builder.add(builder.ptrtoint(view.data, ir.IntType(64)),
-                                  builder.add(builder.mul(args[1], stride), args[2]))
-            i8_ptr = ir.IntType(8).as_pointer()
-            i32 = ir.IntType(32)
-            hint = builder.module.globals.get("llvm.prefetch.p0")
-            if hint is None:
-                hint = ir.Function(builder.module, ir.FunctionType(ir.VoidType(), [i8_ptr, i32, i32, i32]),
-                                   name="llvm.prefetch.p0")
-            builder.call(hint, [builder.inttoptr(address, i8_ptr), ir.Constant(i32, 0), ir.Constant(i32, 3),
-                                ir.Constant(i32, 1)])
-            return context.get_dummy_value()
+    def _prefetch_intrinsic(write: int):
+        """An intrinsic (array, row, byte offset) -> llvm.prefetch of that address, for reading (write 0)
+        or writing (1), kept in every cache level."""
+        @intrinsic
+        def prefetch_address(typingctx, array, row, byte_offset):
+            def codegen(context, builder, sig, args):
+                view = context.make_array(sig.args[0])(context, builder, args[0])
+                stride = builder.extract_value(view.strides, 0)
+                address = builder.add(builder.ptrtoint(view.data, ir.IntType(64)),
+                                      builder.add(builder.mul(args[1], stride), args[2]))
+                i8_ptr = ir.IntType(8).as_pointer()
+                i32 = ir.IntType(32)
+                hint = builder.module.globals.get("llvm.prefetch.p0")
+                if hint is None:
+                    hint = ir.Function(builder.module, ir.FunctionType(ir.VoidType(), [i8_ptr, i32, i32, i32]),
+                                       name="llvm.prefetch.p0")
+                builder.call(hint, [builder.inttoptr(address, i8_ptr), ir.Constant(i32, write), ir.Constant(i32, 3),
+                                    ir.Constant(i32, 1)])
+                return context.get_dummy_value()
 
-        return types.none(array, types.int64, types.int64), codegen
+            return types.none(array, types.int64, types.int64), codegen
+        return prefetch_address
+
+    _prefetch_read_ir = _prefetch_intrinsic(0)
+    _prefetch_write_ir = _prefetch_intrinsic(1)
 
     @overload(prefetch, inline="always")
     def _prefetch_overload(array, row):
         def implementation(array, row):
             for offset in range(0, array.strides[0], CACHE_LINE):
-                _prefetch_ir(array, np.int64(row), np.int64(offset))
+                _prefetch_read_ir(array, np.int64(row), np.int64(offset))
+        return implementation
+
+    @overload(prefetch_for_write, inline="always")
+    def _prefetch_for_write_overload(array, row):
+        def implementation(array, row):
+            for offset in range(0, array.strides[0], CACHE_LINE):
+                _prefetch_write_ir(array, np.int64(row), np.int64(offset))
         return implementation
 
     @overload(blend_lanes, inline="always")

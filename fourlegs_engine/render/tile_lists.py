@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from ..jit_cache import JIT_CACHE
+from .lane_kernels import prefetch_for_write
 
 try:  # pragma: no cover - exercised when numba is missing
     import numba
@@ -36,6 +37,8 @@ AUTO_TILE_SIZE = 32
 WIDE_TILE = (128, 32)
 WIDE_TILE_MAX_CHANNELS = 8
 RADIX_BITS = 11
+#: Gaussians ahead whose packed rows the list build asks the CPU to fetch before writing them
+SCATTER_PREFETCH = 16
 
 
 @dataclass
@@ -163,6 +166,11 @@ def _build_lists_py(visible, depth_bits, key_bits, means2d, conics, opacities, b
     # than random reads of five arrays)
     in_boxes = 0
     for j in range(n_vis):
+        if j + SCATTER_PREFETCH < n_vis:
+            ahead = rank_of[j + SCATTER_PREFETCH]
+            prefetch_for_write(packed, ahead)
+            prefetch_for_write(boxes, ahead)
+            prefetch_for_write(order, ahead)
         g = visible_ids[j]
         r = rank_of[j]
         order[r] = g

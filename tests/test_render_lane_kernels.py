@@ -29,6 +29,10 @@ if cpu_kernels.available():
                                         t_min)
 
     @numba.njit
+    def start_lanes_compiled(lanes, mx, my, a, b, c, log_o, cx, cy):
+        lane_kernels.start_lanes(lanes, mx, my, a, b, c, log_o, cx, cy)
+
+    @numba.njit
     def fragment_lanes_compiled(trans, lanes, base, n_lanes, step, pixel_base, pixels, weights, n_frag, floor,
                                 alpha_max, t_min):
         return lane_kernels.fragment_lanes(trans, lanes, base, n_lanes, step, pixel_base, pixels, weights, n_frag,
@@ -82,9 +86,30 @@ def test_fragment_lanes_vector_code_equals_the_python_reference(weight_dtype, se
     assert (c_jit, s_jit) == (c_py, s_py)
     for a, b in zip(arrays_jit, arrays_py):
         np.testing.assert_array_equal(a, b)
-    blended = outputs[0][2][base:base + n_lanes]
-    assert c_py - n_frag == int(((trans[base:base + n_lanes] > 0) & (blended > 0) & (blended != trans[base:base + n_lanes])
-                                 ).sum())
+    before, after = trans[base:base + n_lanes], outputs[0][2][base:base + n_lanes]
+    assert c_py - n_frag == int(((before > 0) & (after > 0) & (after != before)).sum())
+
+
+@settings(max_examples=200, deadline=None)
+@given(x=st.lists(st.floats(-800.0, 800.0), min_size=1, max_size=40))
+def test_exp_lanes_is_within_two_ulp_of_exp(x):
+    """The polynomial exp of the chunk starts, over and past the range it is used on (clamped at ±708)."""
+    got = lane_kernels.exp_lanes(np.array(x))
+    want = np.exp(np.clip(x, -lane_kernels.EXP_LIMIT, lane_kernels.EXP_LIMIT))
+    assert np.isfinite(got).all() and (got > 0).all()
+    np.testing.assert_allclose(got, want, rtol=2 * np.finfo(np.float64).eps, atol=0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(mx=st.floats(-40, 40), my=st.floats(-40, 40), log_a=st.floats(-9, 6), log_c=st.floats(-9, 6),
+       rho=st.floats(-0.9999, 0.9999), log_o=st.floats(-6, 0), cx=st.integers(-50, 50), cy=st.integers(-50, 50))
+def test_start_lanes_vector_code_equals_the_python_reference(mx, my, log_a, log_c, rho, log_o, cx, cy):
+    a, c = math.exp(log_a), math.exp(log_c)
+    b = rho * math.sqrt(a * c)
+    python, compiled = np.empty(2 * LANES), np.empty(2 * LANES)
+    lane_kernels.start_lanes(python, mx, my, a, b, c, log_o, cx, cy)
+    start_lanes_compiled(compiled, mx, my, a, b, c, log_o, cx, cy)
+    np.testing.assert_array_equal(compiled, python)
 
 
 def _direct(packed, x, y):

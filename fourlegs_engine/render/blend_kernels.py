@@ -7,8 +7,9 @@ pixels have all stopped ends its list.
 The forward kernels (:func:`_blend_narrow_py` for up to three channels, :func:`_blend_wide_py` for more)
 blend each pair's bounding box (clipped to the tile) in chunks of LANES columns, row after row, with the
 vector code of :mod:`.lane_kernels`: α follows a recurrence down the rows (two vector multiplications
-per row, six exps per chunk), and a row's lanes are tested, blended and counted at once. The table rows
-of the next list entries are prefetched (they are scattered over tables larger than the caches).
+per row, two vector exps per chunk), and a row's lanes are tested, blended and counted at once. The
+table rows of the next list entries are prefetched (they are scattered over tables larger than the
+caches).
 
 The backward and splat kernels visit only the pixels of a Gaussian's footprint, row by row: for pixel
 row y the footprint {dᵀΣ⁻¹d ≤ q} is the x-interval centred at mx − b·dy/a with half-width
@@ -16,13 +17,14 @@ sqrt(a·q − (ac − b²)·dy²)/a (:func:`_row_span`). Along a row the exponen
 follows a two-term recurrence — G(x+1) = G(x)·R(x), R(x+1) = R(x)·e^(−a) — two multiplications per pixel
 instead of an exp (:data:`RECURRENCE_MAX_A` bounds where it is used; the steepest footprints, a handful
 of pixels wide, take one exp per pixel). Pixels outside the footprint have α < α_floor, so both walks
-blend the same pixels; their α agree to ~1e-13 relative (two recurrences of the same exponent), so they
+blend the same pixels; their α agree to ~1e-13 relative (two evaluations of the same exponent), so they
 decide alike except for a pixel whose T lands within that margin of the stop threshold.
 
 The α test (α ≤ α_floor is skipped), the α_max clamp, the stop rule and the blending order are those of
 :mod:`.rasterizer`; arithmetic is float64 except the channel loops, which run in the working dtype.
 
-The backward pass recomputes α and T in the same order as the forward, and needs no back-to-front walk: with s_i = ∂L/∂w_i = g_p·v_i,
+The backward pass recomputes α and T in the same order as the forward, and needs no back-to-front walk:
+with s_i = ∂L/∂w_i = g_p·v_i,
 
     ∂L/∂α_i = T_i s_i − (Σ_{k>i} w_k s_k + T_final ∂L/∂T_final) / (1 − α_i)
 
@@ -228,7 +230,8 @@ def _skip_row_py(lanes, step):  # pragma: no cover - compiled by numba
 
 def _row_fragments_py(transmittance, p0, n, gauss, ratio, step, alpha_floor, alpha_max, transmittance_min,
                       frag_pixel, frag_weight, frag_alpha, n_frag):  # pragma: no cover - compiled by numba
-    """Blend one row segment's α into the tile's transmittance (the rule of :func:`~.lane_kernels.blend_lanes`) and append
+    """Blend one row segment's α into the tile's transmittance (the rule of
+    :func:`~.lane_kernels.blend_lanes`) and append
     its fragments (pixel, weight w = α·T, α). Returns (fragments now, pixels stopped)."""
     stopped = 0
     for i in range(n):
@@ -386,9 +389,9 @@ def _blend_wide_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w,
                     if row_live[r] == 0:
                         _skip_row(lanes, step)
                         continue
-                    n_frag, stopped = fragment_lanes(trans, lanes, r * pitch + cx - x0, n_lanes, 1.0 if direct else step,
-                                                     r * tw + cx - x0, frag_pixel, frag_weight, n_frag, alpha_floor,
-                                                     alpha_max, transmittance_min)
+                    n_frag, stopped = fragment_lanes(trans, lanes, r * pitch + cx - x0, n_lanes,
+                                                     1.0 if direct else step, r * tw + cx - x0, frag_pixel,
+                                                     frag_weight, n_frag, alpha_floor, alpha_max, transmittance_min)
                     row_live[r] -= stopped
                     live -= stopped
         for r in range(th):

@@ -6,12 +6,12 @@ E = ln o − ½(a dx² + 2b dx dy + c dy²), a quadratic, so from one row to the
 
     α(x_l, y + 1) = α(x_l, y)·ρ_l(y),    ρ_l(y + 1) = ρ_l(y)·e^(−c)
 
-(:func:`chunk_start_py` evaluates α and ρ of the chunk's first row, with six exps per chunk): a row costs two
-vector multiplications for α, then the blend of all its lanes at once — the α floor and clamp, the stop
-rule and T·(1 − α), the weights and the channel sums — as explicit LLVM vector code (:func:`blend_lanes`,
-:func:`fragment_lanes`), whatever numba's vectorizer makes of a loop. Each lane keeps the scalar
-kernels' arithmetic exactly (no fused multiply-add, no reassociation), so a lane's result is the
-scalar rule applied to its α.
+(:func:`chunk_start_py` evaluates α and ρ of the chunk's first row with two vector exps,
+:func:`start_lanes`): a row costs two vector multiplications for α, then the blend of all its lanes at
+once — the α floor and clamp, the stop rule and T·(1 − α), the weights and the channel sums — as
+explicit LLVM vector code (:func:`blend_lanes`, :func:`fragment_lanes`), whatever numba's vectorizer
+makes of a loop. Each lane keeps the scalar kernels' arithmetic exactly (no fused multiply-add, no
+reassociation), so a lane's result is the scalar rule applied to its α.
 
 The recurrence multiplies factors e^(±|E|); while every exponent it passes through on the chunk is at
 least :data:`RECURRENCE_MIN_EXPONENT` they all stay normal float64 numbers and α keeps ~100 ulp of
@@ -19,8 +19,9 @@ relative accuracy. :func:`chunk_start_py` checks that on the chunk's corners (E 
 definite conic, so its minimum over a rectangle is at a corner) and otherwise returns −1: the caller
 then evaluates α directly, one exp per lane (:func:`direct_row_py`).
 
-Every function here is also plain Python (the float64 reference the tests hold the LLVM code to); numba
-compiles :func:`blend_lanes` and :func:`fragment_lanes` to the vector code through ``overload``.
+Every function here is also plain Python (the float64 reference the tests hold the LLVM code to, bit for
+bit); numba compiles :func:`start_lanes`, :func:`blend_lanes` and :func:`fragment_lanes` to the vector
+code through ``overload``.
 """
 from __future__ import annotations
 
@@ -51,37 +52,66 @@ def _exponent_py(mx, my, a, b, c, log_o, x, y):  # pragma: no cover - compiled b
     return log_o - 0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)
 
 
-def chunk_start_py(packed, k, cx, cy, x_last, y_last, lanes):  # pragma: no cover - compiled by numba
-    """Start the row recurrence of Gaussian rank k on the chunk of columns cx .. x_last, rows cy .. y_last.
-
-    Fills ``lanes`` (2·LANES,) float64: lanes[l] = α(cx + l, cy) before the clamp and lanes[LANES + l] =
-    α(cx + l, cy + 1)/α(cx + l, cy), for every l < LANES (lanes past x_last included: the blend masks them).
-    Returns the per-row factor e^(−c) of the ratios, or −1 when the recurrence does not apply (conic not
-    positive definite, or an exponent below :data:`RECURRENCE_MIN_EXPONENT` on [cx, x_last + 1] ×
-    [cy, y_last + 1]); the ratios are then 1 and the caller fills α row by row (:func:`direct_row_py`).
-    """
+def _chunk_in_range_py(packed, k, cx, cy, x_last, y_last):  # pragma: no cover - compiled by numba
+    """Whether the row recurrence applies to Gaussian rank k on the chunk [cx, x_last] × [cy, y_last]: a
+    positive definite conic, and every exponent on [cx, x_last + 1] × [cy, y_last + 1] at least
+    :data:`RECURRENCE_MIN_EXPONENT` (E is concave: its minimum over the rectangle is at a corner)."""
     mx, my, a, b, c, log_o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], packed[k, 6]
     lowest = min(min(_exponent(mx, my, a, b, c, log_o, cx, cy), _exponent(mx, my, a, b, c, log_o, x_last + 1, cy)),
                  min(_exponent(mx, my, a, b, c, log_o, cx, y_last + 1),
                      _exponent(mx, my, a, b, c, log_o, x_last + 1, y_last + 1)))
-    if not (a > 0.0 and a * c - b * b > 0.0 and lowest >= RECURRENCE_MIN_EXPONENT):
+    return a > 0.0 and a * c - b * b > 0.0 and lowest >= RECURRENCE_MIN_EXPONENT
+
+
+def chunk_start_py(packed, k, cx, cy, x_last, y_last, lanes):  # pragma: no cover - compiled by numba
+    """Start the row recurrence of Gaussian rank k on the chunk of columns cx .. x_last, rows cy .. y_last.
+
+    Fills ``lanes`` (2·LANES,) float64: lanes[l] = α(cx + l, cy) before the clamp and lanes[LANES + l] =
+    α(cx + l, cy + 1)/α(cx + l, cy), for every l < LANES (lanes past x_last included: the blend masks them),
+    with :func:`start_lanes`. Returns the per-row factor e^(−c) of the ratios, or −1 when the recurrence
+    does not apply (:func:`_chunk_in_range_py`); the ratios are then 1 and the caller fills α row by row
+    (:func:`direct_row_py`).
+    """
+    if not _chunk_in_range(packed, k, cx, cy, x_last, y_last):
         for lane in range(LANES):
             lanes[LANES + lane] = 1.0
         return -1.0
-    dx = cx + 0.5 - mx
-    dy = cy + 0.5 - my
-    gauss = math.exp(log_o - 0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy))
-    along_x = math.exp(-(a * dx + b * dy) - 0.5 * a)  # α(x + 1, y)/α(x, y) at lane 0
-    along_x_step = math.exp(-a)
-    along_y = math.exp(-(b * dx + c * dy) - 0.5 * c)  # α(x, y + 1)/α(x, y) at lane 0
-    along_y_step = math.exp(-b)
-    for lane in range(LANES):
-        lanes[lane] = gauss
-        lanes[LANES + lane] = along_y
-        gauss *= along_x
-        along_x *= along_x_step
-        along_y *= along_y_step
+    c = packed[k, 4]
+    start_lanes(lanes, packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], c, packed[k, 6], cx, cy)
     return math.exp(-c)
+
+
+def start_lanes(lanes, mx, my, a, b, c, log_o, cx, cy):
+    """lanes[l] = exp(E(cx + l, cy)) and lanes[LANES + l] = exp(E(cx + l, cy + 1) − E(cx + l, cy)) for the
+    conic (a, b, c), mean (mx, my) and ln o, with :func:`exp_lanes` (numba: one vector of LANES lanes)."""
+    dx = (cx + np.arange(LANES)) + 0.5 - mx
+    dy = cy + 0.5 - my
+    lanes[:LANES] = exp_lanes(log_o - 0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy))
+    lanes[LANES:] = exp_lanes(-(b * dx + c * dy) - 0.5 * c)
+
+
+#: exp's argument is clamped to ±EXP_LIMIT (e^±708 are normal float64 numbers)
+EXP_LIMIT = 708.0
+_LOG2_E = 1.4426950408889634
+#: ln 2 in two parts: n·_LN2_HIGH is exact for |n| < 2^32 (its low 32 bits are zero)
+_LN2_HIGH = 0.6931471803691238
+_LN2_LOW = 1.9082149292705877e-10
+#: Taylor coefficients 1/k! of e^r, k = 0 .. 13 (|r| ≤ ln2/2: truncation below 1e-17)
+_EXP_TAYLOR = tuple(1.0 / math.factorial(k) for k in range(14))
+
+
+def exp_lanes(x):
+    """e^x for a float64 array, to a few ulp: x clamped to ±EXP_LIMIT, n = rint(x·log2 e), r = x − n·ln 2
+    in two parts, e^r by its Taylor polynomial (Horner), then n added to the exponent bits. Every
+    operation is one IEEE float64 operation, in the order the vector code of numba's overload performs it,
+    so both give the same bits."""
+    x = np.minimum(np.maximum(np.asarray(x, dtype=np.float64), -EXP_LIMIT), EXP_LIMIT)
+    n = np.rint(x * _LOG2_E)
+    r = (x - n * _LN2_HIGH) - n * _LN2_LOW
+    poly = np.full_like(r, _EXP_TAYLOR[-1])
+    for coefficient in _EXP_TAYLOR[-2::-1]:
+        poly = poly * r + coefficient
+    return (poly.view(np.int64) + (n.astype(np.int64) << 52)).view(np.float64)
 
 
 def direct_row_py(packed, k, cx, y, lanes):  # pragma: no cover - compiled by numba
@@ -162,6 +192,7 @@ def prefetch_for_write(array, row):
 if numba is not None:
     _jit_inline = numba.njit(nogil=True, inline="always")
     _exponent = _jit_inline(_exponent_py)
+    _chunk_in_range = _jit_inline(_chunk_in_range_py)
     chunk_start = _jit_inline(chunk_start_py)
     direct_row = _jit_inline(direct_row_py)
 
@@ -210,6 +241,11 @@ if numba is not None:
         builder.store(builder.fmul(ratio, splat(step, vec)), ratio_ptr, align=8)
         return gauss
 
+    def _declare(builder, name, function_type):
+        """The LLVM intrinsic ``name`` of the builder's module (declared on first use)."""
+        function = builder.module.globals.get(name)
+        return function if function is not None else ir.Function(builder.module, function_type, name=name)
+
     def _popcount(builder, mask):
         count = builder.module.declare_intrinsic("llvm.ctpop", [ir.IntType(LANES)])
         return builder.zext(builder.call(count, [builder.bitcast(mask, ir.IntType(LANES))]), ir.IntType(64))
@@ -218,11 +254,8 @@ if numba is not None:
         """llvm.masked.compressstore: the masked lanes of ``values`` stored one after another at ``pointer``."""
         element = values.type.element
         suffix = {ir.DoubleType(): "f64", ir.FloatType(): "f32", ir.IntType(64): "i64"}[element]
-        name = f"llvm.masked.compressstore.v{LANES}{suffix}"
-        function = builder.module.globals.get(name)
-        if function is None:
-            function = ir.Function(builder.module, ir.FunctionType(ir.VoidType(), [values.type, element.as_pointer(),
-                                                                                  mask.type]), name=name)
+        function = _declare(builder, f"llvm.masked.compressstore.v{LANES}{suffix}",
+                            ir.FunctionType(ir.VoidType(), [values.type, element.as_pointer(), mask.type]))
         builder.call(function, [values, builder.bitcast(pointer, element.as_pointer()), mask])
 
     @intrinsic
@@ -292,10 +325,7 @@ if numba is not None:
                                       builder.add(builder.mul(args[1], stride), args[2]))
                 i8_ptr = ir.IntType(8).as_pointer()
                 i32 = ir.IntType(32)
-                hint = builder.module.globals.get("llvm.prefetch.p0")
-                if hint is None:
-                    hint = ir.Function(builder.module, ir.FunctionType(ir.VoidType(), [i8_ptr, i32, i32, i32]),
-                                       name="llvm.prefetch.p0")
+                hint = _declare(builder, "llvm.prefetch.p0", ir.FunctionType(ir.VoidType(), [i8_ptr, i32, i32, i32]))
                 builder.call(hint, [builder.inttoptr(address, i8_ptr), ir.Constant(i32, write), ir.Constant(i32, 3),
                                     ir.Constant(i32, 1)])
                 return context.get_dummy_value()
@@ -320,6 +350,63 @@ if numba is not None:
                 _prefetch_write_ir(array, np.int64(row), np.int64(offset))
         return implementation
 
+    def _exp_ir(builder, x):
+        """The vector code of :func:`exp_lanes` (the same operations in the same order)."""
+        vec, ivec, splat = _vector_helpers(builder)
+        f64, i64 = ir.DoubleType(), ir.IntType(64)
+
+        def constant(value):
+            return ir.Constant(vec, [float(value)] * LANES)
+
+        low, high = constant(-EXP_LIMIT), constant(EXP_LIMIT)
+        x = builder.select(builder.fcmp_ordered(">", x, low), x, low)
+        x = builder.select(builder.fcmp_ordered("<", x, high), x, high)
+        rint = _declare(builder, f"llvm.rint.v{LANES}f64", ir.FunctionType(vec, [vec]))
+        n = builder.call(rint, [builder.fmul(x, constant(_LOG2_E))])
+        r = builder.fsub(builder.fsub(x, builder.fmul(n, constant(_LN2_HIGH))), builder.fmul(n, constant(_LN2_LOW)))
+        poly = constant(_EXP_TAYLOR[-1])
+        for coefficient in _EXP_TAYLOR[-2::-1]:
+            poly = builder.fadd(builder.fmul(poly, r), constant(coefficient))
+        exponent = builder.shl(builder.fptosi(n, ivec), ir.Constant(ivec, [52] * LANES))
+        return builder.bitcast(builder.add(builder.bitcast(poly, ivec), exponent), vec)
+
+    @intrinsic
+    def _start_lanes_ir(typingctx, lanes, mx, my, a, b, c, log_o, cx, cy):
+        signature = types.none(lanes, mx, my, a, b, c, log_o, cx, cy)
+
+        def codegen(context, builder, sig, args):
+            lanes_a, mx_v, my_v, a_v, b_v, c_v, log_o_v, cx_v, cy_v = args
+            vec, ivec, splat = _vector_helpers(builder)
+            f64, i64 = ir.DoubleType(), ir.IntType(64)
+            half = ir.Constant(f64, 0.5)
+            columns = builder.sitofp(builder.add(splat(cx_v, ivec), ir.Constant(ivec, list(range(LANES)))), vec)
+            dx = builder.fsub(builder.fadd(columns, splat(half, vec)), splat(mx_v, vec))
+            dy = builder.fsub(builder.fadd(builder.sitofp(cy_v, f64), half), my_v)
+            quadratic = builder.fadd(
+                builder.fadd(builder.fmul(builder.fmul(splat(a_v, vec), dx), dx),
+                             builder.fmul(builder.fmul(splat(builder.fmul(ir.Constant(f64, 2.0), b_v), vec), dx),
+                                          splat(dy, vec))),
+                splat(builder.fmul(builder.fmul(c_v, dy), dy), vec))
+            exponent = builder.fsub(splat(log_o_v, vec), builder.fmul(splat(half, vec), quadratic))
+            step = builder.fsub(builder.fneg(builder.fadd(builder.fmul(splat(b_v, vec), dx),
+                                                          splat(builder.fmul(c_v, dy), vec))),
+                                splat(builder.fmul(half, c_v), vec))
+            builder.store(_exp_ir(builder, exponent),
+                          _vector_pointer(context, builder, sig.args[0], lanes_a, ir.Constant(i64, 0), f64), align=8)
+            builder.store(_exp_ir(builder, step),
+                          _vector_pointer(context, builder, sig.args[0], lanes_a, ir.Constant(i64, LANES), f64),
+                          align=8)
+            return context.get_dummy_value()
+
+        return signature, codegen
+
+    @overload(start_lanes, inline="always")
+    def _start_lanes_overload(lanes, mx, my, a, b, c, log_o, cx, cy):
+        def implementation(lanes, mx, my, a, b, c, log_o, cx, cy):
+            _start_lanes_ir(lanes, np.float64(mx), np.float64(my), np.float64(a), np.float64(b), np.float64(c),
+                            np.float64(log_o), np.int64(cx), np.int64(cy))
+        return implementation
+
     @overload(blend_lanes, inline="always")
     def _blend_lanes_overload(trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, alpha_floor, alpha_max,
                               transmittance_min):
@@ -340,4 +427,5 @@ if numba is not None:
                                       np.float64(alpha_floor), np.float64(alpha_max), np.float64(transmittance_min))
         return implementation
 else:  # pragma: no cover
-    _exponent, chunk_start, direct_row = _exponent_py, chunk_start_py, direct_row_py
+    _exponent, _chunk_in_range, chunk_start = _exponent_py, _chunk_in_range_py, chunk_start_py
+    direct_row = direct_row_py

@@ -1,6 +1,7 @@
 """The v2 fused CPU path (RasterOptions(kernel="v2")): fused projection, exact-footprint tile lists,
-row-footprint kernels with the α recurrence, forward and backward — against the float64 oracle, the
-torch path, finite differences, and brute force for the new numerics (tile extents, row spans)."""
+chunked lane kernels with the α recurrence (tests/test_render_lane_kernels.py holds their numerics),
+forward and backward — against the float64 oracle, the torch path, finite differences, and brute force
+for the tile extents."""
 from __future__ import annotations
 
 import math
@@ -179,7 +180,7 @@ def test_fused_projection_matches_the_torch_projection(seed, log_scale, spread, 
             assert rel <= (1e-12 if dtype == torch.float64 else 2.5e-7), name
 
 
-# ---------------------------------------------------------------- tile extents and row footprints
+# ---------------------------------------------------------------------------------- tile extents
 conics = st.tuples(st.floats(1e-4, 50.0), st.floats(-0.999, 0.999), st.floats(1e-4, 50.0)).map(
     lambda t: (t[0], t[1] * math.sqrt(t[0] * t[2]), t[2]))  # positive definite: |b| < sqrt(ac)
 
@@ -205,50 +206,6 @@ def test_ellipse_reaches_rect_never_misses_a_pixel_centre(conic, reach, mx, my, 
     if (x0 + 0.5 > mx + rx + margin or x0 + w + 0.5 < mx - rx - margin
             or y0 + 0.5 > my + ry + margin or y0 + h + 0.5 < my - ry - margin):
         assert not reaches
-
-
-@settings(max_examples=300, deadline=None)
-@given(conic=conics, reach=st.floats(0.05, 12.0), mx=st.floats(-5, 69), my=st.floats(-5, 21),
-       row=st.integers(0, 15))
-def test_row_span_covers_exactly_the_footprint_columns(conic, reach, mx, my, row):
-    """_row_span's columns ⊇ every column of the row inside the footprint, and every column it
-    returns is inside up to its slack (checked against brute force over a 64-wide row)."""
-    a, b, c = conic
-    lo, hi = 0, 63
-    dy = row + 0.5 - my
-    inv_a = 1.0 / a
-    xs, xe = blend_kernels._row_span(mx - 0.5 - b * inv_a * dy, reach * inv_a, (a * c - b * b) * inv_a * inv_a * dy * dy,
-                                     lo, hi)
-    cols = np.arange(lo, hi + 1)
-    dx = cols + 0.5 - mx
-    q = a * dx * dx + 2 * b * dx * dy + c * dy * dy
-    inside = cols[q <= reach]
-    if inside.size:
-        assert xs <= inside.min() and inside.max() <= xe
-    returned = cols[(cols >= xs) & (cols <= xe)]
-    # nothing beyond the slack: |∂Q/∂x| ≤ 2·sqrt(a·reach) on the border, the slack is ~1e-6 px
-    slack = 2 * math.sqrt(a * reach) * 2e-6 + 1e-9 * (1 + reach)
-    assert (q[returned - lo] <= reach + slack).all()
-
-
-@settings(max_examples=200, deadline=None)
-@given(a=st.floats(1e-4, blend_kernels.RECURRENCE_MAX_A), rho=st.floats(-0.999, 0.999), c=st.floats(1e-4, 16.0),
-       log_o=st.floats(-5.5, 0.0), ox=st.floats(-3, 3), oy=st.floats(-3, 3), y=st.integers(0, 15),
-       x=st.integers(0, 40), n=st.integers(1, 24))
-def test_alpha_recurrence_matches_direct_evaluation(a, rho, c, log_o, ox, oy, y, x, n):
-    """α along a row by the two-multiplication recurrence stays within 1e-12 (relative) of a direct exp
-    for the footprints it is used on (a ≤ RECURRENCE_MAX_A), starting near the mean."""
-    b = rho * math.sqrt(a * c)
-    mx, my = x + 0.5 + ox, y + 0.5 + oy
-    packed = np.array([[mx, my, a, b, c, math.exp(log_o), log_o, 12.0]])
-    gauss, ratio = blend_kernels._row_start(packed, 0, x, y)
-    step = math.exp(-a)
-    for i in range(n):
-        direct = blend_kernels._gauss_at(packed, 0, x + i, y)
-        if direct > 1e-200:
-            assert abs(gauss - direct) <= 1e-12 * direct
-        gauss *= ratio
-        ratio *= step
 
 
 def test_tile_lists_hold_every_blended_pair_and_only_footprint_tiles():

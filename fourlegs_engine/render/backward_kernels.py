@@ -1,15 +1,17 @@
 """Fused CPU kernels (numba) over :class:`~.tile_lists.TileLists` that walk the forward's decisions again:
 the backward pass and the work counter.
 
-The backward recomputes α and T in the same order as the forward (:mod:`.blend_kernels`: the same code
-decides what is blended) and needs no back-to-front walk; see that module for the suffix-sum form.
+The backward recomputes α and T in the same order as the forward, with the same code
+(:func:`~.blend_kernels._entry_fragments_py` decides what is blended), and needs no back-to-front walk;
+see :mod:`.blend_kernels` for the suffix-sum form.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from ..jit_cache import JIT_CACHE
-from .blend_kernels import _gauss_at, _pair_fragments, _pair_setup, _row_span, _shrink_row, _tile_reset, numba
+from .blend_kernels import PREFETCH_AHEAD, _entry_fragments, _gauss_at, _tile_start, numba
+from .lane_kernels import LANES, prefetch
 
 #: work counters of :func:`count_work` (see its docstring)
 WORK_COUNTERS = ("in_boxes", "in_footprints", "evaluated", "blended")
@@ -26,23 +28,21 @@ def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, t
     """
     channels = grad_accum.shape[1]
     n_pix = tile_w * tile_h
-    transmittance = np.empty(n_pix, dtype=np.float64)
-    row_live = np.empty((tile_h, 2), dtype=np.int64)
+    pitch = tile_w + LANES
+    trans = np.empty(tile_h * pitch, dtype=np.float64)
+    lanes = np.empty(2 * LANES, dtype=np.float64)
+    row_live = np.empty(tile_h, dtype=np.int64)
     prefix = np.empty(n_pix, dtype=np.float64)
     total = np.empty(n_pix, dtype=np.float64)
     grad_local = np.empty((n_pix, channels), dtype=grad_accum.dtype)
     sums = np.empty(channels, dtype=grad_values.dtype)
     weight_cast = np.empty(1, dtype=grad_values.dtype)
     vals64 = np.empty(channels, dtype=np.float64)
-    seg_p0 = np.empty(tile_h, dtype=np.uint64)
-    seg_n = np.empty(tile_h, dtype=np.int64)
-    seg_row = np.empty(tile_h, dtype=np.int64)
-    seg_exp = np.empty(2 * tile_h, dtype=np.float64)
     frag_pixel = np.empty(n_pix, dtype=np.uint64)
     frag_weight = np.empty(n_pix, dtype=np.float64)
     frag_alpha = np.empty(n_pix, dtype=np.float64)
     for tile in tiles:
-        x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
+        x0, y0, tw, th = _tile_start(tile, tiles_x, tile_w, tile_h, width, height, trans, row_live)
         for r in range(th):
             row = (y0 + r) * width + x0
             for x in range(tw):
@@ -58,11 +58,15 @@ def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, t
                     total[p] = dot + transmittance_final[row + x] * grad_transmittance[row + x]
                     prefix[p] = 0.0
         live = tw * th
-        for m in range(offsets[tile], offsets[tile + 1]):
+        end = offsets[tile + 1]
+        for m in range(offsets[tile], end):
             k = ranks[m]
-            n_frag, stopped = _pair_fragments(packed, boxes, k, x0, y0, tw, th, transmittance, row_live, seg_p0, seg_n,
-                                              seg_row, seg_exp, alpha_floor, alpha_max, transmittance_min, frag_pixel,
-                                              frag_weight, frag_alpha, 0)
+            if m + PREFETCH_AHEAD < end:
+                prefetch(packed, ranks[m + PREFETCH_AHEAD])
+                prefetch(boxes, ranks[m + PREFETCH_AHEAD])
+            n_frag, stopped, _ = _entry_fragments(packed, boxes, k, x0, y0, tw, th, pitch, trans, row_live, lanes,
+                                                  frag_pixel, frag_weight, frag_alpha, 0, alpha_floor, alpha_max,
+                                                  transmittance_min)
             live -= stopped
             if n_frag:
                 g = order[k]
@@ -119,8 +123,12 @@ def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, t
 def _count_py(offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, height, alpha_floor, alpha_max,
               transmittance_min, counters):  # pragma: no cover - compiled by numba
     """Add the work counters of :func:`count_work` to ``counters`` (4,) int64."""
-    transmittance = np.empty(tile_w * tile_h, dtype=np.float64)
-    row_live = np.empty((tile_h, 2), dtype=np.int64)
+    pitch = tile_w + LANES
+    trans = np.empty(tile_h * pitch, dtype=np.float64)
+    lanes = np.empty(2 * LANES, dtype=np.float64)
+    row_live = np.empty(tile_h, dtype=np.int64)
+    frag_pixel = np.empty(tile_w * tile_h, dtype=np.uint64)
+    frag_weight = np.empty(tile_w * tile_h, dtype=np.float64)
     for k in range(packed.shape[0]):
         counters[0] += (boxes[k, 1] - boxes[k, 0] + 1) * (boxes[k, 3] - boxes[k, 2] + 1)
         for y in range(boxes[k, 2], boxes[k, 3] + 1):
@@ -128,42 +136,15 @@ def _count_py(offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, hei
                 if min(_gauss_at(packed, k, x, y), alpha_max) > alpha_floor:
                     counters[1] += 1
     for tile in range(offsets.shape[0] - 1):
-        x0, y0, tw, th = _tile_reset(tile, tiles_x, tile_w, tile_h, width, height, transmittance, row_live)
+        x0, y0, tw, th = _tile_start(tile, tiles_x, tile_w, tile_h, width, height, trans, row_live)
         live = tw * th
         for m in range(offsets[tile], offsets[tile + 1]):
-            k = ranks[m]
-            slope, h0, h1, recurrence, step = _pair_setup(packed, k)
-            lo = max(boxes[k, 0], x0)
-            hi = min(boxes[k, 1], x0 + tw - 1)
-            for y in range(max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1) + 1):
-                r = y - y0
-                if row_live[r, 0] <= row_live[r, 1]:  # the forward's lanes cover the box's columns of a live row
-                    counters[2] += max(hi - lo + 1, 0)
-                lo_r = max(lo, x0 + row_live[r, 0])
-                hi_r = min(hi, x0 + row_live[r, 1])
-                if lo_r > hi_r:
-                    continue
-                dy = y + 0.5 - packed[k, 1]
-                xs, xe = _row_span(packed[k, 0] - 0.5 - slope * dy, h0, h1 * dy * dy, lo_r, hi_r)
-                row_stopped = 0
-                for x in range(xs, xe + 1):
-                    p = r * tw + x - x0
-                    t_before = transmittance[p]
-                    if t_before < 0.0:
-                        continue
-                    alpha = min(_gauss_at(packed, k, x, y), alpha_max)
-                    if alpha <= alpha_floor:
-                        continue
-                    after = t_before * (1.0 - alpha)
-                    if after < transmittance_min:
-                        transmittance[p] = -t_before
-                        row_stopped += 1
-                        continue
-                    counters[3] += 1
-                    transmittance[p] = after
-                if row_stopped:
-                    _shrink_row(transmittance, row_live, r, tw)
-                    live -= row_stopped
+            n_frag, stopped, evaluated = _entry_fragments(packed, boxes, ranks[m], x0, y0, tw, th, pitch, trans,
+                                                          row_live, lanes, frag_pixel, frag_weight, None, 0,
+                                                          alpha_floor, alpha_max, transmittance_min)
+            counters[2] += evaluated
+            counters[3] += n_frag
+            live -= stopped
             if live == 0:
                 break
 

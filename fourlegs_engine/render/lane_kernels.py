@@ -156,10 +156,11 @@ def blend_lanes(trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, alpha
     return stopped
 
 
-def fragment_lanes(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, n_frag, alpha_floor,
-                   alpha_max, transmittance_min):
-    """As :func:`blend_lanes` without channels: each blended lane appends a fragment (pixel_base + l,
-    w = α·T) at frag_pixel/frag_weight[n_frag ...], in lane order. Returns (fragments now, pixels stopped)."""
+def fragment_lanes(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, frag_alpha, n_frag,
+                   alpha_floor, alpha_max, transmittance_min):
+    """As :func:`blend_lanes` without channels: each blended lane appends a fragment (pixel pixel_base + l,
+    weight w = α·T, and α after the clamp unless ``frag_alpha`` is None) at index n_frag, n_frag + 1, … of
+    frag_pixel, frag_weight, frag_alpha, in lane order. Returns (fragments now, pixels stopped)."""
     stopped = 0
     for lane in range(LANES):
         p = base + lane
@@ -168,6 +169,8 @@ def fragment_lanes(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, fr
         if blend:
             frag_pixel[n_frag] = pixel_base + lane
             frag_weight[n_frag] = w
+            if frag_alpha is not None:
+                frag_alpha[n_frag] = min(lanes[lane], alpha_max)
             n_frag += 1
         trans[p] = t_new
         stopped += stop
@@ -213,7 +216,7 @@ if numba is not None:
         return builder.bitcast(builder.gep(data, [offset]), ir.VectorType(element_type, LANES).as_pointer())
 
     def _lane_rule_ir(builder, gauss, t_before, n_lanes, alpha_floor, alpha_max, transmittance_min):
-        """The vector form of :func:`_lane_rule`: (α, T to store, w, stop mask, blend mask)."""
+        """The vector form of :func:`_lane_rule`: (T to store, w, stop mask, blend mask, α after the clamp)."""
         vec, ivec, splat = _vector_helpers(builder)
         amax = splat(alpha_max, vec)
         alpha = builder.select(builder.fcmp_ordered("<", gauss, amax), gauss, amax)
@@ -227,7 +230,7 @@ if numba is not None:
         blend = builder.and_(ok, builder.not_(low))
         t_new = builder.select(stop, builder.fneg(t_before), builder.select(blend, after, t_before))
         weight = builder.select(blend, builder.fmul(alpha, t_before), zero)
-        return t_new, weight, stop, blend
+        return t_new, weight, stop, blend, alpha
 
     def _advance_ir(context, builder, lanes_type, lanes, step):
         """α ← α·ratio, ratio ← ratio·step in ``lanes``; returns the α vector before the update."""
@@ -271,8 +274,8 @@ if numba is not None:
             f64 = ir.DoubleType()
             gauss = _advance_ir(context, builder, sig.args[4], lanes_a, step_v)
             t_ptr = _vector_pointer(context, builder, sig.args[0], trans_a, base_v, f64)
-            t_new, weight, stop, _ = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v, floor_v,
-                                                   amax_v, tmin_v)
+            t_new, weight, stop, _, _ = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v,
+                                                      floor_v, amax_v, tmin_v)
             builder.store(t_new, t_ptr, align=8)
             for array_type, array, value in ((sig.args[1], c0_a, v0_v), (sig.args[2], c1_a, v1_v),
                                              (sig.args[3], c2_a, v2_v)):
@@ -284,30 +287,32 @@ if numba is not None:
         return signature, codegen
 
     @intrinsic
-    def _fragment_lanes_ir(typingctx, trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, n_frag,
-                           alpha_floor, alpha_max, transmittance_min):
+    def _fragment_lanes_ir(typingctx, trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight,
+                           frag_alpha, n_frag, alpha_floor, alpha_max, transmittance_min):
         result = types.UniTuple(types.int64, 2)
-        signature = result(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, n_frag,
+        signature = result(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, frag_alpha, n_frag,
                            alpha_floor, alpha_max, transmittance_min)
 
         def codegen(context, builder, sig, args):
-            (trans_a, lanes_a, base_v, n_lanes_v, step_v, pixel_base_v, pixel_a, weight_a, n_frag_v, floor_v, amax_v,
-             tmin_v) = args
+            (trans_a, lanes_a, base_v, n_lanes_v, step_v, pixel_base_v, pixel_a, weight_a, alpha_a, n_frag_v, floor_v,
+             amax_v, tmin_v) = args
             _, ivec, splat = _vector_helpers(builder)
-            f64, i64 = ir.DoubleType(), ir.IntType(64)
+            f64 = ir.DoubleType()
             gauss = _advance_ir(context, builder, sig.args[1], lanes_a, step_v)
             t_ptr = _vector_pointer(context, builder, sig.args[0], trans_a, base_v, f64)
-            t_new, weight, stop, blend = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v,
-                                                       floor_v, amax_v, tmin_v)
+            t_new, weight, stop, blend, alpha = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v,
+                                                              floor_v, amax_v, tmin_v)
             builder.store(t_new, t_ptr, align=8)
             pixels = builder.add(splat(pixel_base_v, ivec), ir.Constant(ivec, list(range(LANES))))
-            pixel_data = context.make_array(sig.args[6])(context, builder, pixel_a).data
-            _compress_store(builder, pixels, builder.gep(pixel_data, [n_frag_v]), blend)
-            weight_type = context.get_value_type(sig.args[7].dtype)
-            if weight_type != f64:
-                weight = builder.fptrunc(weight, ir.VectorType(weight_type, LANES))
-            weight_data = context.make_array(sig.args[7])(context, builder, weight_a).data
-            _compress_store(builder, weight, builder.gep(weight_data, [n_frag_v]), blend)
+            for array_type, array, values in ((sig.args[6], pixel_a, pixels), (sig.args[7], weight_a, weight),
+                                              (sig.args[8], alpha_a, alpha)):
+                if isinstance(array_type, types.NoneType):
+                    continue
+                element = context.get_value_type(array_type.dtype)
+                if values.type.element != element:
+                    values = builder.fptrunc(values, ir.VectorType(element, LANES))
+                data = context.make_array(array_type)(context, builder, array).data
+                _compress_store(builder, values, builder.gep(data, [n_frag_v]), blend)
             count = builder.add(n_frag_v, _popcount(builder, blend))
             return context.make_tuple(builder, result, [count, _popcount(builder, stop)])
 
@@ -418,12 +423,12 @@ if numba is not None:
         return implementation
 
     @overload(fragment_lanes, inline="always")
-    def _fragment_lanes_overload(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, n_frag,
-                                 alpha_floor, alpha_max, transmittance_min):
-        def implementation(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, n_frag,
+    def _fragment_lanes_overload(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, frag_alpha,
+                                 n_frag, alpha_floor, alpha_max, transmittance_min):
+        def implementation(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, frag_alpha, n_frag,
                            alpha_floor, alpha_max, transmittance_min):
             return _fragment_lanes_ir(trans, lanes, np.int64(base), np.int64(n_lanes), np.float64(step),
-                                      np.int64(pixel_base), frag_pixel, frag_weight, np.int64(n_frag),
+                                      np.int64(pixel_base), frag_pixel, frag_weight, frag_alpha, np.int64(n_frag),
                                       np.float64(alpha_floor), np.float64(alpha_max), np.float64(transmittance_min))
         return implementation
 else:  # pragma: no cover

@@ -29,6 +29,12 @@ if cpu_kernels.available():
                                         t_min)
 
     @numba.njit
+    def gradient_lanes_compiled(trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2, dx_first, dy,
+                                sums, floor, alpha_max, t_min):
+        return lane_kernels.gradient_lanes(trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2,
+                                           dx_first, dy, sums, floor, alpha_max, t_min)
+
+    @numba.njit
     def start_lanes_compiled(lanes, mx, my, a, b, c, log_o, cx, cy):
         lane_kernels.start_lanes(lanes, mx, my, a, b, c, log_o, cx, cy)
 
@@ -68,6 +74,32 @@ def test_blend_lanes_vector_code_equals_the_python_reference(seed, base, n_lanes
     untouched = np.r_[0:base, base + n_lanes:trans.size]
     np.testing.assert_array_equal(compiled[0][untouched], trans[untouched])
     assert stopped_py == int(((trans[base:base + n_lanes] > 0) & (compiled[0][base:base + n_lanes] < 0)).sum())
+
+
+@settings(max_examples=150, deadline=None)
+@given(seed=st.integers(0, 10_000), base=st.integers(0, 40), n_lanes=st.integers(0, LANES),
+       values=st.tuples(*[st.floats(-5, 5)] * 3), dx_first=st.floats(-30, 30), dy=st.floats(-30, 30))
+def test_gradient_lanes_vector_code_equals_the_python_reference(seed, base, n_lanes, values, dx_first, dy):
+    """The backward's lanes: T, the prefix sums, the α update and every per-lane gradient sum bit for bit,
+    clamped lanes (α ≥ α_max: no exponent gradient) and stopped pixels included."""
+    trans, planes, lanes = _lane_state(seed, base)
+    rng = np.random.default_rng(seed + 1)
+    total, prefix = rng.normal(size=trans.size), rng.normal(size=trans.size)
+    sums = rng.normal(size=(lane_kernels.GRADIENT_SUMS, LANES))
+    runs = []
+    for run in (lane_kernels.gradient_lanes, gradient_lanes_compiled):
+        state = [trans.copy(), *(p.copy() for p in planes), total.copy(), prefix.copy(), lanes.copy()]
+        out = sums.copy()
+        stopped = run(*state, base, n_lanes, 0.7, *values, dx_first, dy, out, FLOOR, ALPHA_MAX, T_MIN)
+        runs.append((stopped, state, out))
+    (s_py, state_py, sums_py), (s_jit, state_jit, sums_jit) = runs
+    assert s_jit == s_py
+    for a, b in zip(state_jit + [sums_jit], state_py + [sums_py]):
+        np.testing.assert_array_equal(a, b)
+    blended = (trans[base:base + n_lanes] > 0) & (state_py[0][base:base + n_lanes] > 0) & (
+        state_py[0][base:base + n_lanes] != trans[base:base + n_lanes])
+    changed = (prefix[base:base + n_lanes] != state_py[5][base:base + n_lanes])
+    assert not (changed & ~blended).any()  # only blended pixels add to the prefix sums
 
 
 @pytest.mark.parametrize("weight_dtype", [np.float64, np.float32])
@@ -190,3 +222,33 @@ def test_forward_kernels_compiled_equal_their_python_run(channels, monkeypatch):
     assert (fast[1] < 1.0).mean() > 0.3  # the scene covers the view
     np.testing.assert_array_equal(fast[0], slow[0])
     np.testing.assert_array_equal(fast[1], slow[1])
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_lane_backward_equals_the_fragment_backward(channels):
+    """The narrow backward (gradient sums formed in the lanes) against the many-channel one (sums over each
+    entry's fragments), on the same forward: ∂L/∂values and ∂L/∂geometry agree to float64 rounding."""
+    from fourlegs_engine.render import backward_kernels
+
+    scene = random_scene(150, 5, log_scale=-1.7)
+    cam = view_cameras(48, 30)[1]
+    options = RasterOptions().check()
+    proj = project_gaussians_fused(scene["means"], scene["rotations"], scene["log_scales"], scene["opacity_logits"],
+                                   cam, options, torch.float64)
+    lists = kernel_backend.tile_lists(proj, cam, options, torch.float64, channels)
+    rng = np.random.default_rng(1)
+    values = rng.normal(size=(150, channels))
+    accum, trans = kernel_backend.blend_forward(lists, torch.from_numpy(values), options)
+    grad_accum, grad_trans = rng.normal(size=(cam.width * cam.height, channels)), rng.normal(size=cam.width * cam.height)
+    grid = (lists.tile_offsets, lists.tile_ranks, lists.order, lists.packed, lists.boxes, lists.tiles_x, lists.tile_w,
+            lists.tile_h, lists.width, lists.height)
+    rules = (kernel_backend.alpha_floor(options, torch.float64), options.alpha_max, options.transmittance_min)
+    results = []
+    for kernel in (backward_kernels._backward_narrow, backward_kernels._backward):
+        grad_values, grad_geometry = np.zeros((150, channels)), np.zeros((150, 6))
+        kernel(np.arange(lists.num_tiles), *grid, values, grad_accum, grad_trans, trans.numpy(), accum.numpy(), *rules,
+               True, True, grad_values, grad_geometry)
+        results.append((grad_values, grad_geometry))
+    assert np.abs(results[1][1]).max() > 0
+    for lane, fragment in zip(*results):
+        np.testing.assert_allclose(lane, fragment, rtol=1e-9, atol=1e-9 * np.abs(fragment).max())

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..jit_cache import JIT_CACHE
-from .blend_kernels import PREFETCH_AHEAD, _entry_fragments, _gauss_at, _tile_start, numba
-from .lane_kernels import LANES, prefetch
+from .blend_kernels import NARROW_LANES, PREFETCH_AHEAD, _entry_fragments, _gauss_at, _skip_row, _tile_start, numba
+from .lane_kernels import GRADIENT_SUMS, LANES, chunk_start, direct_row, gradient_lanes, prefetch
 
 #: work counters of :func:`count_work` (see its docstring)
 WORK_COUNTERS = ("in_boxes", "in_footprints", "evaluated", "blended")
@@ -82,8 +82,7 @@ def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, t
                     for s in range(channels):
                         dst[s] += sums[s]
                 if need_geometry:
-                    mx, my, a, b, c, o = packed[k, 0], packed[k, 1], packed[k, 2], packed[k, 3], packed[k, 4], \
-                        packed[k, 5]
+                    mx, my = packed[k, 0], packed[k, 1]
                     for s in range(channels):
                         vals64[s] = values[g, s]
                     s_1 = s_x = s_y = s_xx = s_xy = s_yy = 0.0
@@ -109,13 +108,112 @@ def _backward_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, t
                             s_xx += d_power * dx * dx
                             s_xy += d_power * dx * dy
                             s_yy += d_power * dy * dy
-                    # power = ln o − ½(a dx² + 2b dx dy + c dy²), dx = x + 0.5 − mx
-                    grad_geometry[g, 0] += a * s_x + b * s_y
-                    grad_geometry[g, 1] += b * s_x + c * s_y
-                    grad_geometry[g, 2] -= 0.5 * s_xx
-                    grad_geometry[g, 3] -= s_xy
-                    grad_geometry[g, 4] -= 0.5 * s_yy
-                    grad_geometry[g, 5] += s_1 / o
+                    _add_geometry_gradient(grad_geometry, g, packed, k, s_1, s_x, s_y, s_xx, s_xy, s_yy)
+            if live == 0:
+                break
+
+
+def _add_geometry_gradient_py(grad_geometry, g, packed, k, s_1, s_x, s_y, s_xx, s_xy, s_yy):  # pragma: no cover
+    """Chain Σ∂L/∂power·(1, dx, dy, dx², dx·dy, dy²) over a Gaussian's pixels to ∂L/∂(mx, my, a, b, c, o):
+    power = ln o − ½(a dx² + 2b dx dy + c dy²), dx = x + 0.5 − mx."""
+    a, b, c, o = packed[k, 2], packed[k, 3], packed[k, 4], packed[k, 5]
+    grad_geometry[g, 0] += a * s_x + b * s_y
+    grad_geometry[g, 1] += b * s_x + c * s_y
+    grad_geometry[g, 2] -= 0.5 * s_xx
+    grad_geometry[g, 3] -= s_xy
+    grad_geometry[g, 4] -= 0.5 * s_yy
+    grad_geometry[g, 5] += s_1 / o
+
+
+def _backward_narrow_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile_h, width, height, values,
+                        grad_accum, grad_transmittance, transmittance_final, accum, alpha_floor, alpha_max,
+                        transmittance_min, need_values, need_geometry, grad_values,
+                        grad_geometry):  # pragma: no cover - compiled by numba
+    """:func:`_backward_py` for C ≤ 3 channels, in the forward's lanes: each chunk row's gradient terms
+    are formed by :func:`~.lane_kernels.gradient_lanes` in float64 planes (∂L/∂accum per channel, the
+    suffix-sum total and prefix) and summed per lane, then over the lanes once per list entry."""
+    channels = grad_accum.shape[1]
+    pitch = tile_w + LANES
+    plane = tile_h * pitch
+    trans = np.empty(plane, dtype=np.float64)
+    g0 = np.empty(plane, dtype=np.float64)
+    g1 = np.empty(plane, dtype=np.float64)
+    g2 = np.empty(plane, dtype=np.float64)
+    total = np.empty(plane, dtype=np.float64)
+    prefix = np.empty(plane, dtype=np.float64)
+    lanes = np.empty(2 * LANES, dtype=np.float64)
+    sums = np.empty((GRADIENT_SUMS, LANES), dtype=np.float64)
+    totals = np.empty(GRADIENT_SUMS, dtype=np.float64)
+    row_live = np.empty(tile_h, dtype=np.int64)
+    for tile in tiles:
+        x0, y0, tw, th = _tile_start(tile, tiles_x, tile_w, tile_h, width, height, trans, row_live)
+        g0[:] = 0.0
+        g1[:] = 0.0
+        g2[:] = 0.0
+        total[:] = 0.0
+        prefix[:] = 0.0
+        for r in range(th):
+            row = (y0 + r) * width + x0
+            for x in range(tw):
+                p = r * pitch + x
+                src = grad_accum[row + x]
+                g0[p] = np.float64(src[0]) if channels > 0 else 0.0
+                g1[p] = np.float64(src[1]) if channels > 1 else 0.0
+                g2[p] = np.float64(src[2]) if channels > 2 else 0.0
+                if need_geometry:
+                    dot = 0.0
+                    for s in range(channels):
+                        dot += np.float64(src[s]) * np.float64(accum[row + x, s])
+                    total[p] = dot + transmittance_final[row + x] * grad_transmittance[row + x]
+        live = tw * th
+        end = offsets[tile + 1]
+        for m in range(offsets[tile], end):
+            k = ranks[m]
+            if m + PREFETCH_AHEAD < end:
+                ahead = ranks[m + PREFETCH_AHEAD]
+                prefetch(packed, ahead)
+                prefetch(boxes, ahead)
+                prefetch(values, order[ahead])
+            g = order[k]
+            vals = values[g]
+            v0 = np.float64(vals[0]) if channels > 0 else 0.0
+            v1 = np.float64(vals[1]) if channels > 1 else 0.0
+            v2 = np.float64(vals[2]) if channels > 2 else 0.0
+            mx, my = packed[k, 0], packed[k, 1]
+            bx0, bx1 = max(boxes[k, 0], x0), min(boxes[k, 1], x0 + tw - 1)
+            by0, by1 = max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1)
+            sums[:, :] = 0.0
+            blended = False
+            for cx in range(bx0, bx1 + 1, LANES):
+                n_lanes = min(LANES, bx1 - cx + 1)
+                step = chunk_start(packed, k, cx, by0, cx + n_lanes - 1, by1, lanes)
+                direct = step < 0.0
+                dx_first = cx + 0.5 - mx
+                for y in range(by0, by1 + 1):
+                    r = y - y0
+                    if direct:
+                        direct_row(packed, k, cx, y, lanes)
+                    if row_live[r] == 0:
+                        _skip_row(lanes, step)
+                        continue
+                    stopped = gradient_lanes(trans, g0, g1, g2, total, prefix, lanes, r * pitch + cx - x0, n_lanes,
+                                             1.0 if direct else step, v0, v1, v2, dx_first, y + 0.5 - my, sums,
+                                             alpha_floor, alpha_max, transmittance_min)
+                    row_live[r] -= stopped
+                    live -= stopped
+                    blended = True
+            if blended:
+                for j in range(GRADIENT_SUMS):
+                    acc = 0.0
+                    for lane in range(LANES):
+                        acc += sums[j, lane]
+                    totals[j] = acc
+                if need_values:
+                    for s in range(channels):
+                        grad_values[g, s] += totals[6 + s]
+                if need_geometry:
+                    _add_geometry_gradient(grad_geometry, g, packed, k, totals[0], totals[1], totals[2], totals[3],
+                                           totals[4], totals[5])
             if live == 0:
                 break
 
@@ -150,7 +248,9 @@ def _count_py(offsets, ranks, packed, boxes, tiles_x, tile_w, tile_h, width, hei
 
 
 if numba is not None:
+    _add_geometry_gradient = numba.njit(nogil=True, cache=JIT_CACHE, inline="always")(_add_geometry_gradient_py)
     _backward = numba.njit(nogil=True, cache=JIT_CACHE)(_backward_py)
+    _backward_narrow = numba.njit(nogil=True, cache=JIT_CACHE)(_backward_narrow_py)
     _count = numba.njit(nogil=True, cache=JIT_CACHE)(_count_py)
 else:  # pragma: no cover
-    _backward = _count = None
+    _backward = _backward_narrow = _count = None

@@ -156,7 +156,8 @@ def _backward_threads(lists: TileLists, values, grad_accum, grad_trans, trans, a
     rules = (alpha_floor(options, dtype), float(options.alpha_max), float(options.transmittance_min))
     if need_geometry:
         common = (*grid, values, grad_accum, grad_trans, trans, accum, *rules, need_values, need_geometry)
-        kernel = lambda part, k: backward_kernels._backward(part, *common, *buffers[k])  # noqa: E731
+        backward = backward_kernels._backward_narrow if C <= blend_kernels.NARROW_LANES else backward_kernels._backward
+        kernel = lambda part, k: backward(part, *common, *buffers[k])  # noqa: E731
     else:
         kernel = lambda part, k: blend_kernels._splat(part, *grid, grad_accum, *rules, buffers[k][0])  # noqa: E731
     cpu_kernels.run_on_workers(kernel, busy, workers)

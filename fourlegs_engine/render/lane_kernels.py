@@ -179,6 +179,52 @@ def fragment_lanes(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, fr
     return n_frag, stopped
 
 
+#: rows of the accumulator of :func:`gradient_lanes`: Σ∂L/∂power·(1, dx, dy, dx², dx·dy, dy²), then the
+#: three value-gradient sums Σ w·∂L/∂accum
+GRADIENT_SUMS = 9
+
+
+def gradient_lanes(trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2, dx_first, dy, sums,
+                   alpha_floor, alpha_max, transmittance_min):
+    """The backward of :func:`blend_lanes` for one chunk row: the same blend of T (and the same α update),
+    and for each blended lane l (pixel p = base + l, weight w, value dot s = g·v with g = ∂L/∂accum_p):
+
+    * prefix[p] += w·s (Σ_{k≤i} w_k s_k of the backward's suffix-sum form);
+    * sums[6 + j, l] += w·g_j (∂L/∂values);
+    * if α < α_max: ∂L/∂power = (w/α·s − (total[p] − prefix[p])/(1 − α))·α is added to sums[0..5, l] times
+      (1, dx, dy, dx², dx·dy, dy²), dx = dx_first + l, dy = dy (pixel centre minus mean).
+
+    Arrays: trans, g0, g1, g2, total, prefix float64 planes (as :func:`blend_lanes`), sums
+    (GRADIENT_SUMS, LANES) float64. Returns how many pixels stopped in this row.
+    """
+    stopped = 0
+    for lane in range(LANES):
+        p = base + lane
+        gauss = lanes[lane]
+        alpha = gauss if gauss < alpha_max else alpha_max
+        t_new, w, stop, blend = _lane_rule(gauss, trans[p], lane, n_lanes, alpha_floor, alpha_max, transmittance_min)
+        trans[p] = t_new
+        stopped += stop
+        if blend:
+            dot = g0[p] * v0 + g1[p] * v1 + g2[p] * v2
+            prefix[p] += w * dot
+            sums[6, lane] += w * g0[p]
+            sums[7, lane] += w * g1[p]
+            sums[8, lane] += w * g2[p]
+            if alpha < alpha_max:
+                d_power = (w / alpha * dot - (total[p] - prefix[p]) / (1.0 - alpha)) * alpha
+                dx = dx_first + lane
+                sums[0, lane] += d_power
+                sums[1, lane] += d_power * dx
+                sums[2, lane] += d_power * dy
+                sums[3, lane] += d_power * dx * dx
+                sums[4, lane] += d_power * dx * dy
+                sums[5, lane] += d_power * dy * dy
+        lanes[lane] *= lanes[LANES + lane]
+        lanes[LANES + lane] *= step
+    return stopped
+
+
 def prefetch(array, row):
     """Ask the CPU to start loading every cache line of ``array[row]`` (a hint; nothing in Python), for an
     array whose rows are contiguous (a row's bytes are its stride).
@@ -318,6 +364,55 @@ if numba is not None:
 
         return signature, codegen
 
+    @intrinsic
+    def _gradient_lanes_ir(typingctx, trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2,
+                           dx_first, dy, sums, alpha_floor, alpha_max, transmittance_min):
+        signature = types.int64(trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2, dx_first,
+                                dy, sums, alpha_floor, alpha_max, transmittance_min)
+
+        def codegen(context, builder, sig, args):
+            (trans_a, g0_a, g1_a, g2_a, total_a, prefix_a, lanes_a, base_v, n_lanes_v, step_v, v0_v, v1_v, v2_v,
+             dx_first_v, dy_v, sums_a, floor_v, amax_v, tmin_v) = args
+            vec, ivec, splat = _vector_helpers(builder)
+            f64, i64 = ir.DoubleType(), ir.IntType(64)
+            zero = ir.Constant(vec, [0.0] * LANES)
+
+            def plane(index, array):
+                return _vector_pointer(context, builder, sig.args[index], array, base_v, f64)
+
+            gauss = _advance_ir(context, builder, sig.args[6], lanes_a, step_v)
+            t_ptr = plane(0, trans_a)
+            t_new, weight, stop, blend, alpha = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v,
+                                                              floor_v, amax_v, tmin_v)
+            builder.store(t_new, t_ptr, align=8)
+            grads = [builder.load(plane(i, a), align=8) for i, a in ((1, g0_a), (2, g1_a), (3, g2_a))]
+            dot = builder.fadd(builder.fadd(builder.fmul(grads[0], splat(v0_v, vec)),
+                                            builder.fmul(grads[1], splat(v1_v, vec))),
+                               builder.fmul(grads[2], splat(v2_v, vec)))
+            prefix_ptr = plane(5, prefix_a)
+            prefix_new = builder.fadd(builder.load(prefix_ptr, align=8), builder.fmul(weight, dot))
+            builder.store(builder.select(blend, prefix_new, builder.load(prefix_ptr, align=8)), prefix_ptr, align=8)
+            unclamped = builder.and_(blend, builder.fcmp_ordered("<", alpha, splat(amax_v, vec)))
+            one = ir.Constant(vec, [1.0] * LANES)
+            d_alpha = builder.fsub(builder.fmul(builder.fdiv(weight, alpha), dot),
+                                   builder.fdiv(builder.fsub(builder.load(plane(4, total_a), align=8), prefix_new),
+                                                builder.fsub(one, alpha)))
+            d_power = builder.fmul(d_alpha, alpha)
+            dx = builder.fadd(splat(dx_first_v, vec), ir.Constant(vec, [float(lane) for lane in range(LANES)]))
+            dy_vec = splat(dy_v, vec)
+            terms = [d_power, builder.fmul(d_power, dx), builder.fmul(d_power, dy_vec),
+                     builder.fmul(builder.fmul(d_power, dx), dx), builder.fmul(builder.fmul(d_power, dx), dy_vec),
+                     builder.fmul(builder.fmul(d_power, dy_vec), dy_vec)]
+            terms = [(unclamped, term) for term in terms] + [(blend, builder.fmul(weight, g)) for g in grads]
+            sums_data = context.make_array(sig.args[15])(context, builder, sums_a).data
+            for row, (mask, term) in enumerate(terms):
+                ptr = builder.bitcast(builder.gep(sums_data, [ir.Constant(i64, row * LANES)]), vec.as_pointer())
+                current = builder.load(ptr, align=8)
+                builder.store(builder.select(mask, builder.fadd(current, term), current), ptr, align=8)
+            return _popcount(builder, stop)
+
+        return signature, codegen
+
     def _prefetch_intrinsic(write: int):
         """An intrinsic (array, row, byte offset) -> llvm.prefetch of that address, for reading (write 0)
         or writing (1), kept in every cache level."""
@@ -430,6 +525,16 @@ if numba is not None:
             return _fragment_lanes_ir(trans, lanes, np.int64(base), np.int64(n_lanes), np.float64(step),
                                       np.int64(pixel_base), frag_pixel, frag_weight, frag_alpha, np.int64(n_frag),
                                       np.float64(alpha_floor), np.float64(alpha_max), np.float64(transmittance_min))
+        return implementation
+    @overload(gradient_lanes, inline="always")
+    def _gradient_lanes_overload(trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2, dx_first,
+                                 dy, sums, alpha_floor, alpha_max, transmittance_min):
+        def implementation(trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2, dx_first, dy,
+                           sums, alpha_floor, alpha_max, transmittance_min):
+            return _gradient_lanes_ir(trans, g0, g1, g2, total, prefix, lanes, np.int64(base), np.int64(n_lanes),
+                                      np.float64(step), np.float64(v0), np.float64(v1), np.float64(v2),
+                                      np.float64(dx_first), np.float64(dy), sums, np.float64(alpha_floor),
+                                      np.float64(alpha_max), np.float64(transmittance_min))
         return implementation
 else:  # pragma: no cover
     _exponent, _chunk_in_range, chunk_start = _exponent_py, _chunk_in_range_py, chunk_start_py

@@ -91,7 +91,8 @@ def test_v2_results_do_not_depend_on_the_worker_count():
     for k in OUTS:
         assert torch.equal(out1[k], out3[k]), k
     for name, a, b in zip(NAMES, g1, g3):  # per-worker gradient buffers are summed: rounding only
-        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=name)
+        # (a float32 ulp of the largest terms, which cancel in the smallest gradients)
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6 * a.abs().max().item(), msg=name)
 
 
 # ----------------------------------------------------------------------------------- backward

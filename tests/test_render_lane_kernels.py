@@ -24,15 +24,14 @@ if cpu_kernels.available():
     import numba
 
     @numba.njit
-    def blend_lanes_compiled(trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, floor, alpha_max, t_min):
-        return lane_kernels.blend_lanes(trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, floor, alpha_max,
-                                        t_min)
+    def blend_lanes_compiled(trans, planes, lanes, base, n_lanes, step, vals, floor, alpha_max, t_min):
+        return lane_kernels.blend_lanes(trans, planes, lanes, base, n_lanes, step, vals, floor, alpha_max, t_min)
 
     @numba.njit
-    def gradient_lanes_compiled(trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2, dx_first, dy,
-                                sums, floor, alpha_max, t_min):
-        return lane_kernels.gradient_lanes(trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2,
-                                           dx_first, dy, sums, floor, alpha_max, t_min)
+    def gradient_lanes_compiled(trans, grads, total, prefix, lanes, base, n_lanes, step, vals, dx_first, dy, sums,
+                                floor, alpha_max, t_min):
+        return lane_kernels.gradient_lanes(trans, grads, total, prefix, lanes, base, n_lanes, step, vals, dx_first, dy,
+                                           sums, floor, alpha_max, t_min)
 
     @numba.njit
     def start_lanes_compiled(lanes, mx, my, a, b, c, log_o, cx, cy):
@@ -45,14 +44,14 @@ if cpu_kernels.available():
                                            n_frag, floor, alpha_max, t_min)
 
 
-def _lane_state(seed: int, base: int):
-    """A plane of T with stopped pixels (−T), pixels at the stop threshold and fresh ones, three channel
-    planes, and α lanes spanning zero, the floor, ordinary values and above the clamp."""
+def _lane_state(seed: int, base: int, channels: int = 3):
+    """A plane of T with stopped pixels (−T), pixels at the stop threshold and fresh ones, channel planes
+    (channels, P), and α lanes spanning zero, the floor, ordinary values and above the clamp."""
     rng = np.random.default_rng(seed)
     size = base + LANES + 3
     trans = rng.choice([1.0, 0.5, T_MIN / 0.4, T_MIN * 1.0000001, 0.3], size=size) * rng.choice([1.0, -1.0], size,
                                                                                                 p=[0.8, 0.2])
-    planes = [rng.normal(size=size) for _ in range(3)]
+    planes = rng.normal(size=(channels, size))
     gauss = rng.choice([0.0, FLOOR, np.nextafter(FLOOR, 1.0), 0.6, 0.99, 1.7, 1e-300, 0.02], size=LANES)
     ratio = rng.uniform(0.2, 3.0, size=LANES)
     return trans, planes, np.concatenate([gauss, ratio])
@@ -60,13 +59,15 @@ def _lane_state(seed: int, base: int):
 
 @settings(max_examples=150, deadline=None)
 @given(seed=st.integers(0, 10_000), base=st.integers(0, 40), n_lanes=st.integers(0, LANES),
-       step=st.floats(1e-3, 10.0), values=st.tuples(*[st.floats(-5, 5)] * 3))
-def test_blend_lanes_vector_code_equals_the_python_reference(seed, base, n_lanes, step, values):
-    trans, planes, lanes = _lane_state(seed, base)
-    python = [trans.copy(), *(p.copy() for p in planes), lanes.copy()]
-    compiled = [trans.copy(), *(p.copy() for p in planes), lanes.copy()]
-    stopped_py = lane_kernels.blend_lanes(*python, base, n_lanes, step, *values, FLOOR, ALPHA_MAX, T_MIN)
-    stopped_jit = blend_lanes_compiled(*compiled, base, n_lanes, step, *values, FLOOR, ALPHA_MAX, T_MIN)
+       step=st.floats(1e-3, 10.0), values=st.lists(st.floats(-5, 5), min_size=1, max_size=8),
+       float32=st.booleans())
+def test_blend_lanes_vector_code_equals_the_python_reference(seed, base, n_lanes, step, values, float32):
+    trans, planes, lanes = _lane_state(seed, base, len(values))
+    vals = np.array(values, dtype=np.float32 if float32 else np.float64)
+    python = [trans.copy(), planes.copy(), lanes.copy()]
+    compiled = [trans.copy(), planes.copy(), lanes.copy()]
+    stopped_py = lane_kernels.blend_lanes(*python, base, n_lanes, step, vals, FLOOR, ALPHA_MAX, T_MIN)
+    stopped_jit = blend_lanes_compiled(*compiled, base, n_lanes, step, vals, FLOOR, ALPHA_MAX, T_MIN)
     assert stopped_jit == stopped_py
     for a, b in zip(compiled, python):
         np.testing.assert_array_equal(a, b)
@@ -78,19 +79,21 @@ def test_blend_lanes_vector_code_equals_the_python_reference(seed, base, n_lanes
 
 @settings(max_examples=150, deadline=None)
 @given(seed=st.integers(0, 10_000), base=st.integers(0, 40), n_lanes=st.integers(0, LANES),
-       values=st.tuples(*[st.floats(-5, 5)] * 3), dx_first=st.floats(-30, 30), dy=st.floats(-30, 30))
+       values=st.lists(st.floats(-5, 5), min_size=1, max_size=8), dx_first=st.floats(-30, 30),
+       dy=st.floats(-30, 30))
 def test_gradient_lanes_vector_code_equals_the_python_reference(seed, base, n_lanes, values, dx_first, dy):
     """The backward's lanes: T, the prefix sums, the α update and every per-lane gradient sum bit for bit,
     clamped lanes (α ≥ α_max: no exponent gradient) and stopped pixels included."""
-    trans, planes, lanes = _lane_state(seed, base)
+    trans, planes, lanes = _lane_state(seed, base, len(values))
+    vals = np.array(values)
     rng = np.random.default_rng(seed + 1)
     total, prefix = rng.normal(size=trans.size), rng.normal(size=trans.size)
-    sums = rng.normal(size=(lane_kernels.GRADIENT_SUMS, LANES))
+    sums = rng.normal(size=(lane_kernels.GEOMETRY_SUMS + len(values), LANES))
     runs = []
     for run in (lane_kernels.gradient_lanes, gradient_lanes_compiled):
-        state = [trans.copy(), *(p.copy() for p in planes), total.copy(), prefix.copy(), lanes.copy()]
+        state = [trans.copy(), planes.copy(), total.copy(), prefix.copy(), lanes.copy()]
         out = sums.copy()
-        stopped = run(*state, base, n_lanes, 0.7, *values, dx_first, dy, out, FLOOR, ALPHA_MAX, T_MIN)
+        stopped = run(*state, base, n_lanes, 0.7, vals, dx_first, dy, out, FLOOR, ALPHA_MAX, T_MIN)
         runs.append((stopped, state, out))
     (s_py, state_py, sums_py), (s_jit, state_jit, sums_jit) = runs
     assert s_jit == s_py
@@ -98,7 +101,7 @@ def test_gradient_lanes_vector_code_equals_the_python_reference(seed, base, n_la
         np.testing.assert_array_equal(a, b)
     blended = (trans[base:base + n_lanes] > 0) & (state_py[0][base:base + n_lanes] > 0) & (
         state_py[0][base:base + n_lanes] != trans[base:base + n_lanes])
-    changed = (prefix[base:base + n_lanes] != state_py[5][base:base + n_lanes])
+    changed = (prefix[base:base + n_lanes] != state_py[3][base:base + n_lanes])
     assert not (changed & ~blended).any()  # only blended pixels add to the prefix sums
 
 
@@ -194,7 +197,7 @@ def test_a_chunk_far_out_on_a_thin_gaussian_is_evaluated_directly():
 
 @pytest.mark.parametrize("channels", [3, 9])
 def test_forward_kernels_compiled_equal_their_python_run(channels, monkeypatch):
-    """The narrow (3 channels) and wide (9) forward kernels run as plain Python — numpy checks every index
+    """The narrow (3 channels) and wide (9 > NARROW_CHANNELS) forward kernels run as plain Python — numpy checks every index
     the lanes touch, the lanes are the Python reference — equal the compiled kernels exactly."""
     scene = random_scene(120, 3, log_scale=-1.6)
     cam = view_cameras(40, 21)[0]
@@ -203,7 +206,8 @@ def test_forward_kernels_compiled_equal_their_python_run(channels, monkeypatch):
                                    cam, options, torch.float64)
     lists = kernel_backend.tile_lists(proj, cam, options, torch.float64, channels)
     values = np.random.default_rng(0).normal(size=(120, channels))
-    compiled, python = ((blend_kernels._blend_narrow, blend_kernels._blend_narrow_py) if channels <= 3 else
+    compiled, python = ((blend_kernels._blend_narrow, blend_kernels._blend_narrow_py)
+                        if channels <= blend_kernels.NARROW_CHANNELS else
                         (blend_kernels._blend_wide, blend_kernels._blend_wide_py))
 
     def run(kernel):
@@ -224,7 +228,7 @@ def test_forward_kernels_compiled_equal_their_python_run(channels, monkeypatch):
     np.testing.assert_array_equal(fast[1], slow[1])
 
 
-@pytest.mark.parametrize("channels", [1, 3])
+@pytest.mark.parametrize("channels", [1, 3, 6])
 def test_lane_backward_equals_the_fragment_backward(channels):
     """The narrow backward (gradient sums formed in the lanes) against the many-channel one (sums over each
     entry's fragments), on the same forward: ∂L/∂values and ∂L/∂geometry agree to float64 rounding."""

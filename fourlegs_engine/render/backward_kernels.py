@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..jit_cache import JIT_CACHE
-from .blend_kernels import NARROW_LANES, PREFETCH_AHEAD, _entry_fragments, _gauss_at, _skip_row, _tile_start, numba
-from .lane_kernels import GRADIENT_SUMS, LANES, chunk_start, direct_row, gradient_lanes, prefetch
+from .blend_kernels import PREFETCH_AHEAD, _entry_fragments, _gauss_at, _skip_row, _tile_start, numba
+from .lane_kernels import GEOMETRY_SUMS, LANES, chunk_start, direct_row, gradient_lanes, prefetch
 
 #: work counters of :func:`count_work` (see its docstring)
 WORK_COUNTERS = ("in_boxes", "in_footprints", "evaluated", "blended")
@@ -129,27 +129,23 @@ def _backward_narrow_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, ti
                         grad_accum, grad_transmittance, transmittance_final, accum, alpha_floor, alpha_max,
                         transmittance_min, need_values, need_geometry, grad_values,
                         grad_geometry):  # pragma: no cover - compiled by numba
-    """:func:`_backward_py` for C ≤ 3 channels, in the forward's lanes: each chunk row's gradient terms
+    """:func:`_backward_py` for C ≤ NARROW_CHANNELS, in the forward's lanes: each chunk row's gradient terms
     are formed by :func:`~.lane_kernels.gradient_lanes` in float64 planes (∂L/∂accum per channel, the
     suffix-sum total and prefix) and summed per lane, then over the lanes once per list entry."""
     channels = grad_accum.shape[1]
     pitch = tile_w + LANES
     plane = tile_h * pitch
     trans = np.empty(plane, dtype=np.float64)
-    g0 = np.empty(plane, dtype=np.float64)
-    g1 = np.empty(plane, dtype=np.float64)
-    g2 = np.empty(plane, dtype=np.float64)
+    grads = np.empty((channels, plane), dtype=np.float64)
     total = np.empty(plane, dtype=np.float64)
     prefix = np.empty(plane, dtype=np.float64)
     lanes = np.empty(2 * LANES, dtype=np.float64)
-    sums = np.empty((GRADIENT_SUMS, LANES), dtype=np.float64)
-    totals = np.empty(GRADIENT_SUMS, dtype=np.float64)
+    sums = np.empty((GEOMETRY_SUMS + channels, LANES), dtype=np.float64)
+    totals = np.empty(GEOMETRY_SUMS + channels, dtype=np.float64)
     row_live = np.empty(tile_h, dtype=np.int64)
     for tile in tiles:
         x0, y0, tw, th = _tile_start(tile, tiles_x, tile_w, tile_h, width, height, trans, row_live)
-        g0[:] = 0.0
-        g1[:] = 0.0
-        g2[:] = 0.0
+        grads[:, :] = 0.0
         total[:] = 0.0
         prefix[:] = 0.0
         for r in range(th):
@@ -157,9 +153,8 @@ def _backward_narrow_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, ti
             for x in range(tw):
                 p = r * pitch + x
                 src = grad_accum[row + x]
-                g0[p] = np.float64(src[0]) if channels > 0 else 0.0
-                g1[p] = np.float64(src[1]) if channels > 1 else 0.0
-                g2[p] = np.float64(src[2]) if channels > 2 else 0.0
+                for j in range(channels):
+                    grads[j, p] = src[j]
                 if need_geometry:
                     dot = 0.0
                     for s in range(channels):
@@ -176,9 +171,6 @@ def _backward_narrow_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, ti
                 prefetch(values, order[ahead])
             g = order[k]
             vals = values[g]
-            v0 = np.float64(vals[0]) if channels > 0 else 0.0
-            v1 = np.float64(vals[1]) if channels > 1 else 0.0
-            v2 = np.float64(vals[2]) if channels > 2 else 0.0
             mx, my = packed[k, 0], packed[k, 1]
             bx0, bx1 = max(boxes[k, 0], x0), min(boxes[k, 1], x0 + tw - 1)
             by0, by1 = max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1)
@@ -196,21 +188,21 @@ def _backward_narrow_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, ti
                     if row_live[r] == 0:
                         _skip_row(lanes, step)
                         continue
-                    stopped = gradient_lanes(trans, g0, g1, g2, total, prefix, lanes, r * pitch + cx - x0, n_lanes,
-                                             1.0 if direct else step, v0, v1, v2, dx_first, y + 0.5 - my, sums,
+                    stopped = gradient_lanes(trans, grads, total, prefix, lanes, r * pitch + cx - x0, n_lanes,
+                                             1.0 if direct else step, vals, dx_first, y + 0.5 - my, sums,
                                              alpha_floor, alpha_max, transmittance_min)
                     row_live[r] -= stopped
                     live -= stopped
                     blended = True
             if blended:
-                for j in range(GRADIENT_SUMS):
+                for j in range(GEOMETRY_SUMS + channels):
                     acc = 0.0
                     for lane in range(LANES):
                         acc += sums[j, lane]
                     totals[j] = acc
                 if need_values:
                     for s in range(channels):
-                        grad_values[g, s] += totals[6 + s]
+                        grad_values[g, s] += totals[GEOMETRY_SUMS + s]
                 if need_geometry:
                     _add_geometry_gradient(grad_geometry, g, packed, k, totals[0], totals[1], totals[2], totals[3],
                                            totals[4], totals[5])

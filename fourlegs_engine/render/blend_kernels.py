@@ -8,7 +8,8 @@ own transmittance and stops as in 3DGS; a row whose pixels have all stopped is s
 pixels have all stopped ends its list. The table rows of the next list entries are prefetched (they are
 scattered over tables larger than the caches).
 
-The narrow forward (up to three channels, :func:`_blend_narrow_py`) adds the channel sums in the lanes;
+The narrow forward (up to NARROW_CHANNELS channels, :func:`_blend_narrow_py`) adds the channel sums in the
+lanes;
 the others collect each entry's fragments (pixel, w = α·T, α) with :func:`_entry_fragments_py` — the same
 walk, so the forward, the backward, the splat and the work counter decide alike what is blended — and
 form their sums over the fragments.
@@ -39,8 +40,8 @@ try:  # pragma: no cover - exercised when numba is missing
 except ImportError:  # pragma: no cover
     numba = None
 
-#: channels the narrow forward kernel blends in planes beside T (fewer are zero)
-NARROW_LANES = 3
+#: at most this many channels are blended in the lanes themselves (more: fragments, then channel sums)
+NARROW_CHANNELS = 8
 #: list entries the kernels prefetch ahead of the one they blend
 PREFETCH_AHEAD = 8
 #: fragments the many-channel kernels collect before forming their channel sums
@@ -114,8 +115,8 @@ def _entry_fragments_py(packed, boxes, k, x0, y0, tw, th, pitch, trans, row_live
 def _blend_narrow_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile_h, width, height, values,
                      alpha_floor, alpha_max, transmittance_min, accum, transmittance_out):  # pragma: no cover
     """accum[p, :C] = Σ_i w_i(p)·values[g_i, :C] and transmittance_out[p] = T_final for the pixels of
-    ``tiles``, for C ≤ 3 channels (values (N, C), g_i = order[rank]), each pair's box blended in chunks of
-    LANES columns by :func:`~.lane_kernels.blend_lanes` into float64 planes (T, three channel sums).
+    ``tiles``, for C ≤ NARROW_CHANNELS (values (N, C), g_i = order[rank]), each pair's box blended in chunks
+    of LANES columns by :func:`~.lane_kernels.blend_lanes` into float64 planes (T, one sum per channel).
 
     Arrays: see :class:`~.tile_lists.TileLists`; accum (H·W, C) and transmittance_out (H·W,) are written
     for every pixel of the listed tiles (tiles own disjoint pixels, so tile subsets run concurrently).
@@ -125,16 +126,12 @@ def _blend_narrow_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_
     pitch = tile_w + LANES  # a chunk's vector reaches LANES − 1 columns past its row's last pixel
     plane = tile_h * pitch
     trans = np.empty(plane, dtype=np.float64)
-    c0 = np.empty(plane, dtype=np.float64)
-    c1 = np.empty(plane, dtype=np.float64)
-    c2 = np.empty(plane, dtype=np.float64)
+    planes = np.empty((channels, plane), dtype=np.float64)
     lanes = np.empty(2 * LANES, dtype=np.float64)
     row_live = np.empty(tile_h, dtype=np.int64)
     for tile in tiles:
         x0, y0, tw, th = _tile_start(tile, tiles_x, tile_w, tile_h, width, height, trans, row_live)
-        c0[:] = 0.0
-        c1[:] = 0.0
-        c2[:] = 0.0
+        planes[:, :] = 0.0
         live = tw * th
         end = offsets[tile + 1]
         for m in range(offsets[tile], end):
@@ -147,9 +144,6 @@ def _blend_narrow_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_
             bx0, bx1 = max(boxes[k, 0], x0), min(boxes[k, 1], x0 + tw - 1)
             by0, by1 = max(boxes[k, 2], y0), min(boxes[k, 3], y0 + th - 1)
             vals = values[order[k]]
-            v0 = np.float64(vals[0]) if channels > 0 else 0.0
-            v1 = np.float64(vals[1]) if channels > 1 else 0.0
-            v2 = np.float64(vals[2]) if channels > 2 else 0.0
             for cx in range(bx0, bx1 + 1, LANES):
                 n_lanes = min(LANES, bx1 - cx + 1)
                 step = chunk_start(packed, k, cx, by0, cx + n_lanes - 1, by1, lanes)
@@ -161,9 +155,8 @@ def _blend_narrow_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_
                     if row_live[r] == 0:
                         _skip_row(lanes, step)
                         continue
-                    stopped = blend_lanes(trans, c0, c1, c2, lanes, r * pitch + cx - x0, n_lanes,
-                                          1.0 if direct else step, v0, v1, v2, alpha_floor, alpha_max,
-                                          transmittance_min)
+                    stopped = blend_lanes(trans, planes, lanes, r * pitch + cx - x0, n_lanes, 1.0 if direct else step,
+                                          vals, alpha_floor, alpha_max, transmittance_min)
                     row_live[r] -= stopped
                     live -= stopped
             if live == 0:
@@ -173,12 +166,8 @@ def _blend_narrow_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_
             for x in range(tw):
                 p = r * pitch + x
                 transmittance_out[row + x] = abs(trans[p])
-                if channels > 0:
-                    accum[row + x, 0] = c0[p]
-                if channels > 1:
-                    accum[row + x, 1] = c1[p]
-                if channels > 2:
-                    accum[row + x, 2] = c2[p]
+                for j in range(channels):
+                    accum[row + x, j] = planes[j, p]
 
 
 def _blend_wide_py(tiles, offsets, ranks, order, packed, boxes, tiles_x, tile_w, tile_h, width, height, values,

@@ -113,7 +113,7 @@ def blend_forward(lists: TileLists, values: torch.Tensor, options: RasterOptions
     rules = (alpha_floor(options, dtype), float(options.alpha_max), float(options.transmittance_min))
     args = (lists.tile_offsets, lists.tile_ranks, lists.order, lists.packed, lists.boxes, *shape,
             np.ascontiguousarray(vals), *rules, accum.numpy(), trans.numpy())
-    kernel = blend_kernels._blend_narrow if C <= blend_kernels.NARROW_LANES else blend_kernels._blend_wide
+    kernel = blend_kernels._blend_narrow if C <= blend_kernels.NARROW_CHANNELS else blend_kernels._blend_wide
     cpu_kernels.run_on_workers(lambda part, _: kernel(part, *args), tiles, _workers(_busy_tiles(lists).size))
     return accum, trans
 
@@ -156,7 +156,7 @@ def _backward_threads(lists: TileLists, values, grad_accum, grad_trans, trans, a
     rules = (alpha_floor(options, dtype), float(options.alpha_max), float(options.transmittance_min))
     if need_geometry:
         common = (*grid, values, grad_accum, grad_trans, trans, accum, *rules, need_values, need_geometry)
-        backward = backward_kernels._backward_narrow if C <= blend_kernels.NARROW_LANES else backward_kernels._backward
+        backward = backward_kernels._backward_narrow if C <= blend_kernels.NARROW_CHANNELS else backward_kernels._backward
         kernel = lambda part, k: backward(part, *common, *buffers[k])  # noqa: E731
     else:
         kernel = lambda part, k: blend_kernels._splat(part, *grid, grad_accum, *rules, buffers[k][0])  # noqa: E731

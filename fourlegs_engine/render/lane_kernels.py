@@ -33,6 +33,7 @@ try:  # pragma: no cover - exercised when numba is missing
     import numba
     from llvmlite import ir
     from numba import types
+    from numba.core import cgutils
     from numba.extending import intrinsic, overload
 except ImportError:  # pragma: no cover
     numba = None
@@ -133,13 +134,13 @@ def _lane_rule(gauss, t_before, lane, n_lanes, alpha_floor, alpha_max, transmitt
     return t_before, 0.0, False, False
 
 
-def blend_lanes(trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, alpha_floor, alpha_max,
-                transmittance_min):
-    """Blend one chunk row: pixels base .. base + LANES − 1 of the tile planes (T, three channel sums),
-    lanes l < n_lanes only, α = lanes[l] (then α ← α·ratio, ratio ← ratio·step for the next row).
+def blend_lanes(trans, planes, lanes, base, n_lanes, step, vals, alpha_floor, alpha_max, transmittance_min):
+    """Blend one chunk row: pixels base .. base + LANES − 1 of the tile planes (T, and per channel j the sum
+    planes[j]), lanes l < n_lanes only, α = lanes[l] (then α ← α·ratio, ratio ← ratio·step for the next row).
 
-    Arrays: trans, c0, c1, c2 float64 planes with at least base + LANES entries; a stopped pixel keeps
-    −T (T ≥ transmittance_min > 0, so the sign is free). Returns how many pixels stopped in this row.
+    Arrays: trans (P,) and planes (C, P) float64 with P ≥ base + LANES; vals (C,) the Gaussian's values. A
+    stopped pixel keeps −T (T ≥ transmittance_min > 0, so the sign is free). Returns how many pixels
+    stopped in this row.
     """
     stopped = 0
     for lane in range(LANES):
@@ -147,9 +148,8 @@ def blend_lanes(trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, alpha
         t_new, w, stop, _ = _lane_rule(lanes[lane], trans[p], lane, n_lanes, alpha_floor, alpha_max,
                                        transmittance_min)
         trans[p] = t_new
-        c0[p] += w * v0
-        c1[p] += w * v1
-        c2[p] += w * v2
+        for j in range(planes.shape[0]):
+            planes[j, p] += w * np.float64(vals[j])
         stopped += stop
         lanes[lane] *= lanes[LANES + lane]
         lanes[LANES + lane] *= step
@@ -179,25 +179,27 @@ def fragment_lanes(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, fr
     return n_frag, stopped
 
 
-#: rows of the accumulator of :func:`gradient_lanes`: Σ∂L/∂power·(1, dx, dy, dx², dx·dy, dy²), then the
-#: three value-gradient sums Σ w·∂L/∂accum
-GRADIENT_SUMS = 9
+#: rows of the accumulator of :func:`gradient_lanes` before the value-gradient sums: Σ∂L/∂power·(1, dx,
+#: dy, dx², dx·dy, dy²)
+GEOMETRY_SUMS = 6
 
 
-def gradient_lanes(trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2, dx_first, dy, sums,
-                   alpha_floor, alpha_max, transmittance_min):
+def gradient_lanes(trans, grads, total, prefix, lanes, base, n_lanes, step, vals, dx_first, dy, sums, alpha_floor,
+                   alpha_max, transmittance_min):
     """The backward of :func:`blend_lanes` for one chunk row: the same blend of T (and the same α update),
-    and for each blended lane l (pixel p = base + l, weight w, value dot s = g·v with g = ∂L/∂accum_p):
+    and for each blended lane l (pixel p = base + l, weight w, value dot s = Σ_j g_j·v_j with
+    g_j = grads[j, p] = ∂L/∂accum_j):
 
     * prefix[p] += w·s (Σ_{k≤i} w_k s_k of the backward's suffix-sum form);
-    * sums[6 + j, l] += w·g_j (∂L/∂values);
+    * sums[GEOMETRY_SUMS + j, l] += w·g_j (∂L/∂values);
     * if α < α_max: ∂L/∂power = (w/α·s − (total[p] − prefix[p])/(1 − α))·α is added to sums[0..5, l] times
       (1, dx, dy, dx², dx·dy, dy²), dx = dx_first + l, dy = dy (pixel centre minus mean).
 
-    Arrays: trans, g0, g1, g2, total, prefix float64 planes (as :func:`blend_lanes`), sums
-    (GRADIENT_SUMS, LANES) float64. Returns how many pixels stopped in this row.
+    Arrays: trans, total, prefix (P,) and grads (C, P) float64 planes (as :func:`blend_lanes`), vals (C,),
+    sums (GEOMETRY_SUMS + C, LANES) float64. Returns how many pixels stopped in this row.
     """
     stopped = 0
+    channels = grads.shape[0]
     for lane in range(LANES):
         p = base + lane
         gauss = lanes[lane]
@@ -206,11 +208,12 @@ def gradient_lanes(trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step,
         trans[p] = t_new
         stopped += stop
         if blend:
-            dot = g0[p] * v0 + g1[p] * v1 + g2[p] * v2
+            dot = 0.0
+            for j in range(channels):
+                dot += grads[j, p] * np.float64(vals[j])
             prefix[p] += w * dot
-            sums[6, lane] += w * g0[p]
-            sums[7, lane] += w * g1[p]
-            sums[8, lane] += w * g2[p]
+            for j in range(channels):
+                sums[GEOMETRY_SUMS + j, lane] += w * grads[j, p]
             if alpha < alpha_max:
                 d_power = (w / alpha * dot - (total[p] - prefix[p]) / (1.0 - alpha)) * alpha
                 dx = dx_first + lane
@@ -307,25 +310,43 @@ if numba is not None:
                             ir.FunctionType(ir.VoidType(), [values.type, element.as_pointer(), mask.type]))
         builder.call(function, [values, builder.bitcast(pointer, element.as_pointer()), mask])
 
+    def _channel_pointer(context, builder, planes_type, planes, channel, base):
+        """<LANES x double>* at planes[channel, base] of a C-contiguous (C, P) float64 array."""
+        view = context.make_array(planes_type)(context, builder, planes)
+        plane_size = builder.extract_value(view.shape, 1)
+        offset = builder.add(builder.mul(channel, plane_size), base)
+        return builder.bitcast(builder.gep(view.data, [offset]), ir.VectorType(ir.DoubleType(), LANES).as_pointer())
+
+    def _value(context, builder, vals_type, vals, channel):
+        """vals[channel] as a double (vals a 1-D float array, any stride)."""
+        view = context.make_array(vals_type)(context, builder, vals)
+        stride = builder.extract_value(view.strides, 0)
+        address = builder.add(builder.ptrtoint(view.data, ir.IntType(64)), builder.mul(channel, stride))
+        element = context.get_value_type(vals_type.dtype)
+        value = builder.load(builder.inttoptr(address, element.as_pointer()))
+        return value if element == ir.DoubleType() else builder.fpext(value, ir.DoubleType())
+
+    def _channel_count(context, builder, planes_type, planes):
+        return builder.extract_value(context.make_array(planes_type)(context, builder, planes).shape, 0)
+
     @intrinsic
-    def _blend_lanes_ir(typingctx, trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, alpha_floor,
-                        alpha_max, transmittance_min):
-        signature = types.int64(trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, alpha_floor, alpha_max,
+    def _blend_lanes_ir(typingctx, trans, planes, lanes, base, n_lanes, step, vals, alpha_floor, alpha_max,
+                        transmittance_min):
+        signature = types.int64(trans, planes, lanes, base, n_lanes, step, vals, alpha_floor, alpha_max,
                                 transmittance_min)
 
         def codegen(context, builder, sig, args):
-            (trans_a, c0_a, c1_a, c2_a, lanes_a, base_v, n_lanes_v, step_v, v0_v, v1_v, v2_v, floor_v, amax_v,
-             tmin_v) = args
+            trans_a, planes_a, lanes_a, base_v, n_lanes_v, step_v, vals_a, floor_v, amax_v, tmin_v = args
             vec, _, splat = _vector_helpers(builder)
             f64 = ir.DoubleType()
-            gauss = _advance_ir(context, builder, sig.args[4], lanes_a, step_v)
+            gauss = _advance_ir(context, builder, sig.args[2], lanes_a, step_v)
             t_ptr = _vector_pointer(context, builder, sig.args[0], trans_a, base_v, f64)
             t_new, weight, stop, _, _ = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v,
                                                       floor_v, amax_v, tmin_v)
             builder.store(t_new, t_ptr, align=8)
-            for array_type, array, value in ((sig.args[1], c0_a, v0_v), (sig.args[2], c1_a, v1_v),
-                                             (sig.args[3], c2_a, v2_v)):
-                ptr = _vector_pointer(context, builder, array_type, array, base_v, f64)
+            with cgutils.for_range(builder, _channel_count(context, builder, sig.args[1], planes_a)) as loop:
+                ptr = _channel_pointer(context, builder, sig.args[1], planes_a, loop.index, base_v)
+                value = _value(context, builder, sig.args[6], vals_a, loop.index)
                 builder.store(builder.fadd(builder.load(ptr, align=8), builder.fmul(weight, splat(value, vec))), ptr,
                               align=8)
             return _popcount(builder, stop)
@@ -365,50 +386,63 @@ if numba is not None:
         return signature, codegen
 
     @intrinsic
-    def _gradient_lanes_ir(typingctx, trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2,
-                           dx_first, dy, sums, alpha_floor, alpha_max, transmittance_min):
-        signature = types.int64(trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2, dx_first,
-                                dy, sums, alpha_floor, alpha_max, transmittance_min)
+    def _gradient_lanes_ir(typingctx, trans, grads, total, prefix, lanes, base, n_lanes, step, vals, dx_first, dy,
+                           sums, alpha_floor, alpha_max, transmittance_min):
+        signature = types.int64(trans, grads, total, prefix, lanes, base, n_lanes, step, vals, dx_first, dy, sums,
+                                alpha_floor, alpha_max, transmittance_min)
 
         def codegen(context, builder, sig, args):
-            (trans_a, g0_a, g1_a, g2_a, total_a, prefix_a, lanes_a, base_v, n_lanes_v, step_v, v0_v, v1_v, v2_v,
-             dx_first_v, dy_v, sums_a, floor_v, amax_v, tmin_v) = args
-            vec, ivec, splat = _vector_helpers(builder)
+            (trans_a, grads_a, total_a, prefix_a, lanes_a, base_v, n_lanes_v, step_v, vals_a, dx_first_v, dy_v,
+             sums_a, floor_v, amax_v, tmin_v) = args
+            vec, _, splat = _vector_helpers(builder)
             f64, i64 = ir.DoubleType(), ir.IntType(64)
             zero = ir.Constant(vec, [0.0] * LANES)
 
             def plane(index, array):
                 return _vector_pointer(context, builder, sig.args[index], array, base_v, f64)
 
-            gauss = _advance_ir(context, builder, sig.args[6], lanes_a, step_v)
+            sums_data = context.make_array(sig.args[11])(context, builder, sums_a).data
+
+            def sums_row(row):
+                offset = builder.mul(row, ir.Constant(i64, LANES))
+                return builder.bitcast(builder.gep(sums_data, [offset]), vec.as_pointer())
+
+            def accumulate(row, mask, term):
+                ptr = sums_row(row)
+                current = builder.load(ptr, align=8)
+                builder.store(builder.select(mask, builder.fadd(current, term), current), ptr, align=8)
+
+            gauss = _advance_ir(context, builder, sig.args[4], lanes_a, step_v)
             t_ptr = plane(0, trans_a)
             t_new, weight, stop, blend, alpha = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v,
                                                               floor_v, amax_v, tmin_v)
             builder.store(t_new, t_ptr, align=8)
-            grads = [builder.load(plane(i, a), align=8) for i, a in ((1, g0_a), (2, g1_a), (3, g2_a))]
-            dot = builder.fadd(builder.fadd(builder.fmul(grads[0], splat(v0_v, vec)),
-                                            builder.fmul(grads[1], splat(v1_v, vec))),
-                               builder.fmul(grads[2], splat(v2_v, vec)))
-            prefix_ptr = plane(5, prefix_a)
-            prefix_new = builder.fadd(builder.load(prefix_ptr, align=8), builder.fmul(weight, dot))
-            builder.store(builder.select(blend, prefix_new, builder.load(prefix_ptr, align=8)), prefix_ptr, align=8)
+            channels = _channel_count(context, builder, sig.args[1], grads_a)
+            dot_slot = cgutils.alloca_once_value(builder, zero)
+            with cgutils.for_range(builder, channels) as loop:
+                grad = builder.load(_channel_pointer(context, builder, sig.args[1], grads_a, loop.index, base_v),
+                                    align=8)
+                value = _value(context, builder, sig.args[8], vals_a, loop.index)
+                builder.store(builder.fadd(builder.load(dot_slot), builder.fmul(grad, splat(value, vec))), dot_slot)
+                accumulate(builder.add(loop.index, ir.Constant(i64, GEOMETRY_SUMS)), blend, builder.fmul(weight, grad))
+            dot = builder.load(dot_slot)
+            prefix_ptr = plane(3, prefix_a)
+            prefix_old = builder.load(prefix_ptr, align=8)
+            prefix_new = builder.fadd(prefix_old, builder.fmul(weight, dot))
+            builder.store(builder.select(blend, prefix_new, prefix_old), prefix_ptr, align=8)
             unclamped = builder.and_(blend, builder.fcmp_ordered("<", alpha, splat(amax_v, vec)))
             one = ir.Constant(vec, [1.0] * LANES)
             d_alpha = builder.fsub(builder.fmul(builder.fdiv(weight, alpha), dot),
-                                   builder.fdiv(builder.fsub(builder.load(plane(4, total_a), align=8), prefix_new),
+                                   builder.fdiv(builder.fsub(builder.load(plane(2, total_a), align=8), prefix_new),
                                                 builder.fsub(one, alpha)))
             d_power = builder.fmul(d_alpha, alpha)
             dx = builder.fadd(splat(dx_first_v, vec), ir.Constant(vec, [float(lane) for lane in range(LANES)]))
             dy_vec = splat(dy_v, vec)
-            terms = [d_power, builder.fmul(d_power, dx), builder.fmul(d_power, dy_vec),
+            terms = (d_power, builder.fmul(d_power, dx), builder.fmul(d_power, dy_vec),
                      builder.fmul(builder.fmul(d_power, dx), dx), builder.fmul(builder.fmul(d_power, dx), dy_vec),
-                     builder.fmul(builder.fmul(d_power, dy_vec), dy_vec)]
-            terms = [(unclamped, term) for term in terms] + [(blend, builder.fmul(weight, g)) for g in grads]
-            sums_data = context.make_array(sig.args[15])(context, builder, sums_a).data
-            for row, (mask, term) in enumerate(terms):
-                ptr = builder.bitcast(builder.gep(sums_data, [ir.Constant(i64, row * LANES)]), vec.as_pointer())
-                current = builder.load(ptr, align=8)
-                builder.store(builder.select(mask, builder.fadd(current, term), current), ptr, align=8)
+                     builder.fmul(builder.fmul(d_power, dy_vec), dy_vec))
+            for row, term in enumerate(terms):
+                accumulate(ir.Constant(i64, row), unclamped, term)
             return _popcount(builder, stop)
 
         return signature, codegen
@@ -508,13 +542,12 @@ if numba is not None:
         return implementation
 
     @overload(blend_lanes, inline="always")
-    def _blend_lanes_overload(trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, alpha_floor, alpha_max,
+    def _blend_lanes_overload(trans, planes, lanes, base, n_lanes, step, vals, alpha_floor, alpha_max,
                               transmittance_min):
-        def implementation(trans, c0, c1, c2, lanes, base, n_lanes, step, v0, v1, v2, alpha_floor, alpha_max,
+        def implementation(trans, planes, lanes, base, n_lanes, step, vals, alpha_floor, alpha_max,
                            transmittance_min):
-            return _blend_lanes_ir(trans, c0, c1, c2, lanes, np.int64(base), np.int64(n_lanes), np.float64(step),
-                                   np.float64(v0), np.float64(v1), np.float64(v2), np.float64(alpha_floor),
-                                   np.float64(alpha_max), np.float64(transmittance_min))
+            return _blend_lanes_ir(trans, planes, lanes, np.int64(base), np.int64(n_lanes), np.float64(step), vals,
+                                   np.float64(alpha_floor), np.float64(alpha_max), np.float64(transmittance_min))
         return implementation
 
     @overload(fragment_lanes, inline="always")
@@ -527,14 +560,13 @@ if numba is not None:
                                       np.float64(alpha_floor), np.float64(alpha_max), np.float64(transmittance_min))
         return implementation
     @overload(gradient_lanes, inline="always")
-    def _gradient_lanes_overload(trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2, dx_first,
-                                 dy, sums, alpha_floor, alpha_max, transmittance_min):
-        def implementation(trans, g0, g1, g2, total, prefix, lanes, base, n_lanes, step, v0, v1, v2, dx_first, dy,
-                           sums, alpha_floor, alpha_max, transmittance_min):
-            return _gradient_lanes_ir(trans, g0, g1, g2, total, prefix, lanes, np.int64(base), np.int64(n_lanes),
-                                      np.float64(step), np.float64(v0), np.float64(v1), np.float64(v2),
-                                      np.float64(dx_first), np.float64(dy), sums, np.float64(alpha_floor),
-                                      np.float64(alpha_max), np.float64(transmittance_min))
+    def _gradient_lanes_overload(trans, grads, total, prefix, lanes, base, n_lanes, step, vals, dx_first, dy, sums,
+                                 alpha_floor, alpha_max, transmittance_min):
+        def implementation(trans, grads, total, prefix, lanes, base, n_lanes, step, vals, dx_first, dy, sums,
+                           alpha_floor, alpha_max, transmittance_min):
+            return _gradient_lanes_ir(trans, grads, total, prefix, lanes, np.int64(base), np.int64(n_lanes),
+                                      np.float64(step), vals, np.float64(dx_first), np.float64(dy), sums,
+                                      np.float64(alpha_floor), np.float64(alpha_max), np.float64(transmittance_min))
         return implementation
 else:  # pragma: no cover
     _exponent, _chunk_in_range, chunk_start = _exponent_py, _chunk_in_range_py, chunk_start_py

@@ -197,8 +197,9 @@ def test_a_chunk_far_out_on_a_thin_gaussian_is_evaluated_directly():
 
 @pytest.mark.parametrize("channels", [3, 9])
 def test_forward_kernels_compiled_equal_their_python_run(channels, monkeypatch):
-    """The narrow (3 channels) and wide (9 > NARROW_CHANNELS) forward kernels run as plain Python — numpy checks every index
-    the lanes touch, the lanes are the Python reference — equal the compiled kernels exactly."""
+    """The narrow (3 channels) and wide (9 > NARROW_CHANNELS) forward kernels run as plain Python — numpy
+    checks every index the lanes touch, the lanes are the Python reference — equal the compiled kernels
+    exactly."""
     scene = random_scene(120, 3, log_scale=-1.6)
     cam = view_cameras(40, 21)[0]
     options = RasterOptions(tile_size=20).check()
@@ -243,7 +244,8 @@ def test_lane_backward_equals_the_fragment_backward(channels):
     rng = np.random.default_rng(1)
     values = rng.normal(size=(150, channels))
     accum, trans = kernel_backend.blend_forward(lists, torch.from_numpy(values), options)
-    grad_accum, grad_trans = rng.normal(size=(cam.width * cam.height, channels)), rng.normal(size=cam.width * cam.height)
+    n_pix = cam.width * cam.height
+    grad_accum, grad_trans = rng.normal(size=(n_pix, channels)), rng.normal(size=n_pix)
     grid = (lists.tile_offsets, lists.tile_ranks, lists.order, lists.packed, lists.boxes, lists.tiles_x, lists.tile_w,
             lists.tile_h, lists.width, lists.height)
     rules = (kernel_backend.alpha_floor(options, torch.float64), options.alpha_max, options.transmittance_min)

@@ -155,12 +155,31 @@ def test_the_cache_moves_to_a_writable_folder_when_the_install_is_read_only(tmp_
     monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
     monkeypatch.setenv("FOURLEGS_CACHE", str(tmp_path))
     monkeypatch.setattr(jit_cache.os, "access", lambda path, mode: False)
+    (tmp_path / "numba" / "0123456789abcdef").mkdir(parents=True)  # the kernels of other sources
     assert jit_cache.configure() is True
-    assert os.environ["NUMBA_CACHE_DIR"] == str(tmp_path / "numba")
+    assert os.environ["NUMBA_CACHE_DIR"] == str(tmp_path / "numba" / jit_cache.kernel_sources_digest())
+    assert [p.name for p in (tmp_path / "numba").iterdir()] == [jit_cache.kernel_sources_digest()]
     monkeypatch.delenv("NUMBA_CACHE_DIR")
     monkeypatch.setattr(jit_cache, "_writable", lambda folder: False)
     assert jit_cache.configure() is False
     monkeypatch.setattr(jit_cache, "JIT_CACHE", True)
+
+
+def test_the_kernel_cache_folder_changes_with_any_numba_module(tmp_path):
+    """numba checks only a kernel's own file; the cache folder is named by all numba modules' sources, so an
+    edit to one that others inline (the lane kernels) compiles every kernel afresh."""
+    from fourlegs_engine import jit_cache
+
+    package = tmp_path / "pkg"
+    (package / "render").mkdir(parents=True)
+    (package / "render" / "lanes.py").write_text("import numba\nLANES = 16\n")
+    (package / "render" / "kernels.py").write_text("from numba import njit\n")
+    (package / "plain.py").write_text("VALUE = 1\n")
+    before = jit_cache.kernel_sources_digest(package)
+    (package / "plain.py").write_text("VALUE = 2\n")
+    assert jit_cache.kernel_sources_digest(package) == before  # no numba there
+    (package / "render" / "lanes.py").write_text("import numba\nLANES = 8\n")
+    assert jit_cache.kernel_sources_digest(package) != before
 
 
 def test_ctrl_c_while_the_commands_load_is_a_quiet_130(monkeypatch, capsys):

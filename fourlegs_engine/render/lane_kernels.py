@@ -298,6 +298,11 @@ if numba is not None:
         function = builder.module.globals.get(name)
         return function if function is not None else ir.Function(builder.module, function_type, name=name)
 
+    def _any(builder, mask):
+        """Whether any lane of the <LANES x i1> ``mask`` is set (an i1)."""
+        bits = builder.bitcast(mask, ir.IntType(LANES))
+        return builder.icmp_unsigned("!=", bits, ir.Constant(ir.IntType(LANES), 0))
+
     def _popcount(builder, mask):
         count = builder.module.declare_intrinsic("llvm.ctpop", [ir.IntType(LANES)])
         return builder.zext(builder.call(count, [builder.bitcast(mask, ir.IntType(LANES))]), ir.IntType(64))
@@ -341,14 +346,15 @@ if numba is not None:
             f64 = ir.DoubleType()
             gauss = _advance_ir(context, builder, sig.args[2], lanes_a, step_v)
             t_ptr = _vector_pointer(context, builder, sig.args[0], trans_a, base_v, f64)
-            t_new, weight, stop, _, _ = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v,
-                                                      floor_v, amax_v, tmin_v)
+            t_new, weight, stop, blend, _ = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v,
+                                                          floor_v, amax_v, tmin_v)
             builder.store(t_new, t_ptr, align=8)
-            with cgutils.for_range(builder, _channel_count(context, builder, sig.args[1], planes_a)) as loop:
-                ptr = _channel_pointer(context, builder, sig.args[1], planes_a, loop.index, base_v)
-                value = _value(context, builder, sig.args[6], vals_a, loop.index)
-                builder.store(builder.fadd(builder.load(ptr, align=8), builder.fmul(weight, splat(value, vec))), ptr,
-                              align=8)
+            with builder.if_then(_any(builder, blend)):  # a row where nothing blends leaves the sums alone
+                with cgutils.for_range(builder, _channel_count(context, builder, sig.args[1], planes_a)) as loop:
+                    ptr = _channel_pointer(context, builder, sig.args[1], planes_a, loop.index, base_v)
+                    value = _value(context, builder, sig.args[6], vals_a, loop.index)
+                    builder.store(builder.fadd(builder.load(ptr, align=8), builder.fmul(weight, splat(value, vec))),
+                                  ptr, align=8)
             return _popcount(builder, stop)
 
         return signature, codegen
@@ -417,32 +423,35 @@ if numba is not None:
             t_new, weight, stop, blend, alpha = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v,
                                                               floor_v, amax_v, tmin_v)
             builder.store(t_new, t_ptr, align=8)
-            channels = _channel_count(context, builder, sig.args[1], grads_a)
             dot_slot = cgutils.alloca_once_value(builder, zero)
-            with cgutils.for_range(builder, channels) as loop:
-                grad = builder.load(_channel_pointer(context, builder, sig.args[1], grads_a, loop.index, base_v),
-                                    align=8)
-                value = _value(context, builder, sig.args[8], vals_a, loop.index)
-                builder.store(builder.fadd(builder.load(dot_slot), builder.fmul(grad, splat(value, vec))), dot_slot)
-                accumulate(builder.add(loop.index, ir.Constant(i64, GEOMETRY_SUMS)), blend, builder.fmul(weight, grad))
-            dot = builder.load(dot_slot)
-            prefix_ptr = plane(3, prefix_a)
-            prefix_old = builder.load(prefix_ptr, align=8)
-            prefix_new = builder.fadd(prefix_old, builder.fmul(weight, dot))
-            builder.store(builder.select(blend, prefix_new, prefix_old), prefix_ptr, align=8)
-            unclamped = builder.and_(blend, builder.fcmp_ordered("<", alpha, splat(amax_v, vec)))
-            one = ir.Constant(vec, [1.0] * LANES)
-            d_alpha = builder.fsub(builder.fmul(builder.fdiv(weight, alpha), dot),
-                                   builder.fdiv(builder.fsub(builder.load(plane(2, total_a), align=8), prefix_new),
-                                                builder.fsub(one, alpha)))
-            d_power = builder.fmul(d_alpha, alpha)
-            dx = builder.fadd(splat(dx_first_v, vec), ir.Constant(vec, [float(lane) for lane in range(LANES)]))
-            dy_vec = splat(dy_v, vec)
-            terms = (d_power, builder.fmul(d_power, dx), builder.fmul(d_power, dy_vec),
-                     builder.fmul(builder.fmul(d_power, dx), dx), builder.fmul(builder.fmul(d_power, dx), dy_vec),
-                     builder.fmul(builder.fmul(d_power, dy_vec), dy_vec))
-            for row, term in enumerate(terms):
-                accumulate(ir.Constant(i64, row), unclamped, term)
+            with builder.if_then(_any(builder, blend)):  # a row where nothing blends adds nothing
+                channels = _channel_count(context, builder, sig.args[1], grads_a)
+                with cgutils.for_range(builder, channels) as loop:
+                    grad = builder.load(_channel_pointer(context, builder, sig.args[1], grads_a, loop.index, base_v),
+                                        align=8)
+                    value = _value(context, builder, sig.args[8], vals_a, loop.index)
+                    dot = builder.fadd(builder.load(dot_slot), builder.fmul(grad, splat(value, vec)))
+                    builder.store(dot, dot_slot)
+                    accumulate(builder.add(loop.index, ir.Constant(i64, GEOMETRY_SUMS)), blend,
+                               builder.fmul(weight, grad))
+                dot = builder.load(dot_slot)
+                prefix_ptr = plane(3, prefix_a)
+                prefix_old = builder.load(prefix_ptr, align=8)
+                prefix_new = builder.fadd(prefix_old, builder.fmul(weight, dot))
+                builder.store(builder.select(blend, prefix_new, prefix_old), prefix_ptr, align=8)
+                unclamped = builder.and_(blend, builder.fcmp_ordered("<", alpha, splat(amax_v, vec)))
+                one = ir.Constant(vec, [1.0] * LANES)
+                d_alpha = builder.fsub(builder.fmul(builder.fdiv(weight, alpha), dot),
+                                       builder.fdiv(builder.fsub(builder.load(plane(2, total_a), align=8), prefix_new),
+                                                    builder.fsub(one, alpha)))
+                d_power = builder.fmul(d_alpha, alpha)
+                dx = builder.fadd(splat(dx_first_v, vec), ir.Constant(vec, [float(lane) for lane in range(LANES)]))
+                dy_vec = splat(dy_v, vec)
+                terms = (d_power, builder.fmul(d_power, dx), builder.fmul(d_power, dy_vec),
+                         builder.fmul(builder.fmul(d_power, dx), dx), builder.fmul(builder.fmul(d_power, dx), dy_vec),
+                         builder.fmul(builder.fmul(d_power, dy_vec), dy_vec))
+                for row, term in enumerate(terms):
+                    accumulate(ir.Constant(i64, row), unclamped, term)
             return _popcount(builder, stop)
 
         return signature, codegen

@@ -1,4 +1,4 @@
-"""The fused CPU path (``RasterOptions(kernel="v2")``): projection → per-tile lists → row-footprint
+"""The fused CPU path (``RasterOptions(kernel="v2")``): projection → per-tile lists → SIMD lane
 kernels, forward and backward, on worker threads that block while idle.
 
 The projection is one fused pass each way (:mod:`.kernel_projection`), the lists come from

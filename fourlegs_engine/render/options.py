@@ -52,7 +52,7 @@ class RasterOptions:
             ``False`` forces the batched torch path (the reference the kernels are tested against; it
             also serves "depth_median" and "weights").
         kernel: which fused CPU kernels ``cpu_kernel`` uses. ``"v2"`` (default): the fused projection,
-            per-tile lists built from the exact footprint ellipses and the per-row footprint kernels of
+            per-tile lists built from the exact footprint ellipses and the SIMD lane kernels of
             :mod:`.blend_kernels`, forward and backward (gradients included, except for float16/bfloat16
             features that need a gradient, which the torch path widens chunk by chunk). ``"v1"``: the
             previous generation — torch projection and binning, the per-tile kernels of

@@ -37,6 +37,8 @@ from .lane_kernels import LANES, blend_lanes, chunk_start, direct_row, fragment_
 
 try:  # pragma: no cover - exercised when numba is missing
     import numba
+
+    from . import lane_llvm  # noqa: F401 (the vector code of the lane functions)
 except ImportError:  # pragma: no cover
     numba = None
 

@@ -23,6 +23,8 @@ from .lane_kernels import prefetch_for_write
 
 try:  # pragma: no cover - exercised when numba is missing
     import numba
+
+    from . import lane_llvm  # noqa: F401 (the prefetch hints' code)
 except ImportError:  # pragma: no cover
     numba = None
 

@@ -8,10 +8,12 @@ E = ln o − ½(a dx² + 2b dx dy + c dy²), a quadratic, so from one row to the
 
 (:func:`chunk_start_py` evaluates α and ρ of the chunk's first row with two vector exps,
 :func:`start_lanes`): a row costs two vector multiplications for α, then the blend of all its lanes at
-once — the α floor and clamp, the stop rule and T·(1 − α), the weights and the channel sums — as
-explicit LLVM vector code (:func:`blend_lanes`, :func:`fragment_lanes`), whatever numba's vectorizer
-makes of a loop. Each lane keeps the scalar kernels' arithmetic exactly (no fused multiply-add, no
-reassociation), so a lane's result is the scalar rule applied to its α.
+once — the α floor and clamp, the stop rule and T·(1 − α), the weights, and the channel sums
+(:func:`blend_lanes`), the fragments (:func:`fragment_lanes`) or the backward's gradient terms
+(:func:`gradient_lanes`) — as explicit LLVM vector code (numba's own vectorizer leaves such a loop
+scalar: it cannot prove that the tile planes do not alias). Each lane keeps the scalar arithmetic
+exactly (no fused multiply-add, no reassociation), so a lane's result is the scalar rule applied to
+its α.
 
 The recurrence multiplies factors e^(±|E|); while every exponent it passes through on the chunk is at
 least :data:`RECURRENCE_MIN_EXPONENT` they all stay normal float64 numbers and α keeps ~100 ulp of

@@ -34,9 +34,11 @@ def _vector_helpers(builder):
 
     return vec, ivec, splat
 
+
 def _vector_pointer(context, builder, array_type, array, offset, element_type):
     data = context.make_array(array_type)(context, builder, array).data
     return builder.bitcast(builder.gep(data, [offset]), ir.VectorType(element_type, LANES).as_pointer())
+
 
 def _lane_rule_ir(builder, gauss, t_before, n_lanes, alpha_floor, alpha_max, transmittance_min):
     """The vector form of :func:`_lane_rule`: (T to store, w, stop mask, blend mask, α after the clamp)."""
@@ -55,6 +57,7 @@ def _lane_rule_ir(builder, gauss, t_before, n_lanes, alpha_floor, alpha_max, tra
     weight = builder.select(blend, builder.fmul(alpha, t_before), zero)
     return t_new, weight, stop, blend, alpha
 
+
 def _advance_ir(context, builder, lanes_type, lanes, step):
     """α ← α·ratio, ratio ← ratio·step in ``lanes``; returns the α vector before the update."""
     vec, _, splat = _vector_helpers(builder)
@@ -67,19 +70,23 @@ def _advance_ir(context, builder, lanes_type, lanes, step):
     builder.store(builder.fmul(ratio, splat(step, vec)), ratio_ptr, align=8)
     return gauss
 
+
 def _declare(builder, name, function_type):
     """The LLVM intrinsic ``name`` of the builder's module (declared on first use)."""
     function = builder.module.globals.get(name)
     return function if function is not None else ir.Function(builder.module, function_type, name=name)
+
 
 def _any(builder, mask):
     """Whether any lane of the <LANES x i1> ``mask`` is set (an i1)."""
     bits = builder.bitcast(mask, ir.IntType(LANES))
     return builder.icmp_unsigned("!=", bits, ir.Constant(ir.IntType(LANES), 0))
 
+
 def _popcount(builder, mask):
     count = builder.module.declare_intrinsic("llvm.ctpop", [ir.IntType(LANES)])
     return builder.zext(builder.call(count, [builder.bitcast(mask, ir.IntType(LANES))]), ir.IntType(64))
+
 
 def _compress_store(builder, values, pointer, mask):
     """llvm.masked.compressstore: the masked lanes of ``values`` stored one after another at ``pointer``."""
@@ -89,12 +96,14 @@ def _compress_store(builder, values, pointer, mask):
                         ir.FunctionType(ir.VoidType(), [values.type, element.as_pointer(), mask.type]))
     builder.call(function, [values, builder.bitcast(pointer, element.as_pointer()), mask])
 
+
 def _channel_pointer(context, builder, planes_type, planes, channel, base):
     """<LANES x double>* at planes[channel, base] of a C-contiguous (C, P) float64 array."""
     view = context.make_array(planes_type)(context, builder, planes)
     plane_size = builder.extract_value(view.shape, 1)
     offset = builder.add(builder.mul(channel, plane_size), base)
     return builder.bitcast(builder.gep(view.data, [offset]), ir.VectorType(ir.DoubleType(), LANES).as_pointer())
+
 
 def _value(context, builder, vals_type, vals, channel):
     """vals[channel] as a double (vals a 1-D float array, any stride)."""
@@ -105,8 +114,10 @@ def _value(context, builder, vals_type, vals, channel):
     value = builder.load(builder.inttoptr(address, element.as_pointer()))
     return value if element == ir.DoubleType() else builder.fpext(value, ir.DoubleType())
 
+
 def _channel_count(context, builder, planes_type, planes):
     return builder.extract_value(context.make_array(planes_type)(context, builder, planes).shape, 0)
+
 
 @intrinsic
 def _blend_lanes_ir(typingctx, trans, planes, lanes, base, n_lanes, step, vals, alpha_floor, alpha_max,
@@ -132,6 +143,7 @@ def _blend_lanes_ir(typingctx, trans, planes, lanes, base, n_lanes, step, vals, 
         return _popcount(builder, stop)
 
     return signature, codegen
+
 
 @intrinsic
 def _fragment_lanes_ir(typingctx, trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight,
@@ -164,6 +176,7 @@ def _fragment_lanes_ir(typingctx, trans, lanes, base, n_lanes, step, pixel_base,
         return context.make_tuple(builder, result, [count, _popcount(builder, stop)])
 
     return signature, codegen
+
 
 @intrinsic
 def _gradient_lanes_ir(typingctx, trans, grads, total, prefix, lanes, base, n_lanes, step, vals, dx_first, dy,
@@ -230,6 +243,7 @@ def _gradient_lanes_ir(typingctx, trans, grads, total, prefix, lanes, base, n_la
 
     return signature, codegen
 
+
 def _prefetch_intrinsic(write: int):
     """An intrinsic (array, row, byte offset) -> llvm.prefetch of that address, for reading (write 0)
     or writing (1), kept in every cache level."""
@@ -250,8 +264,10 @@ def _prefetch_intrinsic(write: int):
         return types.none(array, types.int64, types.int64), codegen
     return prefetch_address
 
+
 _prefetch_read_ir = _prefetch_intrinsic(0)
 _prefetch_write_ir = _prefetch_intrinsic(1)
+
 
 @overload(prefetch, inline="always")
 def _prefetch_overload(array, row):
@@ -260,6 +276,7 @@ def _prefetch_overload(array, row):
             _prefetch_read_ir(array, np.int64(row), np.int64(offset))
     return implementation
 
+
 @overload(prefetch_for_write, inline="always")
 def _prefetch_for_write_overload(array, row):
     def implementation(array, row):
@@ -267,10 +284,10 @@ def _prefetch_for_write_overload(array, row):
             _prefetch_write_ir(array, np.int64(row), np.int64(offset))
     return implementation
 
+
 def _exp_ir(builder, x):
     """The vector code of :func:`exp_lanes` (the same operations in the same order)."""
     vec, ivec, splat = _vector_helpers(builder)
-    f64, i64 = ir.DoubleType(), ir.IntType(64)
 
     def constant(value):
         return ir.Constant(vec, [float(value)] * LANES)
@@ -286,6 +303,7 @@ def _exp_ir(builder, x):
         poly = builder.fadd(builder.fmul(poly, r), constant(coefficient))
     exponent = builder.shl(builder.fptosi(n, ivec), ir.Constant(ivec, [52] * LANES))
     return builder.bitcast(builder.add(builder.bitcast(poly, ivec), exponent), vec)
+
 
 @intrinsic
 def _start_lanes_ir(typingctx, lanes, mx, my, a, b, c, log_o, cx, cy):
@@ -317,12 +335,14 @@ def _start_lanes_ir(typingctx, lanes, mx, my, a, b, c, log_o, cx, cy):
 
     return signature, codegen
 
+
 @overload(start_lanes, inline="always")
 def _start_lanes_overload(lanes, mx, my, a, b, c, log_o, cx, cy):
     def implementation(lanes, mx, my, a, b, c, log_o, cx, cy):
         _start_lanes_ir(lanes, np.float64(mx), np.float64(my), np.float64(a), np.float64(b), np.float64(c),
                         np.float64(log_o), np.int64(cx), np.int64(cy))
     return implementation
+
 
 @overload(blend_lanes, inline="always")
 def _blend_lanes_overload(trans, planes, lanes, base, n_lanes, step, vals, alpha_floor, alpha_max,
@@ -332,6 +352,7 @@ def _blend_lanes_overload(trans, planes, lanes, base, n_lanes, step, vals, alpha
         return _blend_lanes_ir(trans, planes, lanes, np.int64(base), np.int64(n_lanes), np.float64(step), vals,
                                np.float64(alpha_floor), np.float64(alpha_max), np.float64(transmittance_min))
     return implementation
+
 
 @overload(fragment_lanes, inline="always")
 def _fragment_lanes_overload(trans, lanes, base, n_lanes, step, pixel_base, frag_pixel, frag_weight, frag_alpha,

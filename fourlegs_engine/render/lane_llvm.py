@@ -71,6 +71,18 @@ def _advance_ir(context, builder, lanes_type, lanes, step):
     return gauss
 
 
+def _row_ir(context, builder, sig, trans_index, lanes_index, trans, lanes, base, step, n_lanes, alpha_floor,
+            alpha_max, transmittance_min):
+    """The part every lane function shares: advance the α recurrence in ``lanes``, apply the lane rule to
+    the T row at ``base`` and store its new T. Returns (w, stop mask, blend mask, α after the clamp)."""
+    gauss = _advance_ir(context, builder, sig.args[lanes_index], lanes, step)
+    t_ptr = _vector_pointer(context, builder, sig.args[trans_index], trans, base, ir.DoubleType())
+    t_new, weight, stop, blend, alpha = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes,
+                                                      alpha_floor, alpha_max, transmittance_min)
+    builder.store(t_new, t_ptr, align=8)
+    return weight, stop, blend, alpha
+
+
 def _declare(builder, name, function_type):
     """The LLVM intrinsic ``name`` of the builder's module (declared on first use)."""
     function = builder.module.globals.get(name)
@@ -128,12 +140,8 @@ def _blend_lanes_ir(typingctx, trans, planes, lanes, base, n_lanes, step, vals, 
     def codegen(context, builder, sig, args):
         trans_a, planes_a, lanes_a, base_v, n_lanes_v, step_v, vals_a, floor_v, amax_v, tmin_v = args
         vec, _, splat = _vector_helpers(builder)
-        f64 = ir.DoubleType()
-        gauss = _advance_ir(context, builder, sig.args[2], lanes_a, step_v)
-        t_ptr = _vector_pointer(context, builder, sig.args[0], trans_a, base_v, f64)
-        t_new, weight, stop, blend, _ = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v,
-                                                      floor_v, amax_v, tmin_v)
-        builder.store(t_new, t_ptr, align=8)
+        weight, stop, blend, _ = _row_ir(context, builder, sig, 0, 2, trans_a, lanes_a, base_v, step_v, n_lanes_v,
+                                         floor_v, amax_v, tmin_v)
         with builder.if_then(_any(builder, blend)):  # a row where nothing blends leaves the sums alone
             with cgutils.for_range(builder, _channel_count(context, builder, sig.args[1], planes_a)) as loop:
                 ptr = _channel_pointer(context, builder, sig.args[1], planes_a, loop.index, base_v)
@@ -156,12 +164,8 @@ def _fragment_lanes_ir(typingctx, trans, lanes, base, n_lanes, step, pixel_base,
         (trans_a, lanes_a, base_v, n_lanes_v, step_v, pixel_base_v, pixel_a, weight_a, alpha_a, n_frag_v, floor_v,
          amax_v, tmin_v) = args
         _, ivec, splat = _vector_helpers(builder)
-        f64 = ir.DoubleType()
-        gauss = _advance_ir(context, builder, sig.args[1], lanes_a, step_v)
-        t_ptr = _vector_pointer(context, builder, sig.args[0], trans_a, base_v, f64)
-        t_new, weight, stop, blend, alpha = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v,
-                                                          floor_v, amax_v, tmin_v)
-        builder.store(t_new, t_ptr, align=8)
+        weight, stop, blend, alpha = _row_ir(context, builder, sig, 0, 1, trans_a, lanes_a, base_v, step_v,
+                                             n_lanes_v, floor_v, amax_v, tmin_v)
         pixels = builder.add(splat(pixel_base_v, ivec), ir.Constant(ivec, list(range(LANES))))
         for array_type, array, values in ((sig.args[6], pixel_a, pixels), (sig.args[7], weight_a, weight),
                                           (sig.args[8], alpha_a, alpha)):
@@ -205,11 +209,8 @@ def _gradient_lanes_ir(typingctx, trans, grads, total, prefix, lanes, base, n_la
             current = builder.load(ptr, align=8)
             builder.store(builder.select(mask, builder.fadd(current, term), current), ptr, align=8)
 
-        gauss = _advance_ir(context, builder, sig.args[4], lanes_a, step_v)
-        t_ptr = plane(0, trans_a)
-        t_new, weight, stop, blend, alpha = _lane_rule_ir(builder, gauss, builder.load(t_ptr, align=8), n_lanes_v,
-                                                          floor_v, amax_v, tmin_v)
-        builder.store(t_new, t_ptr, align=8)
+        weight, stop, blend, alpha = _row_ir(context, builder, sig, 0, 4, trans_a, lanes_a, base_v, step_v,
+                                             n_lanes_v, floor_v, amax_v, tmin_v)
         dot_slot = cgutils.alloca_once_value(builder, zero)
         with builder.if_then(_any(builder, blend)):  # a row where nothing blends adds nothing
             channels = _channel_count(context, builder, sig.args[1], grads_a)

@@ -163,7 +163,8 @@ def _raster_step(ctx: StepContext, backend: str) -> None:
     cpu = cpu_figures("render")
     if cpu:
         ctx.record(cpu_rows=[{k: r.get(k) for k in ("n", "output", "mode", "ms_median", "width", "height")}
-                             for r in cpu if r.get("part") == "speed"],
+                             for r in cpu if r.get("part") == "speed" and r.get("n") == 300_000
+                             and r.get("kernel", "v2") == "v2"],
                    cpu_source=str(CPU_FIGURES["render"].relative_to(REPO)))
 
 

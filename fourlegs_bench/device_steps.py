@@ -25,7 +25,7 @@ from typing import Any, Callable
 
 REPO = Path(__file__).resolve().parents[1]
 #: the repository's CPU figures, shown beside the GPU rows
-CPU_FIGURES = {"viclip": REPO / "docs/bench/viclip_real.json", "render": REPO / "docs/bench/render_300k.json",
+CPU_FIGURES = {"viclip": REPO / "docs/bench/viclip_real.json", "render": REPO / "docs/bench/render.json",
                "fit": REPO / "docs/bench/fit150_bench.json", "main_job": REPO / "docs/bench/main_job.json"}
 #: the paper's mean test-camera PSNR on the Panoptic sequences (Luiten et al., 640x360, GPU)
 PAPER_FIT_PSNR = 28.7

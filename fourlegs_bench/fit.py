@@ -32,11 +32,12 @@ PRESET_RUNS = {
 }
 INT_KNOBS = ("first_iterations", "iterations", "max_iterations", "min_iterations", "max_gaussians", "init_foreground", "init_background",
              "background_stride", "knn", "seed", "clean_plate_samples")
-STR_KNOBS = ("init",)
+STR_KNOBS = ("init", "device")
+BOOL_KNOBS = ("densify",)
 FLOAT_KNOBS = ("resolution_scale", "lr_means", "lr_means_later", "lr_colors", "lr_scales", "lr_opacities",
                "lr_rotations", "lr_rotations_later", "lr_camera", "voxel", "grad_threshold", "motion_step_range",
                "knn_lambda", "part_extent", "part_fraction",
-               "free_part_fraction", "part_scale")
+               "free_part_fraction", "part_scale", "lr_colors_later")
 #: loss weights as knobs: w_rigid=8 sets FitOptions.weights["rigid"] (the others keep their defaults)
 WEIGHT_KNOBS = tuple(f"w_{name}" for name in ("im", "seg", "rigid", "rot", "iso", "floor", "plate"))
 
@@ -84,7 +85,7 @@ def parse_runs(text: str) -> list[tuple[str, dict[str, Any]]]:
         for item in (s.strip() for s in knobs.split(",") if s.strip()):
             key, _, value = item.partition("=")
             key = key.strip().replace("-", "_")
-            if key not in INT_KNOBS + FLOAT_KNOBS + STR_KNOBS + WEIGHT_KNOBS + ("densify",):
+            if key not in INT_KNOBS + FLOAT_KNOBS + STR_KNOBS + WEIGHT_KNOBS + BOOL_KNOBS:
                 raise InputError(f"unknown knob {key!r}", field="--runs")
             try:
                 if key in WEIGHT_KNOBS:

@@ -70,14 +70,13 @@ def bench_fit_background(args) -> int:
         fg = torch.from_numpy(np.array(g.foreground))
         log_scales = torch.from_numpy(np.array(g.log_scales, np.float32))
         opacity = torch.from_numpy(np.array(g.opacity_logits, np.float32))
-        colors = torch.from_numpy(np.array(g.colors, np.float32))
         only = {"all": opacity, "fg": opacity.masked_fill(~fg, -30.0), "bg": opacity.masked_fill(fg, -30.0)}
 
         def render(i, cam, which):
             with torch.no_grad():
                 o = rasterize(torch.from_numpy(np.array(g.means[i], np.float32)),
                               torch.from_numpy(np.array(g.rotations[i], np.float32)), log_scales, only[which], cam,
-                              colors=colors, options=opts)
+                              colors=torch.from_numpy(np.array(g.rgb(i), np.float32)), options=opts)
             return o["rgb"].clamp(0, 1).numpy()
 
         plate_steps = sample_timesteps(range(first, first + T), args.plate_samples)

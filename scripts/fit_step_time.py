@@ -58,7 +58,7 @@ def main() -> int:
 
     def run(steps: int) -> float:
         return fit_later_timestep(model, tracker, frames, cameras, opts, radius, prev, prev2,
-                                  _generator(opts.seed, args.timestep), lambda ev: None, args.timestep, steps)[2]
+                                  _generator(opts.seed, args.timestep), lambda ev: None, args.timestep, steps)[3]
 
     run(3)  # compile and warm up
     start = time.process_time()

@@ -90,13 +90,20 @@ def frame_at(g: dict[str, np.ndarray], t: int) -> tuple[np.ndarray, np.ndarray]:
     return means, rots
 
 
+def colors_at(g: dict[str, np.ndarray], t: int) -> np.ndarray:
+    """(N,3) colours at timestep t: the foreground darkens by ``g["fg_darkening"]`` per timestep (if set)."""
+    colors = g["colors"].copy()
+    colors[g["fg"]] *= 1.0 - float(g.get("fg_darkening", 0.0)) * t
+    return colors
+
+
 def render(g, t, cam, subset=None):
     means, rots = frame_at(g, t)
     sel = slice(None) if subset is None else subset
     tt = lambda a: torch.as_tensor(a[sel], dtype=torch.float64)  # noqa: E731
     with torch.no_grad():
         out = rasterize(tt(means), tt(rots), tt(g["log_scales"]), torch.full((len(means[sel]),), 3.0, dtype=torch.float64),
-                        cam, colors=tt(g["colors"]), outputs=("rgb", "alpha"), options=RasterOptions(tile_size="auto"))
+                        cam, colors=tt(colors_at(g, t)), outputs=("rgb", "alpha"), options=RasterOptions(tile_size="auto"))
     return out["rgb"].numpy(), out["alpha"][..., 0].numpy()
 
 
@@ -109,8 +116,11 @@ def capture_meta(cams, num_timesteps: int, width: int, height: int) -> dict:
             "cam_id": [[int(c.name) for c in cams]] * num_timesteps}
 
 
-def write_capture(root: Path, num_timesteps: int = 3, seed: int = 0) -> Path:
+def write_capture(root: Path, num_timesteps: int = 3, seed: int = 0, fg_darkening: float = 0.0) -> Path:
+    """The synthetic capture under ``root``; ``fg_darkening``: the foreground's colours lose this fraction
+    of their t = 0 value per timestep (a person turning into shadow)."""
     g = scene_gaussians(seed)
+    g["fg_darkening"] = fg_darkening
     train, test = cameras()
     for split, cams in (("train", train), ("test", test)):
         meta = capture_meta(cams, num_timesteps, WIDTH, HEIGHT)

@@ -202,7 +202,7 @@ def _fit_ball_step(part_extent: float) -> tuple[np.ndarray, np.ndarray]:
 
     model, frames, train, opts, tracker, is_ball = _ball_problem(part_extent)
     prev = (model.means, model.rotations)
-    m, _, _ = fit_later_timestep(model, tracker, frames, train, opts, 4.0, prev, prev,
+    m, _, _, _ = fit_later_timestep(model, tracker, frames, train, opts, 4.0, prev, prev,
                                  torch.Generator().manual_seed(0), lambda ev: None, 1, 40)
     ball = torch.from_numpy(is_ball)
     return model.means[ball].numpy(), m[ball].numpy()

@@ -62,6 +62,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--part-extent", type=float, default=None,
                    help="later timesteps first move rigid parts of the foreground (what touches, cut to at most "
                    "this many metres) so a thrown ball follows whole (default 0.4; 0: off)")
+    p.add_argument("--lr-colors-later", type=float, default=None,
+                   help="later timesteps also fit the foreground's colours at this learning rate, so the scene's "
+                   "colours vary per timestep (the paper's code: 0.0025; 0: the first timestep's throughout)")
     p.add_argument("--init", choices=("hull", "features", "hull+features"), default=None,
                    help="initial Gaussians: visual hull + background proxy (hull), triangulated SIFT matches "
                    "(features, needs OpenCV: pip install 'fourlegs[fit-features]') or both (default: hull)")
@@ -92,7 +95,8 @@ def options_from_args(args: argparse.Namespace):
     if args.cameras is not None:
         kw["cameras"] = parse_cameras(args.cameras)
     for name in ("first_iterations", "iterations", "max_iterations", "min_iterations", "max_gaussians", "init",
-                 "init_foreground", "init_background", "clean_plate_samples", "motion_step_range", "part_extent"):
+                 "init_foreground", "init_background", "clean_plate_samples", "motion_step_range", "part_extent",
+                 "lr_colors_later"):
         if getattr(args, name) is not None:
             kw[name] = getattr(args, name)
     return preset_options(args.preset, **kw)

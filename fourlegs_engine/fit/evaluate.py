@@ -103,9 +103,10 @@ def evaluate_test_views(bundle: str | Path, capture: Capture | str | Path, *, re
     renders, targets = {}, {}
     log_scales = torch.from_numpy(np.array(g.log_scales, np.float32))
     opac = torch.from_numpy(np.array(g.opacity_logits, np.float32))
-    colors = torch.from_numpy(np.array(g.colors if g.colors.ndim == 2 else g.colors[0], np.float32))
+    static_colors = torch.from_numpy(np.array(g.colors, np.float32)) if g.colors.ndim == 2 else None
     for i in range(T):
         t = first + i
+        colors = static_colors if static_colors is not None else torch.from_numpy(np.array(g.colors[i], np.float32))
         means = torch.from_numpy(np.array(g.means[i], np.float32))
         rots = torch.from_numpy(np.array(g.rotations[i], np.float32))
         for j, c in enumerate(test_idx):

@@ -193,14 +193,17 @@ def fit_capture(dataset: str | Path | Capture, output: str | Path, options: FitO
             report.close()
 
     static = _load_npz(work / "static.npz")
-    static["colors"], static["cam_m"], static["cam_c"] = average_camera_colours(static["colors"], static["cam_m"],
-                                                                                static["cam_c"])
-    T = len(steps)
-    means = np.empty((T, static["colors"].shape[0], 3), np.float32)
-    rotations = np.empty((T, static["colors"].shape[0], 4), np.float32)
+    T, N = len(steps), static["colors"].shape[0]
+    means = np.empty((T, N, 3), np.float32)
+    rotations = np.empty((T, N, 4), np.float32)
+    colors = np.empty((T, N, 3), np.float32) if opts.lr_colors_later > 0 else static["colors"]
     for i, t in enumerate(steps):
         z = _load_npz(work / f"t{t:06d}.npz")
         means[i], rotations[i] = z["means"], z["rotations"]
+        if colors.ndim == 3:
+            colors[i] = z["colors"] if "colors" in z else static["colors"]
+    static["colors"], static["cam_m"], static["cam_c"] = average_camera_colours(colors, static["cam_m"],
+                                                                                static["cam_c"])
     g = GaussianSequence(means=means, rotations=rotations, log_scales=static["log_scales"],
                          opacity_logits=static["opacity_logits"], colors=static["colors"],
                          foreground=static["foreground"].astype(bool), source=str(capture.root))
@@ -285,6 +288,7 @@ def _run(capture: Capture, steps: range, cams_idx: list[int], cameras: list[Came
         return [history[str(a)]]
     tracker = Tracker(model, cameras, opts, floor_y)
     prev2 = prev = (model.means, model.rotations)
+    colors = model.colors  # (N,3) the previous timestep's (they change only with lr_colors_later)
     effort_path = work / "effort.json"
     effort = _read_effort(effort_path)
     previous_frames: TrainingFrames | None = None
@@ -293,13 +297,16 @@ def _run(capture: Capture, steps: range, cams_idx: list[int], cameras: list[Came
         if path.is_file():
             z = _load_npz(path)
             cur = (torch.from_numpy(z["means"]).to(device), torch.from_numpy(z["rotations"]).to(device))
+            if "colors" in z:
+                colors = torch.from_numpy(z["colors"]).to(device)
             report(FitEvent("timestep", t, train_psnr=history.get(str(t), float("nan")), resumed=True))
             previous_frames = None
         else:
             frames = TrainingFrames(capture, t, cams_idx, size, device)
             if opts.max_iterations > 0:
                 previous_frames = previous_frames or TrainingFrames(capture, t - 1, cams_idx, size, device)
-                residual, moved = forecast_residual(model, tracker, frames, previous_frames, cameras, prev, prev2)
+                residual, moved = forecast_residual(model, tracker, frames, previous_frames, cameras, prev, prev2,
+                                                    colors)
                 earlier = [e["residual"] for k, e in effort.items() if int(k) < t]
                 n_iter = iterations_for(residual, earlier, opts.iterations, min(opts.min_iterations, opts.iterations),
                                         opts.max_iterations)
@@ -307,12 +314,15 @@ def _run(capture: Capture, steps: range, cams_idx: list[int], cameras: list[Came
                 write_json_atomic(effort_path, effort)
             else:
                 n_iter = opts.iterations
-            m, r, last = fit_later_timestep(model, tracker, frames, cameras, opts, scene_radius, prev, prev2,
-                                    _generator(opts.seed, t), report, t, n_iter)
+            m, r, colors, last = fit_later_timestep(model, tracker, frames, cameras, opts, scene_radius, prev, prev2,
+                                                    _generator(opts.seed, t), report, t, n_iter, colors)
             previous_frames = frames
-            _save_npz(path, means=to_numpy(m), rotations=to_numpy(r))
+            per_timestep = {"colors": to_numpy(colors)} if opts.lr_colors_later > 0 else {}
+            _save_npz(path, means=to_numpy(m), rotations=to_numpy(r), **per_timestep)
             z = _load_npz(path)
             cur = (torch.from_numpy(z["means"]).to(device), torch.from_numpy(z["rotations"]).to(device))
+            if "colors" in z:
+                colors = torch.from_numpy(z["colors"]).to(device)
             history[str(t)] = last if math.isfinite(last) else None  # no step taken (iterations=0)
             write_json_atomic(history_path, history)
             report(FitEvent("timestep", t, train_psnr=last))

@@ -65,16 +65,17 @@ def raster_options() -> RasterOptions:
 
 
 def render_views(model: GaussianModel, camera: Camera, *, with_seg: bool = True, means=None, rotations=None,
-                 subset: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                 colors=None, subset: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Render rgb (and seg colours, alpha) of ``model`` (or of its ``subset`` of Gaussians, with
-    overriding ``means``/``rotations`` for that subset) without colour correction, black background."""
+    overriding ``means``/``rotations``/``colors`` for that subset) without colour correction, black background."""
     idx = subset
     pick = (lambda t: t) if idx is None else (lambda t: t.index_select(0, idx))
     m = pick(model.means) if means is None else means
     r = pick(model.rotations) if rotations is None else rotations
     outputs = ("rgb", "features", "alpha") if with_seg else ("rgb", "alpha")
     seg = pick(model.seg_colors()) if with_seg else None
-    return rasterize(m, r, pick(model.log_scales), pick(model.opacity_logits), camera, colors=pick(model.colors),
+    col = pick(model.colors) if colors is None else colors
+    return rasterize(m, r, pick(model.log_scales), pick(model.opacity_logits), camera, colors=col,
                      features=seg, outputs=outputs, options=raster_options())
 
 

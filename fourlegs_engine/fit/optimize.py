@@ -228,11 +228,12 @@ def _forecast(fi: torch.Tensor, prev: tuple[torch.Tensor, torch.Tensor], prev2: 
 
 
 def _composite(model: GaussianModel, tracker: Tracker, cameras: list[Camera], c: int, means: torch.Tensor,
-               unit_rotations: torch.Tensor, backgrounds: list[tuple[torch.Tensor, torch.Tensor]] | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor]:
+               unit_rotations: torch.Tensor, backgrounds: list[tuple[torch.Tensor, torch.Tensor]] | None = None,
+               colors: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Camera ``c``'s colour-corrected rgb (H,W,3) and seg colours (H,W,3): the foreground at ``means``/
-    ``unit_rotations`` blended over the fixed background image (``backgrounds``, default the tracker's)."""
-    out = render_views(model, cameras[c], subset=tracker.fg_idx, means=means, rotations=unit_rotations)
+    ``unit_rotations`` (with ``colors`` (F,3), default the model's) blended over the fixed background image
+    (``backgrounds``, default the tracker's)."""
+    out = render_views(model, cameras[c], subset=tracker.fg_idx, means=means, rotations=unit_rotations, colors=colors)
     bg_rgb, bg_seg = (tracker.backgrounds if backgrounds is None else backgrounds)[c]
     trans = 1.0 - out["alpha"]
     return correct_colours(out["rgb"] + trans * bg_rgb, model, c), out["features"] + trans * bg_seg
@@ -240,12 +241,14 @@ def _composite(model: GaussianModel, tracker: Tracker, cameras: list[Camera], c:
 
 def forecast_residual(model: GaussianModel, tracker: Tracker, frames: TrainingFrames, previous: TrainingFrames,
                       cameras: list[Camera], prev: tuple[torch.Tensor, torch.Tensor],
-                      prev2: tuple[torch.Tensor, torch.Tensor]) -> tuple[float, int]:
+                      prev2: tuple[torch.Tensor, torch.Tensor], colors: torch.Tensor | None = None) -> tuple[float, int]:
     """The forecast's mean absolute error on the pixels that moved since ``previous`` (every training
-    camera) and their count: what :func:`.effort.iterations_for` sizes a later timestep by."""
+    camera) and their count: what :func:`.effort.iterations_for` sizes a later timestep by. ``colors``:
+    (N,3) the previous timestep's colours (default the model's)."""
     means, rots = _forecast(tracker.fg_idx, prev, prev2)
+    fg_colors = None if colors is None else colors[tracker.fg_idx]
     with torch.no_grad():
-        renders = [_composite(model, tracker, cameras, c, means, rots)[0] for c in range(len(cameras))]
+        renders = [_composite(model, tracker, cameras, c, means, rots, colors=fg_colors)[0] for c in range(len(cameras))]
     return moving_residual(renders, frames.images, previous.images)
 
 
@@ -265,16 +268,19 @@ def motion_step_scale(prev_means: torch.Tensor, prev2_means: torch.Tensor, step_
 
 def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingFrames, cameras: list[Camera], opts: FitOptions,
                scene_radius: float, prev: tuple[torch.Tensor, torch.Tensor], prev2: tuple[torch.Tensor, torch.Tensor],
-               generator: torch.Generator, progress: Callable[[FitEvent], None], t: int, iterations: int
-               ) -> tuple[torch.Tensor, torch.Tensor, float]:
+               generator: torch.Generator, progress: Callable[[FitEvent], None], t: int, iterations: int,
+               colors: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
     """Optimize the foreground centres/rotations of one timestep for ``iterations`` steps, after the part
     steps of :func:`move_parts` when ``opts.part_extent`` > 0 (``part_fraction`` × ``iterations`` of them,
     every part, at the first later timestep, recognised by ``prev2`` being ``prev``; ``free_part_fraction`` ×
-    ``iterations``, free parts only, later). Returns full (N,3) means, (N,4) rotations and the last
-    training PSNR."""
+    ``iterations``, free parts only, later). With ``opts.lr_colors_later`` > 0 the foreground colours are
+    optimized too, starting from ``colors`` ((N,3), the previous timestep's; default the model's).
+    Returns full (N,3) means, (N,4) rotations, (N,3) colours in [0, 1] and the last training PSNR."""
     w = opts.weights
     fi = tracker.fg_idx
     prev_m, prev_r = prev[0][fi], prev[1][fi]
+    full_colors = model.colors if colors is None else colors
+    fg_colors = full_colors[fi]
     forecast_m, forecast_r = _forecast(fi, prev, prev2)
     if tracker.parts is not None:
         first = prev2[0] is prev[0]  # no velocity known yet: the forecast is the previous timestep
@@ -282,14 +288,18 @@ def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingF
         part_steps = int(round(fraction * iterations))
         if part_steps and fi.numel() and (first or bool(tracker.free_parts.any())):
             forecast_m, forecast_r = move_parts(model, tracker, frames, opts, scene_radius, forecast_m, forecast_r,
-                                                generator, part_steps, only_free=not first)
+                                                generator, part_steps, only_free=not first, colors=fg_colors)
     # the centres are the forecast plus a per-Gaussian step scale times what Adam moves: Adam's steps are
     # about its learning rate whatever the gradient's size, so the scale sets each centre's step
     step = motion_step_scale(prev_m, prev2[0][fi], opts.motion_step_range)[:, None]
     offset = torch.zeros_like(forecast_m).requires_grad_(True)
     rots = forecast_r.clone().requires_grad_(True)
-    optimizer = torch.optim.Adam([{"params": [offset], "lr": opts.lr_means_later * scene_radius},
-                                  {"params": [rots], "lr": opts.lr_rotations_later}], lr=0.0, eps=1e-15)
+    groups = [{"params": [offset], "lr": opts.lr_means_later * scene_radius},
+              {"params": [rots], "lr": opts.lr_rotations_later}]
+    if opts.lr_colors_later > 0:
+        fg_colors = fg_colors.clone().requires_grad_(True)
+        groups.append({"params": [fg_colors], "lr": opts.lr_colors_later})
+    optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15)
     order: list[int] = []
     last_psnr = float("nan")
     for it in range(iterations):
@@ -298,7 +308,7 @@ def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingF
         c = order.pop()
         means = forecast_m + step * offset
         unit = torch.nn.functional.normalize(rots, dim=-1)
-        rgb, seg = _composite(model, tracker, cameras, c, means, unit)
+        rgb, seg = _composite(model, tracker, cameras, c, means, unit, colors=fg_colors)
         loss = w["im"] * image_loss(rgb, frames.images[c])
         if frames.masks is not None:
             loss = loss + w["seg"] * image_loss(seg, frames.masks[c])
@@ -318,12 +328,15 @@ def fit_later_timestep(model: GaussianModel, tracker: Tracker, frames: TrainingF
         full_r = prev[1].clone()
         full_m[fi] = forecast_m + step * offset.detach()
         full_r[fi] = torch.nn.functional.normalize(rots.detach(), dim=-1)
-    return full_m, full_r, last_psnr
+        if opts.lr_colors_later > 0:
+            full_colors = full_colors.clone()
+            full_colors[fi] = fg_colors.detach().clamp(0, 1)
+    return full_m, full_r, full_colors, last_psnr
 
 
 def move_parts(model: GaussianModel, tracker: Tracker, frames: TrainingFrames, opts: FitOptions, scene_radius: float,
                start_m: torch.Tensor, start_r: torch.Tensor, generator: torch.Generator, steps: int,
-               only_free: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+               only_free: bool = False, colors: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The part steps of a later timestep: optimize one translation and one rotation (about the part's
     mean centre) per rigid part of ``tracker.parts`` for ``steps`` steps, one training camera per step at
     ``opts.part_scale`` of the fit resolution, under the image, segmentation and floor losses.
@@ -331,6 +344,7 @@ def move_parts(model: GaussianModel, tracker: Tracker, frames: TrainingFrames, o
     Args:
         start_m, start_r: (F,3) foreground centres and (F,4) unit rotations to start from (the forecast).
         only_free: move only the free parts (whole connected components); the others stay at the start.
+        colors: (F,3) foreground colours to render with (default the model's).
     Returns:
         the moved (F,3) centres and (F,4) unit rotations.
     """
@@ -354,7 +368,7 @@ def move_parts(model: GaussianModel, tracker: Tracker, frames: TrainingFrames, o
             order = torch.randperm(len(cameras), generator=generator).tolist()
         c = order.pop()
         means, unit = rigid_part_motion(start_m, start_r, labels, centres, translation * movable, omega * movable)
-        rgb, seg = _composite(model, tracker, cameras, c, means, unit, backgrounds)
+        rgb, seg = _composite(model, tracker, cameras, c, means, unit, backgrounds, colors=colors)
         loss = w["im"] * image_loss(rgb, images[c])
         if masks is not None:
             loss = loss + w["seg"] * image_loss(seg, masks[c])

@@ -60,6 +60,10 @@ class FitOptions:
         part_scale: the resolution of the part steps, as a fraction of the fit resolution (images
             area-averaged).
         lr_colors, lr_rotations, lr_opacities, lr_scales, lr_camera: Adam learning rates.
+        lr_colors_later: above 0, the foreground colours are optimized at every later timestep too, with
+            this Adam learning rate, starting from the previous timestep's, and the fitted scene's colours
+            vary per timestep (T,N,3), as in the paper's code (its rate: 0.0025); 0: the first timestep's
+            colours throughout.
         seed: every random choice derives from it.
         device: "auto" (CUDA when available), "cpu" or "cuda".
     """
@@ -97,6 +101,7 @@ class FitOptions:
     lr_opacities: float = 0.05
     lr_scales: float = 0.005
     lr_camera: float = 0.001
+    lr_colors_later: float = 0.0
     seed: int = 0
     device: str = "auto"
 
@@ -129,6 +134,9 @@ class FitOptions:
                 raise InputError(f"must be in [0, 4], got {getattr(self, name)}", field=name)
         if not 0.0 < float(self.part_scale) <= 1.0:
             raise InputError(f"must be in (0, 1], got {self.part_scale}", field="part_scale")
+        if not 0.0 <= float(self.lr_colors_later) < float("inf"):
+            raise InputError(f"must be 0 (off) or a positive learning rate, got {self.lr_colors_later}",
+                             field="lr_colors_later")
         if self.device not in ("auto", "cpu", "cuda"):
             raise InputError(f"must be auto, cpu or cuda, got {self.device!r}", field="device")
         if self.device == "cuda" and not torch.cuda.is_available():
@@ -150,6 +158,8 @@ class FitOptions:
         if d["part_extent"] == 0.0:
             for name in ("part_extent", "part_fraction", "free_part_fraction", "part_scale"):
                 d.pop(name)
+        if d["lr_colors_later"] == 0.0:
+            d.pop("lr_colors_later")
         if d["clean_plate_samples"] == 0:
             d.pop("clean_plate_samples")
             d["weights"] = {k: v for k, v in d["weights"].items() if k != "plate"}

@@ -10,7 +10,6 @@ sheet of test-camera ground truth beside the renders.
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import sys
 import time

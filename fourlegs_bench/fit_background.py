@@ -10,7 +10,6 @@ Gaussians | foreground only | background only, one block of rows per bundle.
 """
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any

@@ -165,3 +165,27 @@ def write_tiny_capture(root: Path, num_timesteps: int = 2, num_train: int = 3, w
                     Image.fromarray((box * 255).astype(np.uint8)).save(root / "seg" / c.name / f"{t:06d}.png")
         (root / f"{split}_meta.json").write_text(json.dumps(meta))
     return root
+
+
+def fit_straight_and_resumed(capture: Path, root: Path, options, kill_after: int) -> tuple[Path, Path]:
+    """Fit ``capture`` twice under ``root`` on one intra-op thread (multi-threaded reductions may sum in
+    another order run to run): straight through, and killed after timestep ``kill_after`` then resumed.
+    Returns the two bundle folders."""
+    import pytest
+
+    from fourlegs_engine.fit import fit_capture
+
+    def kill(ev):
+        if ev.kind == "timestep" and ev.timestep == kill_after:
+            raise KeyboardInterrupt
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        fit_capture(capture, root / "straight", options, progress=False)
+        with pytest.raises(KeyboardInterrupt):
+            fit_capture(capture, root / "resumed", options, progress=kill)
+        fit_capture(capture, root / "resumed", options, progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    return root / "straight", root / "resumed"

@@ -188,20 +188,7 @@ def test_later_timesteps_get_their_steps_from_the_forecast_residual(jerky_captur
 
 @pytest.mark.slow
 def test_a_resumed_adaptive_fit_takes_the_same_steps(jerky_capture, tmp_path):
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        fit_capture(jerky_capture, tmp_path / "straight", ADAPTIVE, progress=False)
-
-        def kill_after_timestep_2(ev):
-            if ev.kind == "timestep" and ev.timestep == 2:
-                raise KeyboardInterrupt
-
-        with pytest.raises(KeyboardInterrupt):
-            fit_capture(jerky_capture, tmp_path / "resumed", ADAPTIVE, progress=kill_after_timestep_2)
-        fit_capture(jerky_capture, tmp_path / "resumed", ADAPTIVE, progress=False)
-    finally:
-        torch.set_num_threads(threads)
+    fh.fit_straight_and_resumed(jerky_capture, tmp_path, ADAPTIVE, kill_after=2)
     a, b = load_bundle(tmp_path / "straight"), load_bundle(tmp_path / "resumed")
     assert a.metadata["fit"]["later_iterations"] == b.metadata["fit"]["later_iterations"]
     assert np.array_equal(np.asarray(a.gaussians.means), np.asarray(b.gaussians.means))

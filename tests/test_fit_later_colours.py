@@ -81,24 +81,10 @@ def test_colours_follow_a_darkening_foreground_and_leave_the_rest(darkening_capt
 
 
 def test_killed_fit_with_later_colours_resumes_to_the_identical_bundle(darkening_capture, tmp_path):
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        opts = FitOptions(resolution_scale=0.5, first_iterations=20, iterations=4, init_background=400,
-                          background_stride=4, voxel=0.05, lr_colors_later=0.02)
-        fit_capture(darkening_capture, tmp_path / "straight", opts, progress=False)
-
-        def kill_after_timestep_1(ev):
-            if ev.kind == "timestep" and ev.timestep == 1:
-                raise KeyboardInterrupt
-
-        with pytest.raises(KeyboardInterrupt):
-            fit_capture(darkening_capture, tmp_path / "resumed", opts, progress=kill_after_timestep_1)
-        fit_capture(darkening_capture, tmp_path / "resumed", opts, progress=False)
-    finally:
-        torch.set_num_threads(threads)
-    a = np.load(tmp_path / "straight" / "colors.npy")
-    b = np.load(tmp_path / "resumed" / "colors.npy")
+    opts = FitOptions(resolution_scale=0.5, first_iterations=20, iterations=4, init_background=400,
+                      background_stride=4, voxel=0.05, lr_colors_later=0.02)
+    straight, resumed = fh.fit_straight_and_resumed(darkening_capture, tmp_path, opts, kill_after=1)
+    a, b = np.load(straight / "colors.npy"), np.load(resumed / "colors.npy")
     assert a.ndim == 3 and np.array_equal(a, b)
 
 

@@ -42,7 +42,7 @@ def _render_bundle(scene, i, cam):
     with torch.no_grad():
         return rasterize(torch.from_numpy(np.array(g.means[i])), torch.from_numpy(np.array(g.rotations[i])),
                          torch.from_numpy(np.array(g.log_scales)), torch.from_numpy(np.array(g.opacity_logits)),
-                         cam, colors=torch.from_numpy(np.array(g.colors)), options=RasterOptions())["rgb"]
+                         cam, colors=torch.from_numpy(np.array(g.rgb(i))), options=RasterOptions())["rgb"]
 
 
 @pytest.mark.slow

@@ -18,7 +18,7 @@ from fourlegs_engine.scene.bundle import load_bundle
 #: the box jumps 0.7 m a timestep: what it hides at t = 0 is in the open at t = 1 and 2
 JUMP = np.array([0.7, 0.0, 0.0])
 OPTIONS = FitOptions(resolution_scale=1.0, first_iterations=60, iterations=1, init_background=1500,
-                     background_stride=3, voxel=0.04, max_gaussians=4000, densify=False)
+                     background_stride=3, voxel=0.04, max_gaussians=4000, densify=False, **fh.FEW_STEP_RATES)
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +92,7 @@ def _background_errors(bundle: Path, capture: Capture) -> tuple[float, float]:
         with torch.no_grad():
             rgb = rasterize(torch.from_numpy(np.array(g.means[0])), torch.from_numpy(np.array(g.rotations[0])),
                             torch.from_numpy(np.array(g.log_scales)), opac, cam,
-                            colors=torch.from_numpy(np.array(g.colors)), options=RasterOptions())["rgb"].numpy()
+                            colors=torch.from_numpy(np.array(g.rgb(0))), options=RasterOptions())["rgb"].numpy()
         errors.append(np.abs(rgb[hidden] - wall[hidden]).mean(-1))
         with pytest.MonkeyPatch.context() as mp:
             mp.setattr(fh, "STEP_TRANSLATION", JUMP)

@@ -20,7 +20,7 @@ from fourlegs_engine.scene.bundle import load_bundle
 #: the synthetic scene's options (as tests/test_fit.py) with the foreground darkening 20 % per timestep
 OPTIONS = FitOptions(resolution_scale=1.0, first_iterations=80, iterations=16, max_iterations=0,
                      init_background=1500, background_stride=4, voxel=0.04, max_gaussians=4000,
-                     lr_means_later=0.0016)
+                     lr_means_later=0.0016, **fh.FEW_STEP_RATES)
 DARKENING = 0.2
 
 
@@ -88,6 +88,14 @@ def test_killed_fit_with_later_colours_resumes_to_the_identical_bundle(darkening
     assert a.ndim == 3 and np.array_equal(a, b)
 
 
+def test_the_colour_rate_is_in_the_fingerprint_only_when_on():
+    from fourlegs_engine.fit.options import preset_options
+
+    assert "lr_colors_later" not in FitOptions(lr_colors_later=0.0).fingerprint()
+    assert FitOptions().fingerprint()["lr_colors_later"] == 0.0025
+    assert preset_options("accurate").lr_colors_later == 0.0025
+
+
 @pytest.mark.parametrize("value", [-0.01, float("nan"), float("inf")])
 def test_a_bad_colour_rate_is_refused_naming_the_field(value):
     with pytest.raises(InputError, match="lr_colors_later"):
@@ -105,4 +113,4 @@ def test_the_bench_and_the_cli_take_the_colour_rate():
     register(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["fit", "capture", "-o", "out", "--lr-colors-later", "0.001"])
     assert options_from_args(args).lr_colors_later == 0.001
-    assert options_from_args(parser.parse_args(["fit", "capture", "-o", "out"])).lr_colors_later == 0.0
+    assert options_from_args(parser.parse_args(["fit", "capture", "-o", "out"])).lr_colors_later == 0.0025

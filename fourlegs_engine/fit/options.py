@@ -59,11 +59,12 @@ class FitOptions:
             bounced; the cut parts of the people are left to the per-Gaussian steps).
         part_scale: the resolution of the part steps, as a fraction of the fit resolution (images
             area-averaged).
-        lr_colors, lr_rotations, lr_opacities, lr_scales, lr_camera: Adam learning rates.
+        lr_colors, lr_rotations, lr_opacities, lr_scales, lr_camera: Adam learning rates of the first
+            timestep (colours and scales at the paper's code's rates).
         lr_colors_later: above 0, the foreground colours are optimized at every later timestep too, with
             this Adam learning rate, starting from the previous timestep's, and the fitted scene's colours
-            vary per timestep (T,N,3), as in the paper's code (its rate: 0.0025); 0: the first timestep's
-            colours throughout.
+            vary per timestep (T,N,3), as in the paper's code (its rate, the default: 0.0025); 0: the first
+            timestep's colours throughout.
         seed: every random choice derives from it.
         device: "auto" (CUDA when available), "cpu" or "cuda".
     """
@@ -95,13 +96,13 @@ class FitOptions:
     part_fraction: float = 0.5
     free_part_fraction: float = 0.25
     part_scale: float = 0.5
-    lr_colors: float = 0.01
+    lr_colors: float = 0.0025
     lr_rotations: float = 0.001
     lr_rotations_later: float = 0.004
     lr_opacities: float = 0.05
-    lr_scales: float = 0.005
+    lr_scales: float = 0.001
     lr_camera: float = 0.001
-    lr_colors_later: float = 0.0
+    lr_colors_later: float = 0.0025
     seed: int = 0
     device: str = "auto"
 

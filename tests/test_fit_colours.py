@@ -54,3 +54,16 @@ def test_extreme_corrections_keep_colours_in_range_and_finite(colors, cam_m, cam
     assert np.isfinite(new_colors).all() and np.isfinite(new_m).all() and np.isfinite(new_c).all()
     assert new_colors.min() >= 0.0 and new_colors.max() <= 1.0
     np.testing.assert_allclose(new_m.mean(0), 0.0, atol=1e-5)
+
+
+def test_per_timestep_colours_are_corrected_timestep_by_timestep_alike():
+    rng = np.random.default_rng(3)
+    colors = rng.random((4, 50, 3)).astype(np.float32)
+    cam_m, cam_c = rng.normal(0, 0.3, (6, 3)), rng.normal(0, 0.05, (6, 3))
+    whole, m, c = average_camera_colours(colors, cam_m, cam_c)
+    assert whole.shape == colors.shape and whole.dtype == np.float32
+    for t in range(4):
+        one, m_t, c_t = average_camera_colours(colors[t], cam_m, cam_c)
+        np.testing.assert_array_equal(whole[t], one)
+        np.testing.assert_array_equal(m, m_t)
+        np.testing.assert_array_equal(c, c_t)

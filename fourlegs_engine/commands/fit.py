@@ -64,7 +64,8 @@ def register(subparsers: Any) -> None:
                    "this many metres) so a thrown ball follows whole (default 0.4; 0: off)")
     p.add_argument("--lr-colors-later", type=float, default=None,
                    help="later timesteps also fit the foreground's colours at this learning rate, so the scene's "
-                   "colours vary per timestep (the paper's code: 0.0025; 0: the first timestep's throughout)")
+                   "colours vary per timestep (default 0.0025, the paper's code's; 0: the first timestep's "
+                   "throughout)")
     p.add_argument("--init", choices=("hull", "features", "hull+features"), default=None,
                    help="initial Gaussians: visual hull + background proxy (hull), triangulated SIFT matches "
                    "(features, needs OpenCV: pip install 'fourlegs[fit-features]') or both (default: hull)")

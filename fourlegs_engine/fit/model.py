@@ -99,11 +99,12 @@ def average_camera_colours(colors: np.ndarray, cam_m: np.ndarray, cam_c: np.ndar
     opacity is 1 (everywhere a capture's background is fitted) and the colours stay within [0, 1].
 
     Args:
-        colors: (N, 3) in [0, 1]. cam_m, cam_c: (C, 3) log-gains and offsets of the training cameras.
+        colors: (N, 3) or per timestep (T, N, 3) in [0, 1]. cam_m, cam_c: (C, 3) log-gains and offsets of
+            the training cameras.
     Returns:
         (colours', m', c') as float32 arrays of the same shapes (unchanged when C = 0).
     """
-    colors = np.asarray(colors, np.float64)
+    colors = np.asarray(colors)
     cam_m = np.asarray(cam_m, np.float64)
     cam_c = np.asarray(cam_c, np.float64)
     if cam_m.shape[0] == 0:
@@ -111,9 +112,12 @@ def average_camera_colours(colors: np.ndarray, cam_m: np.ndarray, cam_c: np.ndar
     log_gain = cam_m.mean(0)
     offset = cam_c.mean(0)
     new_m = cam_m - log_gain
-    new_colors = np.clip(np.exp(log_gain) * colors + offset, 0.0, 1.0)
+    new_colors = np.empty(colors.shape, np.float32)
+    # one timestep at a time: a (T,N,3) sequence in float64 at once would be several GB
+    for src, dst in zip(colors.reshape(-1, *colors.shape[-2:]), new_colors.reshape(-1, *colors.shape[-2:])):
+        dst[:] = np.clip(np.exp(log_gain) * src.astype(np.float64) + offset, 0.0, 1.0)
     new_c = cam_c - np.exp(new_m) * offset
-    return new_colors.astype(np.float32), new_m.astype(np.float32), new_c.astype(np.float32)
+    return new_colors, new_m.astype(np.float32), new_c.astype(np.float32)
 
 
 def to_numpy(t: torch.Tensor) -> np.ndarray:
